@@ -1,0 +1,127 @@
+"""``bac``: the command-line entry point of the project.
+
+    bac launch PROFILE [--single-process] [-p node.param:=value ...]   run a node graph
+    bac demo [...]                                                      the main job (make demo)
+    bac netns -- COMMAND ...                                            run in a private network namespace
+
+Further sub-commands (rescore, replay, reduce, report, ...) are provided by the
+other packages and listed by ``bac --help``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import importlib
+import logging
+import sys
+from collections.abc import Callable, Sequence
+from pathlib import Path
+from typing import Any
+
+from bac_bringup import launcher, netns
+from bac_bringup.profile import ProfileError, load_profile
+
+# sub-command -> (module, function, one-line help); the function takes argv and returns an exit code
+SUBCOMMANDS: dict[str, tuple[str, str, str]] = {
+    "launch": ("bac_bringup.cli", "launch_main", "run a node graph profile (sim, car, replay)"),
+    "demo": ("bac_bringup.demo", "main", "the main job: a whole calibration campaign on the simulated vehicle"),
+    "netns": ("bac_bringup.netns", "main", "run a command inside a private network namespace"),
+    "rescore": ("bac_agent.rescore", "main", "re-cut and re-score a campaign's bags (or any IMU bag) offline"),
+    "replay": ("bac_agent.replay", "main", "play bags into the live graph on /clock"),
+    "report": ("bac_agent.report", "main", "make a campaign's report (PNG + HTML)"),
+    "reduce": ("bac_agent.reduce", "main", "simulation phase: find the parameters that matter (paper sec. III-D)"),
+    "ground-truth": ("bac_sim.ground_truth", "main", "recompute the simulator's true optima by dense grids"),
+}
+
+
+def parse_assignment(text: str) -> tuple[str, str, Any]:
+    """``node.param:=value`` -> (node, param, value parsed as YAML)."""
+    import yaml
+
+    if ":=" not in text or "." not in text.split(":=", 1)[0]:
+        raise argparse.ArgumentTypeError(f"expected node.param:=value, got {text!r}")
+    key, raw = text.split(":=", 1)
+    node, param = key.split(".", 1)
+    return node, param, yaml.safe_load(raw) if raw != "" else ""
+
+
+def launch_main(argv: Sequence[str]) -> int:
+    ap = argparse.ArgumentParser(prog="bac launch", description="Run a node graph profile from ros_ws/profiles.")
+    ap.add_argument("profile", help="profile name (sim, car, replay, ...) or path to a profile YAML")
+    ap.add_argument(
+        "--single-process",
+        action="store_true",
+        help="all nodes in one process on a multi-threaded executor (CAN on the virtual bus)",
+    )
+    ap.add_argument(
+        "-p",
+        "--param",
+        action="append",
+        default=[],
+        type=parse_assignment,
+        metavar="NODE.PARAM:=VALUE",
+        help="override one node parameter (repeatable)",
+    )
+    ap.add_argument("--params-file", action="append", default=[], help="extra ROS parameter YAML (repeatable)")
+    ap.add_argument("--only", help="comma-separated node names to start (default: all)")
+    ap.add_argument("--exclude", default="", help="comma-separated node names not to start")
+    ap.add_argument("--log-dir", type=Path, help="write each node's output to LOG_DIR/<node>.log")
+    ap.add_argument("--timeout", type=float, help="stop the graph after this many seconds (exit 124)")
+    args = ap.parse_args(list(argv))
+    try:
+        profile = load_profile(args.profile)
+        overrides: dict[str, dict[str, Any]] = {}
+        for node, param, value in args.param:
+            overrides.setdefault(node, {})[param] = value
+        profile = profile.with_overrides(
+            params=overrides,
+            extra_params_files=args.params_file,
+            only=args.only.split(",") if args.only else None,
+            exclude=[x for x in args.exclude.split(",") if x],
+        )
+    except ProfileError as exc:
+        logging.getLogger("bac.launch").error("%s", exc)
+        return 2
+    if launcher.needs_private_netns(profile, args.single_process):
+        try:
+            return launcher.relaunch_in_netns(["launch", *argv])
+        except netns.NetnsError as exc:
+            logging.getLogger("bac.launch").error("%s", exc)
+            return 3
+    return launcher.run_graph(profile, single_process=args.single_process, log_dir=args.log_dir, timeout_s=args.timeout)
+
+
+def _resolve(name: str) -> Callable[[Sequence[str]], int] | None:
+    module, func, _ = SUBCOMMANDS[name]
+    try:
+        mod = importlib.import_module(module)
+    except ModuleNotFoundError as exc:
+        if exc.name and module.startswith(exc.name):
+            return None
+        raise
+    fn = getattr(mod, func, None)
+    return fn
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    logging.basicConfig(level=logging.INFO, format="[%(name)s] %(message)s")
+    args = list(sys.argv[1:] if argv is None else argv)
+    if not args or args[0] in ("-h", "--help"):
+        lines = ["usage: bac COMMAND [ARGS ...]", "", "commands:"]
+        for name, (_, _, text) in SUBCOMMANDS.items():
+            lines.append(f"  {name:<13} {text}")
+        sys.stdout.write("\n".join(lines) + "\n")
+        return 0 if args else 2
+    name, rest = args[0], args[1:]
+    if name not in SUBCOMMANDS:
+        sys.stderr.write(f"bac: unknown command '{name}' (bac --help lists them)\n")
+        return 2
+    fn = _resolve(name)
+    if fn is None:
+        sys.stderr.write(f"bac {name}: not available in this build yet\n")
+        return 2
+    return int(fn(rest))
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,308 @@
+"""The graph launcher (there is no ``ros2 launch`` here).
+
+Two modes, the same profile:
+
+* **processes** (default): each node in its own process, as ``ros2 run``
+  would start it (``python -m module --ros-args -r __node:=name
+  --params-file ... -p k:=v``). CAN between processes goes over python-can's
+  ``udp_multicast``, which is only allowed inside a private network
+  namespace: the launcher re-runs itself in one when needed.
+* **single process**: every node in this process on one multi-threaded
+  executor, as a component container would; CAN over python-can's in-process
+  ``virtual`` bus.
+
+Either way every node gets ``ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST``; SIGINT
+and SIGTERM are forwarded and the graph shuts down cleanly; the launcher exits
+with the code of the ``ends_graph`` node when it finishes, and non-zero when
+any node dies.
+"""
+
+from __future__ import annotations
+
+import ctypes
+import importlib
+import logging
+import os
+import signal
+import subprocess
+import sys
+import tempfile
+import time
+from collections.abc import Sequence
+from dataclasses import dataclass, replace
+from pathlib import Path
+from typing import Any
+
+from bac_common.contracts import ROS_ENV_DEFAULTS
+
+from bac_bringup import netns
+from bac_bringup.profile import (
+    CAN_INTERFACES_CROSS_PROCESS,
+    CanSpec,
+    NodeSpec,
+    Profile,
+    format_param_value,
+)
+
+LOG = logging.getLogger("bac.launch")
+STOP_GRACE_S = 8.0  # SIGINT, then this long before SIGTERM, then as long before SIGKILL
+PR_SET_PDEATHSIG = 1
+
+
+def ros_environment(base: dict[str, str] | None = None) -> dict[str, str]:
+    """The environment of every ROS process bac starts (network rule, ament prefix)."""
+    env = dict(os.environ if base is None else base)
+    for k, v in ROS_ENV_DEFAULTS.items():
+        env.setdefault(k, v)
+    env["ROS_AUTOMATIC_DISCOVERY_RANGE"] = "LOCALHOST"  # never widened by the launcher
+    env.setdefault("AMENT_PREFIX_PATH", sys.prefix)
+    env.setdefault("PYTHONUNBUFFERED", "1")
+    env.setdefault("RCUTILS_COLORIZED_OUTPUT", "0")
+    return env
+
+
+def ros_args_for(profile: Profile, spec: NodeSpec) -> list[str]:
+    args = ["--ros-args", "-r", f"__node:={spec.name}"]
+    for f in profile.params_files:
+        args += ["--params-file", str(f)]
+    for k, v in profile.params_for(spec).items():
+        args += ["-p", f"{k}:={format_param_value(v)}"]
+    return args
+
+
+def _die_with_parent() -> None:  # pragma: no cover - runs in the child before exec
+    try:
+        libc = ctypes.CDLL("libc.so.6", use_errno=True)
+        libc.prctl(PR_SET_PDEATHSIG, signal.SIGTERM)
+    except OSError:
+        pass
+
+
+@dataclass
+class NodeProcess:
+    spec: NodeSpec
+    proc: subprocess.Popen[bytes]
+
+    @property
+    def name(self) -> str:
+        return self.spec.name
+
+
+class ProcessGraph:
+    """Each node of a profile in its own process (``ros2 run`` style)."""
+
+    def __init__(self, profile: Profile, env: dict[str, str] | None = None, log_dir: Path | None = None) -> None:
+        self.profile = profile
+        self.env = ros_environment(env)
+        self.log_dir = log_dir
+        self.children: list[NodeProcess] = []
+        self._stop_requested = False
+
+    def command_for(self, spec: NodeSpec) -> list[str]:
+        return [sys.executable, "-m", spec.module, *ros_args_for(self.profile, spec)]
+
+    def start(self) -> None:
+        for spec in self.profile.nodes:
+            cmd = self.command_for(spec)
+            out: Any = None
+            if self.log_dir is not None:
+                self.log_dir.mkdir(parents=True, exist_ok=True)
+                out = (self.log_dir / f"{spec.name}.log").open("ab")
+            LOG.info("starting %s: %s", spec.name, " ".join(cmd))
+            proc = subprocess.Popen(
+                cmd,
+                env=self.env,
+                stdout=out,
+                stderr=subprocess.STDOUT if out is not None else None,
+                start_new_session=True,
+                preexec_fn=_die_with_parent,
+            )
+            self.children.append(NodeProcess(spec, proc))
+
+    def request_stop(self) -> None:
+        self._stop_requested = True
+
+    def poll(self) -> int | None:
+        """None while the graph runs; else the exit code the graph should end with."""
+        for child in self.children:
+            rc = child.proc.poll()
+            if rc is None:
+                continue
+            if child.spec.ends_graph and rc == 0:
+                LOG.info("%s finished: shutting down the graph", child.name)
+                return 0
+            LOG.error("node %s exited with code %s: shutting down the graph", child.name, rc)
+            return rc if rc > 0 else 1
+        return None
+
+    def wait(self, timeout_s: float | None = None) -> int:
+        deadline = None if timeout_s is None else time.monotonic() + timeout_s
+        code: int | None = None
+        while code is None and not self._stop_requested:
+            code = self.poll()
+            if code is None:
+                if deadline is not None and time.monotonic() > deadline:
+                    LOG.error("graph still running after %.0f s: stopping it", timeout_s)
+                    code = 124
+                    break
+                time.sleep(0.05)
+        stop_rc = self.stop()
+        return code if code is not None else stop_rc
+
+    def stop(self) -> int:
+        """SIGINT to every live node, then SIGTERM, then SIGKILL. Returns 0 if all ended cleanly."""
+        live = [c for c in self.children if c.proc.poll() is None]
+        unclean = 0
+        for sig, grace in ((signal.SIGINT, STOP_GRACE_S), (signal.SIGTERM, STOP_GRACE_S), (signal.SIGKILL, 5.0)):
+            if not live:
+                break
+            for c in live:
+                try:
+                    os.killpg(c.proc.pid, sig)
+                except ProcessLookupError:
+                    pass
+            if sig != signal.SIGINT:
+                unclean += len(live)
+                LOG.warning("sent %s to %s", sig.name, ", ".join(c.name for c in live))
+            deadline = time.monotonic() + grace
+            while live and time.monotonic() < deadline:
+                live = [c for c in live if c.proc.poll() is None]
+                time.sleep(0.02)
+        return 1 if unclean else 0
+
+
+class SingleProcessGraph:
+    """Every node of a profile in this process on one multi-threaded executor."""
+
+    def __init__(self, profile: Profile) -> None:
+        self.profile = profile
+
+    def run(self, timeout_s: float | None = None) -> int:
+        import rclpy
+        from rclpy.executors import ExternalShutdownException, MultiThreadedExecutor
+        from rclpy.parameter import Parameter
+        from rclpy.utilities import ok, try_shutdown
+
+        for k, v in ros_environment().items():
+            os.environ.setdefault(k, v)
+        os.environ["ROS_AUTOMATIC_DISCOVERY_RANGE"] = "LOCALHOST"
+        args = ["bac_launch", "--ros-args"]
+        for f in self.profile.params_files:
+            args += ["--params-file", str(f)]
+        rclpy.init(args=args)
+        nodes: list[Any] = []
+        code = 0
+        try:
+            for spec in self.profile.nodes:
+                cls = getattr(importlib.import_module(spec.module), spec.class_name)
+                overrides = [Parameter(k, value=v) for k, v in self.profile.params_for(spec).items()]
+                nodes.append((spec, cls(parameter_overrides=overrides)))
+            executor = MultiThreadedExecutor(num_threads=max(4, len(nodes) + 2))
+            for _, n in nodes:
+                executor.add_node(n)
+            deadline = None if timeout_s is None else time.monotonic() + timeout_s
+            while ok():
+                executor.spin_once(timeout_sec=0.05)
+                done = [(s, n) for s, n in nodes if getattr(n, "exit_code", None) is not None]
+                if done:
+                    spec, node = done[0]
+                    if spec.ends_graph and node.exit_code == 0:
+                        LOG.info("%s finished: shutting down the graph", spec.name)
+                        code = 0
+                    else:
+                        LOG.error("node %s ended with code %s", spec.name, node.exit_code)
+                        code = int(node.exit_code) or 1
+                    break
+                if deadline is not None and time.monotonic() > deadline:
+                    LOG.error("graph still running after %.0f s: stopping it", timeout_s)
+                    code = 124
+                    break
+        except (KeyboardInterrupt, ExternalShutdownException):
+            code = 0
+        except Exception:
+            LOG.exception("a node crashed: shutting down the graph")
+            code = 1
+        finally:
+            for _, n in reversed(nodes):
+                try:
+                    n.destroy_node()
+                except Exception:
+                    LOG.exception("destroying a node failed")
+            try_shutdown()
+        return code
+
+
+def prepare(profile: Profile, single_process: bool) -> Profile:
+    """Adapt the CAN settings to the mode: the virtual bus in one process."""
+    if (
+        single_process
+        and profile.needs_can
+        and profile.can is not None
+        and profile.can.interface in CAN_INTERFACES_CROSS_PROCESS
+    ):
+        return replace(profile, can=CanSpec("virtual", f"bac-{os.getpid()}", profile.can.bitrate, {}))
+    return profile
+
+
+def needs_private_netns(profile: Profile, single_process: bool) -> bool:
+    return (
+        not single_process
+        and profile.needs_can
+        and profile.can is not None
+        and profile.can.interface in CAN_INTERFACES_CROSS_PROCESS
+        and not netns.in_private_netns()
+    )
+
+
+def run_graph(
+    profile: Profile,
+    single_process: bool = False,
+    log_dir: Path | None = None,
+    timeout_s: float | None = None,
+) -> int:
+    """Run a profile until its ends_graph node finishes, a node dies or a signal arrives."""
+    profile = prepare(profile, single_process)
+    if single_process:
+        return SingleProcessGraph(profile).run(timeout_s=timeout_s)
+    graph = ProcessGraph(profile, log_dir=log_dir)
+
+    def on_signal(signum: int, _frame: Any) -> None:
+        LOG.info("received %s: stopping the graph", signal.Signals(signum).name)
+        graph.request_stop()
+
+    old = {s: signal.signal(s, on_signal) for s in (signal.SIGINT, signal.SIGTERM)}
+    try:
+        graph.start()
+        return graph.wait(timeout_s=timeout_s)
+    finally:
+        graph.stop()
+        for s, h in old.items():
+            signal.signal(s, h)
+
+
+def relaunch_in_netns(argv: Sequence[str]) -> int:
+    """Run ``python -m bac_bringup.cli <argv>`` again inside a private network namespace."""
+    cmd = [sys.executable, "-m", "bac_bringup.cli", *argv]
+    LOG.info("CAN over udp_multicast between processes: entering a private network namespace")
+    proc = subprocess.Popen(netns.wrap_command(cmd), env=netns.private_env(ros_environment()))
+
+    def forward(signum: int, _frame: Any) -> None:
+        proc.send_signal(signum)
+
+    old = {s: signal.signal(s, forward) for s in (signal.SIGINT, signal.SIGTERM)}
+    try:
+        return proc.wait()
+    finally:
+        for s, h in old.items():
+            signal.signal(s, h)
+
+
+def write_params_file(params: dict[str, dict[str, Any]], directory: Path | None = None) -> Path:
+    """Write ``{node: {param: value}}`` as a ROS 2 parameter YAML file."""
+    import yaml
+
+    data = {node: {"ros__parameters": p} for node, p in params.items()}
+    fd, name = tempfile.mkstemp(prefix="bac-params-", suffix=".yaml", dir=directory)
+    with os.fdopen(fd, "w") as f:
+        yaml.safe_dump(data, f)
+    return Path(name)

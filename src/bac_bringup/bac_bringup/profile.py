@@ -1,0 +1,218 @@
+"""Graph profiles: which nodes run, with which parameters (ros_ws/profiles/*.yaml).
+
+A profile is the bac equivalent of a launch file::
+
+    description: simulated vehicle, whole calibration graph
+    use_sim_time: true
+    params_files: [../params/sim.yaml]        # relative to this file, keyed by node name
+    can: {interface: udp_multicast, channel: 239.74.163.2, bitrate: 500000}
+    nodes:
+      - {name: vehicle_sim, entry: bac_sim.vehicle_sim_node:VehicleSimNode, can: true}
+      - {name: bo_agent, entry: bac_agent.agent_node:BoAgentNode, ends_graph: true}
+
+``entry`` is ``module:Class``: the process mode runs ``python -m module`` (the
+module's ``main()``), the single-process mode instantiates ``Class``.
+``can: true`` gives the node the profile's CAN settings as ``can.*``
+parameters. ``ends_graph: true`` marks the node whose normal exit (code 0)
+ends the whole graph; any other node exiting is a failure.
+"""
+
+from __future__ import annotations
+
+import os
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass, field, replace
+from pathlib import Path
+from typing import Any
+
+from bac_common.errors import BacError
+
+CAN_INTERFACES_CROSS_PROCESS = ("udp_multicast",)
+
+
+class ProfileError(BacError, ValueError):
+    """A graph profile is missing or malformed."""
+
+
+@dataclass(frozen=True)
+class NodeSpec:
+    name: str
+    entry: str  # module:Class
+    can: bool = False
+    ends_graph: bool = False
+    params: Mapping[str, Any] = field(default_factory=dict)  # per-node overrides
+
+    @property
+    def module(self) -> str:
+        return self.entry.split(":", 1)[0]
+
+    @property
+    def class_name(self) -> str:
+        return self.entry.split(":", 1)[1]
+
+
+@dataclass(frozen=True)
+class CanSpec:
+    interface: str = "virtual"
+    channel: str = "bac"
+    bitrate: int = 500000
+    extra: Mapping[str, Any] = field(default_factory=dict)  # any further can.* parameters
+
+    def as_params(self) -> dict[str, Any]:
+        out: dict[str, Any] = {
+            "can.interface": self.interface,
+            "can.channel": self.channel,
+            "can.bitrate": int(self.bitrate),
+        }
+        out.update({f"can.{k}": v for k, v in self.extra.items()})
+        return out
+
+
+@dataclass(frozen=True)
+class Profile:
+    name: str
+    path: Path | None
+    nodes: tuple[NodeSpec, ...]
+    params_files: tuple[Path, ...] = ()
+    use_sim_time: bool = False
+    can: CanSpec | None = None
+    description: str = ""
+    global_params: Mapping[str, Any] = field(default_factory=dict)  # given to every node
+
+    @property
+    def needs_can(self) -> bool:
+        return self.can is not None and any(n.can for n in self.nodes)
+
+    def node(self, name: str) -> NodeSpec:
+        for n in self.nodes:
+            if n.name == name:
+                return n
+        raise ProfileError(f"profile '{self.name}' has no node '{name}' (nodes: {[n.name for n in self.nodes]})")
+
+    def params_for(self, spec: NodeSpec) -> dict[str, Any]:
+        """The -p overrides of one node: use_sim_time, CAN, global, then the node's own."""
+        out: dict[str, Any] = {"use_sim_time": self.use_sim_time}
+        out.update(self.global_params)
+        if spec.can and self.can is not None:
+            out.update(self.can.as_params())
+        out.update(spec.params)
+        return out
+
+    def with_overrides(
+        self,
+        params: Mapping[str, Mapping[str, Any]] | None = None,
+        global_params: Mapping[str, Any] | None = None,
+        extra_params_files: Sequence[str | Path] = (),
+        can: CanSpec | None = None,
+        only: Sequence[str] | None = None,
+        exclude: Sequence[str] = (),
+        use_sim_time: bool | None = None,
+    ) -> Profile:
+        """A copy with parameter overrides (``{node: {key: value}}``) and node selection."""
+        nodes = []
+        for n in self.nodes:
+            if only is not None and n.name not in only:
+                continue
+            if n.name in exclude:
+                continue
+            extra = dict((params or {}).get(n.name, {}))
+            nodes.append(replace(n, params={**n.params, **extra}) if extra else n)
+        unknown = set(params or {}) - {n.name for n in self.nodes}
+        if unknown:
+            raise ProfileError(f"overrides for unknown nodes {sorted(unknown)} in profile '{self.name}'")
+        return replace(
+            self,
+            nodes=tuple(nodes),
+            params_files=self.params_files + tuple(Path(p).resolve() for p in extra_params_files),
+            global_params={**self.global_params, **(global_params or {})},
+            can=can if can is not None else self.can,
+            use_sim_time=self.use_sim_time if use_sim_time is None else use_sim_time,
+        )
+
+
+def workspace_dir() -> Path:
+    """The ros_ws/ folder: $BAC_WS, else found above the working directory or this package."""
+    env = os.environ.get("BAC_WS")
+    if env:
+        return Path(env).resolve()
+    for start in (Path.cwd(), Path(__file__).resolve()):
+        for d in (start, *start.parents):
+            if (d / "ros_ws" / "profiles").is_dir():
+                return d / "ros_ws"
+    raise ProfileError("cannot find the ros_ws/ workspace: set BAC_WS to its path")
+
+
+def resolve_profile_path(name_or_path: str | Path) -> Path:
+    p = Path(name_or_path)
+    if p.suffix in (".yaml", ".yml") and p.exists():
+        return p.resolve()
+    candidate = workspace_dir() / "profiles" / f"{name_or_path}.yaml"
+    if candidate.exists():
+        return candidate
+    known = sorted(x.stem for x in (workspace_dir() / "profiles").glob("*.yaml"))
+    raise ProfileError(f"unknown profile '{name_or_path}' (known: {', '.join(known)}; or give a .yaml path)")
+
+
+def load_profile(name_or_path: str | Path) -> Profile:
+    import yaml
+
+    path = resolve_profile_path(name_or_path)
+    try:
+        data = yaml.safe_load(path.read_text()) or {}
+    except yaml.YAMLError as exc:
+        raise ProfileError(f"{path}: not valid YAML: {exc}") from exc
+    if not isinstance(data, dict) or not isinstance(data.get("nodes"), list) or not data["nodes"]:
+        raise ProfileError(f"{path}: a profile needs a non-empty 'nodes' list")
+    nodes = []
+    for i, n in enumerate(data["nodes"]):
+        if not isinstance(n, dict) or "name" not in n or "entry" not in n or ":" not in str(n["entry"]):
+            raise ProfileError(f"{path}: node #{i + 1} needs 'name' and 'entry: module:Class'")
+        nodes.append(
+            NodeSpec(
+                name=str(n["name"]),
+                entry=str(n["entry"]),
+                can=bool(n.get("can", False)),
+                ends_graph=bool(n.get("ends_graph", False)),
+                params=dict(n.get("params") or {}),
+            )
+        )
+    names = [n.name for n in nodes]
+    if len(set(names)) != len(names):
+        raise ProfileError(f"{path}: node names must be unique")
+    files = []
+    for f in data.get("params_files") or []:
+        fp = (path.parent / str(f)).resolve()
+        if not fp.exists():
+            raise ProfileError(f"{path}: parameter file {fp} does not exist")
+        files.append(fp)
+    can = None
+    if data.get("can"):
+        c = dict(data["can"])
+        can = CanSpec(
+            interface=str(c.pop("interface", "virtual")),
+            channel=str(c.pop("channel", "bac")),
+            bitrate=int(c.pop("bitrate", 500000)),
+            extra=c,
+        )
+    return Profile(
+        name=path.stem,
+        path=path,
+        nodes=tuple(nodes),
+        params_files=tuple(files),
+        use_sim_time=bool(data.get("use_sim_time", False)),
+        can=can,
+        description=str(data.get("description", "")),
+        global_params=dict(data.get("global_params") or {}),
+    )
+
+
+def format_param_value(value: Any) -> str:
+    """A value in the syntax of ``--ros-args -p name:=value`` (YAML)."""
+    import yaml
+
+    if isinstance(value, str):
+        # quote strings that YAML would read as something else
+        dumped = yaml.safe_dump(value, default_flow_style=True).strip()
+        return dumped.removesuffix("\n...").strip()
+    text = yaml.safe_dump(value, default_flow_style=True).strip()
+    return text.removesuffix("...").strip()

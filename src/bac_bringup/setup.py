@@ -1,0 +1,28 @@
+from setuptools import find_packages, setup
+
+package_name = "bac_bringup"
+
+setup(
+    name=package_name,
+    version="0.1.0",
+    packages=find_packages(exclude=["test"]),
+    data_files=[
+        ("share/ament_index/resource_index/packages", ["resource/" + package_name]),
+        ("share/" + package_name, ["package.xml"]),
+    ],
+    package_data={package_name: ["py.typed"]},
+    install_requires=["setuptools"],
+    zip_safe=True,
+    maintainer="bac developers",
+    maintainer_email="bac@example.org",
+    description=(
+        "Graph launcher and command-line entry points of bac: profiles (sim, car, replay), process "
+        "supervision and network isolation."
+    ),
+    license="Apache-2.0",
+    entry_points={
+        "console_scripts": [
+            "bac = bac_bringup.cli:main",
+        ],
+    },
+)

@@ -1,0 +1,230 @@
+"""Thin ROS helpers shared by the bac nodes (the only rclpy module of bac_common).
+
+* :class:`BacNode`: a Node with typed parameter declarations that carry a
+  descriptor (range, description, read-only for structural ones), and an
+  ``exit_code`` a node sets when its job is done (the launcher and
+  :func:`run_node` stop spinning then).
+* QoS profiles of the graph's contracts.
+* :func:`run_node`: a Jazzy-safe ``main()`` (ros2/demos style): spin on a
+  multi-threaded executor, handle Ctrl-C / SIGTERM / external shutdown,
+  destroy the node, ``try_shutdown``.
+"""
+
+from __future__ import annotations
+
+import sys
+import traceback
+from collections.abc import Callable, Sequence
+from typing import Any, TypeVar
+
+import rclpy
+from rcl_interfaces.msg import (
+    FloatingPointRange,
+    IntegerRange,
+    ParameterDescriptor,
+    ParameterType,
+    SetParametersResult,
+)
+from rclpy.executors import ExternalShutdownException, MultiThreadedExecutor
+from rclpy.node import Node
+from rclpy.parameter import Parameter
+from rclpy.qos import (
+    DurabilityPolicy,
+    HistoryPolicy,
+    QoSProfile,
+    ReliabilityPolicy,
+    qos_profile_sensor_data,
+)
+from rclpy.utilities import try_shutdown
+
+# sensor streams: best effort, keep last 5 (what IMU drivers publish with)
+QOS_SENSOR = qos_profile_sensor_data
+# high-rate streams inside the graph that must not drop samples (imu/vehicle, odom)
+QOS_STREAM = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=2000, reliability=ReliabilityPolicy.RELIABLE)
+# one message per run: reliable, a generous queue
+QOS_EVENTS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=50, reliability=ReliabilityPolicy.RELIABLE)
+# latched state (the trial, the active calibration): a late joiner gets the last one
+QOS_LATCHED = QoSProfile(
+    history=HistoryPolicy.KEEP_LAST,
+    depth=1,
+    reliability=ReliabilityPolicy.RELIABLE,
+    durability=DurabilityPolicy.TRANSIENT_LOCAL,
+)
+
+
+class BacNode(Node):
+    """A Node with checked parameter declarations and a way to say "done"."""
+
+    def __init__(self, node_name: str, **kwargs: Any) -> None:
+        super().__init__(node_name, **kwargs)
+        self.exit_code: int | None = None
+        self._param_checks: dict[str, Callable[[Any], str | None]] = {}
+        self.add_on_set_parameters_callback(self._on_set_parameters)
+
+    # --- declarations ---------------------------------------------------------------
+    def declare_float(
+        self,
+        name: str,
+        default: float,
+        description: str,
+        lower: float | None = None,
+        upper: float | None = None,
+        read_only: bool = False,
+    ) -> float:
+        rng = []
+        if lower is not None and upper is not None:
+            rng = [FloatingPointRange(from_value=float(lower), to_value=float(upper), step=0.0)]
+        desc = ParameterDescriptor(
+            description=description,
+            type=ParameterType.PARAMETER_DOUBLE,
+            read_only=read_only,
+            floating_point_range=rng,
+        )
+        if (lower is None) != (upper is None):
+            lo, hi = lower, upper
+            self._param_checks[name] = lambda v: (
+                f"{name} must be >= {lo}"
+                if lo is not None and v < lo
+                else f"{name} must be <= {hi}"
+                if hi is not None and v > hi
+                else None
+            )
+        value = self.declare_parameter(name, float(default), desc).value
+        self._check_initial(name, value)
+        return float(value)
+
+    def declare_int(
+        self,
+        name: str,
+        default: int,
+        description: str,
+        lower: int | None = None,
+        upper: int | None = None,
+        read_only: bool = False,
+    ) -> int:
+        rng = []
+        if lower is not None and upper is not None:
+            rng = [IntegerRange(from_value=int(lower), to_value=int(upper), step=1)]
+        desc = ParameterDescriptor(
+            description=description,
+            type=ParameterType.PARAMETER_INTEGER,
+            read_only=read_only,
+            integer_range=rng,
+        )
+        if (lower is None) != (upper is None):
+            lo, hi = lower, upper
+            self._param_checks[name] = lambda v: (
+                f"{name} must be >= {lo}"
+                if lo is not None and v < lo
+                else f"{name} must be <= {hi}"
+                if hi is not None and v > hi
+                else None
+            )
+        value = self.declare_parameter(name, int(default), desc).value
+        self._check_initial(name, value)
+        return int(value)
+
+    def declare_str(
+        self,
+        name: str,
+        default: str,
+        description: str,
+        choices: Sequence[str] | None = None,
+        read_only: bool = False,
+    ) -> str:
+        text = description
+        if choices:
+            text += f" (one of: {', '.join(choices)})"
+            allowed = tuple(choices)
+            self._param_checks[name] = lambda v: None if v in allowed else f"{name} must be one of {allowed}, got {v!r}"
+        desc = ParameterDescriptor(description=text, type=ParameterType.PARAMETER_STRING, read_only=read_only)
+        value = self.declare_parameter(name, str(default), desc).value
+        self._check_initial(name, value)
+        return str(value)
+
+    def declare_bool(self, name: str, default: bool, description: str, read_only: bool = False) -> bool:
+        desc = ParameterDescriptor(description=description, type=ParameterType.PARAMETER_BOOL, read_only=read_only)
+        return bool(self.declare_parameter(name, bool(default), desc).value)
+
+    def declare_float_list(
+        self, name: str, default: Sequence[float], description: str, read_only: bool = False
+    ) -> list[float]:
+        desc = ParameterDescriptor(
+            description=description, type=ParameterType.PARAMETER_DOUBLE_ARRAY, read_only=read_only
+        )
+        return [float(x) for x in self.declare_parameter(name, [float(x) for x in default], desc).value]
+
+    def declare_str_list(
+        self, name: str, default: Sequence[str], description: str, read_only: bool = False
+    ) -> list[str]:
+        desc = ParameterDescriptor(
+            description=description, type=ParameterType.PARAMETER_STRING_ARRAY, read_only=read_only
+        )
+        value = self.declare_parameter(name, list(default) or [""], desc).value
+        return [str(x) for x in value if str(x)]
+
+    def add_parameter_check(self, name: str, check: Callable[[Any], str | None]) -> None:
+        """Register an extra check for ``name``: returns None when fine, else the reason."""
+        self._param_checks[name] = check
+        self._check_initial(name, self.get_parameter(name).value)
+
+    def _check_initial(self, name: str, value: Any) -> None:
+        check = self._param_checks.get(name)
+        reason = check(value) if check else None
+        if reason:
+            raise ValueError(f"node '{self.get_name()}': parameter {reason}")
+
+    def _on_set_parameters(self, params: list[Parameter]) -> SetParametersResult:
+        for p in params:
+            check = self._param_checks.get(p.name)
+            if check is not None:
+                reason = check(p.value)
+                if reason:
+                    return SetParametersResult(successful=False, reason=reason)
+        return SetParametersResult(successful=True)
+
+    # --- ending ---------------------------------------------------------------------------
+    def finish(self, code: int = 0) -> None:
+        """Ask whoever spins this node to stop (0 = job done, else failure)."""
+        if self.exit_code is None:
+            self.exit_code = code
+
+
+N = TypeVar("N", bound=Node)
+
+
+def spin_until_done(executor: MultiThreadedExecutor, nodes: Sequence[Node], poll_s: float = 0.1) -> int:
+    """Spin until a node sets ``exit_code`` or the context shuts down; return the code."""
+    while executor.context.ok():
+        executor.spin_once(timeout_sec=poll_s)
+        for node in nodes:
+            code = getattr(node, "exit_code", None)
+            if code is not None:
+                return int(code)
+    return 0
+
+
+def run_node(node_cls: Callable[..., N], args: Sequence[str] | None = None) -> int:
+    """A Jazzy-safe main(): create, spin, clean up. Returns the process exit code."""
+    rclpy.init(args=list(args) if args is not None else sys.argv)
+    node: N | None = None
+    code = 0
+    try:
+        node = node_cls()
+        executor = MultiThreadedExecutor()
+        executor.add_node(node)
+        code = spin_until_done(executor, [node])
+    except (KeyboardInterrupt, ExternalShutdownException):
+        code = 0
+    except Exception:
+        msg = traceback.format_exc()
+        if node is not None:
+            node.get_logger().fatal(f"node crashed:\n{msg}")
+        else:
+            rclpy.logging.get_logger(getattr(node_cls, "__name__", "bac")).fatal(f"node failed to start:\n{msg}")
+        code = 1
+    finally:
+        if node is not None:
+            node.destroy_node()
+        try_shutdown()
+    return code

@@ -1,0 +1,3 @@
+"""IMU ingestion for bac: mounting rotation, bias and gravity removal, resampling and stream-health
+diagnostics.
+"""

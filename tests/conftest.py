@@ -1,0 +1,197 @@
+"""Test fixtures shared by the whole suite.
+
+* Each test gets its own ROS domain (``ROS_DOMAIN_ID``), so that nodes left by
+  one test can never be heard by the next; ``make test`` also runs the whole
+  suite inside a private network namespace, so tests of concurrent sessions
+  cannot hear each other either.
+* ``ros_context``: an rclpy context for in-process nodes, with a background
+  executor, shut down after the test.
+* ``procs``: starts real processes (nodes, the simulated ECU, ...) and kills
+  whatever is left at the end of the test.
+* ``wait_for``: poll a condition with a timeout (never a fixed sleep).
+"""
+
+from __future__ import annotations
+
+import itertools
+import os
+import random
+import signal
+import subprocess
+import sys
+import threading
+import time
+from collections.abc import Callable, Iterator, Sequence
+from pathlib import Path
+from typing import Any
+
+import pytest
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT / "tests"))
+
+# ROS domain ids usable on Linux without port clashes: 1..101 (0 is everyone's default)
+_DOMAINS = itertools.cycle(random.Random(os.getpid() ^ int(time.time())).sample(range(1, 102), 101))
+
+os.environ["ROS_AUTOMATIC_DISCOVERY_RANGE"] = "LOCALHOST"
+os.environ.setdefault("RMW_IMPLEMENTATION", "rmw_fastrtps_cpp")
+os.environ.setdefault("AMENT_PREFIX_PATH", sys.prefix)
+os.environ.setdefault("PYTHONUNBUFFERED", "1")
+
+
+def wait_for(condition: Callable[[], Any], timeout: float = 20.0, interval: float = 0.02, what: str = "") -> Any:
+    """Return the first truthy value of ``condition()``; fail the test after ``timeout`` s."""
+    deadline = time.monotonic() + timeout
+    while True:
+        value = condition()
+        if value:
+            return value
+        if time.monotonic() > deadline:
+            pytest.fail(f"timed out after {timeout} s waiting for {what or condition}")
+        time.sleep(interval)
+
+
+@pytest.fixture(autouse=True)
+def ros_domain(monkeypatch: pytest.MonkeyPatch) -> int:
+    domain = next(_DOMAINS)
+    monkeypatch.setenv("ROS_DOMAIN_ID", str(domain))
+    return domain
+
+
+@pytest.fixture
+def ros_env(ros_domain: int) -> dict[str, str]:
+    """The environment for ROS processes started by a test (its own domain, localhost only)."""
+    env = dict(os.environ)
+    env["ROS_DOMAIN_ID"] = str(ros_domain)
+    env["ROS_AUTOMATIC_DISCOVERY_RANGE"] = "LOCALHOST"
+    return env
+
+
+class RosHarness:
+    """An rclpy context with a background multi-threaded executor."""
+
+    def __init__(self, domain: int) -> None:
+        import rclpy
+        from rclpy.executors import MultiThreadedExecutor
+
+        self.context = rclpy.Context()
+        rclpy.init(context=self.context, domain_id=domain)
+        self.executor = MultiThreadedExecutor(context=self.context)
+        self.nodes: list[Any] = []
+        self._thread = threading.Thread(target=self._spin, daemon=True)
+        self._thread.start()
+
+    def _spin(self) -> None:
+        from rclpy.executors import ExternalShutdownException
+
+        try:
+            while self.context.ok():
+                self.executor.spin_once(timeout_sec=0.05)
+        except (ExternalShutdownException, Exception):
+            pass
+
+    def node(self, name: str, **kwargs: Any) -> Any:
+        from rclpy.node import Node
+
+        n = Node(name, context=self.context, **kwargs)
+        self.add(n)
+        return n
+
+    def add(self, node: Any) -> Any:
+        self.nodes.append(node)
+        self.executor.add_node(node)
+        return node
+
+    def shutdown(self) -> None:
+        import rclpy
+
+        for n in self.nodes:
+            self.executor.remove_node(n)
+            n.destroy_node()
+        rclpy.try_shutdown(context=self.context)
+        self._thread.join(timeout=5)
+
+
+@pytest.fixture
+def ros_context(ros_domain: int) -> Iterator[RosHarness]:
+    h = RosHarness(ros_domain)
+    try:
+        yield h
+    finally:
+        h.shutdown()
+
+
+class Procs:
+    """Processes started by a test; all are stopped (SIGINT, then SIGKILL) at the end."""
+
+    def __init__(self, env: dict[str, str], log_dir: Path) -> None:
+        self.env = env
+        self.log_dir = log_dir
+        self.items: list[tuple[str, subprocess.Popen[bytes], Path]] = []
+
+    def start(
+        self, name: str, argv: Sequence[str], env: dict[str, str] | None = None, cwd: Path | None = None
+    ) -> subprocess.Popen[bytes]:
+        log = self.log_dir / f"{name}.log"
+        f = log.open("wb")
+        p = subprocess.Popen(
+            list(argv),
+            env={**self.env, **(env or {})},
+            stdout=f,
+            stderr=subprocess.STDOUT,
+            start_new_session=True,
+            cwd=cwd,
+        )
+        self.items.append((name, p, log))
+        return p
+
+    def python(self, name: str, args: Sequence[str], **kw: Any) -> subprocess.Popen[bytes]:
+        return self.start(name, [sys.executable, *args], **kw)
+
+    def log(self, name: str) -> str:
+        for n, _, path in self.items:
+            if n == name:
+                return path.read_text(errors="replace")
+        raise KeyError(name)
+
+    def logs(self) -> str:
+        return "\n".join(f"----- {n} -----\n{path.read_text(errors='replace')}" for n, _, path in self.items)
+
+    def stop_all(self) -> None:
+        for _, p, _ in self.items:
+            if p.poll() is None:
+                try:
+                    os.killpg(p.pid, signal.SIGINT)
+                except ProcessLookupError:
+                    pass
+        deadline = time.monotonic() + 10
+        for _, p, _ in self.items:
+            try:
+                p.wait(timeout=max(0.1, deadline - time.monotonic()))
+            except subprocess.TimeoutExpired:
+                os.killpg(p.pid, signal.SIGKILL)
+                p.wait()
+
+
+@pytest.fixture
+def procs(ros_env: dict[str, str], tmp_path: Path, request: pytest.FixtureRequest) -> Iterator[Procs]:
+    ps = Procs(ros_env, tmp_path)
+    try:
+        yield ps
+    finally:
+        ps.stop_all()
+        rep = getattr(request.node, "rep_call", None)
+        if rep is not None and rep.failed:
+            sys.stderr.write(ps.logs()[-20000:])
+
+
+@pytest.hookimpl(wrapper=True, tryfirst=True)
+def pytest_runtest_makereport(item: pytest.Item, call: pytest.CallInfo[None]) -> Any:
+    rep = yield
+    setattr(item, f"rep_{rep.when}", rep)
+    return rep
+
+
+@pytest.fixture
+def in_private_netns() -> bool:
+    return os.environ.get("BAC_PRIVATE_NETNS") == "1"
