@@ -15,7 +15,9 @@ CALIB = ROOT / "ros_ws" / "config" / "calibrations"
 
 def controller_ii(**kw: object) -> CalibrationDefinition:
     return CalibrationDefinition(
-        name="c2", parameters=uniform_parameters("p", 20, 0.0, 1000.0, 500.0, 0.01), **kw  # type: ignore[arg-type]
+        name="c2",
+        parameters=uniform_parameters("p", 20, 0.0, 1000.0, 500.0, 0.01),
+        **kw,  # type: ignore[arg-type]
     )
 
 

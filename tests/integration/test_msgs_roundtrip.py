@@ -9,10 +9,11 @@ from pathlib import Path
 from typing import Any
 
 import pytest
-from conftest import wait_for
 
 import bac_msgs.msg as M
 import bac_msgs.srv as S
+
+from conftest import wait_for
 
 pytestmark = pytest.mark.integration
 ECHO = Path(__file__).resolve().parents[1] / "helpers" / "echo_node.py"

@@ -33,8 +33,6 @@ from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any
 
-from bac_common.contracts import ROS_ENV_DEFAULTS
-
 from bac_bringup import netns
 from bac_bringup.profile import (
     CAN_INTERFACES_CROSS_PROCESS,
@@ -43,6 +41,7 @@ from bac_bringup.profile import (
     Profile,
     format_param_value,
 )
+from bac_common.contracts import ROS_ENV_DEFAULTS
 
 LOG = logging.getLogger("bac.launch")
 STOP_GRACE_S = 8.0  # SIGINT, then this long before SIGTERM, then as long before SIGKILL
@@ -180,23 +179,19 @@ class SingleProcessGraph:
     def run(self, timeout_s: float | None = None) -> int:
         import rclpy
         from rclpy.executors import ExternalShutdownException, MultiThreadedExecutor
-        from rclpy.parameter import Parameter
         from rclpy.utilities import ok, try_shutdown
 
         for k, v in ros_environment().items():
             os.environ.setdefault(k, v)
         os.environ["ROS_AUTOMATIC_DISCOVERY_RANGE"] = "LOCALHOST"
-        args = ["bac_launch", "--ros-args"]
-        for f in self.profile.params_files:
-            args += ["--params-file", str(f)]
-        rclpy.init(args=args)
+        rclpy.init(args=["bac_launch"])
         nodes: list[Any] = []
         code = 0
         try:
             for spec in self.profile.nodes:
                 cls = getattr(importlib.import_module(spec.module), spec.class_name)
-                overrides = [Parameter(k, value=v) for k, v in self.profile.params_for(spec).items()]
-                nodes.append((spec, cls(parameter_overrides=overrides)))
+                # node-local arguments: the same remapping and parameters as in its own process
+                nodes.append((spec, cls(cli_args=ros_args_for(self.profile, spec))))
             executor = MultiThreadedExecutor(num_threads=max(4, len(nodes) + 2))
             for _, n in nodes:
                 executor.add_node(n)

@@ -12,7 +12,6 @@ from typing import Any
 
 from bac_common.contracts import TOPIC_TRIAL
 from bac_common.rosnode import QOS_LATCHED, BacNode, run_node
-
 from bac_msgs.msg import Trial
 
 

@@ -1,0 +1,164 @@
+"""The graph launcher: both modes, parameters, signals, a dying node, network isolation."""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import subprocess
+import sys
+from pathlib import Path
+from typing import Any
+
+import pytest
+import yaml
+
+from bac_bringup.profile import ProfileError, format_param_value, load_profile
+
+from conftest import ROOT, wait_for
+
+pytestmark = pytest.mark.integration
+HELPERS = ROOT / "tests" / "helpers"
+
+
+def make_profile(tmp_path: Path, nodes: list[dict[str, Any]], **extra: Any) -> Path:
+    path = tmp_path / "test_profile.yaml"
+    path.write_text(yaml.safe_dump({"description": "launcher test", "nodes": nodes, **extra}))
+    return path
+
+
+def reporter(name: str, out: Path, **params: Any) -> dict[str, Any]:
+    return {
+        "name": name,
+        "entry": "graph_nodes:Reporter",
+        "params": {"out_dir": str(out), **params},
+        **({"ends_graph": True} if params.pop("_ends", False) else {}),
+    }
+
+
+def launch(env: dict[str, str], *args: str) -> subprocess.Popen[bytes]:
+    env = {**env, "PYTHONPATH": f"{HELPERS}:{env.get('PYTHONPATH', '')}"}
+    return subprocess.Popen(
+        [sys.executable, "-m", "bac_bringup.cli", "launch", *args],
+        env=env,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.STDOUT,
+        start_new_session=True,
+    )
+
+
+def report(out: Path, name: str, kind: str = "start") -> dict[str, Any] | None:
+    f = out / f"{name}.{kind}.json"
+    return json.loads(f.read_text()) if f.exists() else None
+
+
+@pytest.mark.parametrize("mode", [[], ["--single-process"]], ids=["processes", "single-process"])
+def test_smoke_profile_runs_and_exits_zero(ros_env: dict[str, str], mode: list[str]) -> None:
+    p = launch(ros_env, "smoke", *mode)
+    out, _ = p.communicate(timeout=90)
+    text = out.decode(errors="replace")
+    assert p.returncode == 0, text
+    assert "received trial state of campaign 'smoke'" in text
+
+
+@pytest.mark.parametrize("mode", [[], ["--single-process"]], ids=["processes", "single-process"])
+def test_parameters_environment_and_finish(ros_env: dict[str, str], tmp_path: Path, mode: list[str]) -> None:
+    nodes = [
+        reporter("alpha", tmp_path),
+        {**reporter("omega", tmp_path, finish_after_s=2.0), "ends_graph": True},
+    ]
+    prof = make_profile(tmp_path, nodes, use_sim_time=False)
+    p = launch(ros_env, str(prof), *mode, "-p", "alpha.tag:=hello world", "-p", "omega.tag:='42'")
+    out, _ = p.communicate(timeout=90)
+    assert p.returncode == 0, out.decode(errors="replace")
+    a, o = report(tmp_path, "alpha"), report(tmp_path, "omega")
+    assert a is not None and o is not None
+    assert a["tag"] == "hello world" and o["tag"] == "42"
+    assert a["discovery_range"] == "LOCALHOST" == o["discovery_range"]
+    if mode:
+        assert a["pid"] == o["pid"]  # one process
+    else:
+        assert a["pid"] != o["pid"] != os.getpid()
+    # alpha was shut down cleanly when omega ended the graph
+    assert report(tmp_path, "alpha", "clean") is not None
+
+
+@pytest.mark.parametrize("mode", [[], ["--single-process"]], ids=["processes", "single-process"])
+def test_a_dying_node_fails_the_graph(ros_env: dict[str, str], tmp_path: Path, mode: list[str]) -> None:
+    nodes = [reporter("steady", tmp_path), reporter("crasher", tmp_path, crash_after_s=1.0)]
+    p = launch(ros_env, str(make_profile(tmp_path, nodes)), *mode)
+    out, _ = p.communicate(timeout=90)
+    text = out.decode(errors="replace")
+    assert p.returncode != 0, text
+    assert "crash" in text
+    assert report(tmp_path, "steady", "clean") is not None  # the survivor was stopped cleanly
+
+
+@pytest.mark.parametrize("sig", [signal.SIGINT, signal.SIGTERM], ids=["SIGINT", "SIGTERM"])
+@pytest.mark.parametrize("mode", [[], ["--single-process"]], ids=["processes", "single-process"])
+def test_signals_are_forwarded_and_nodes_shut_down_cleanly(
+    ros_env: dict[str, str], tmp_path: Path, mode: list[str], sig: signal.Signals
+) -> None:
+    nodes = [reporter("one", tmp_path), reporter("two", tmp_path)]
+    p = launch(ros_env, str(make_profile(tmp_path, nodes)), *mode)
+    wait_for(lambda: report(tmp_path, "one") and report(tmp_path, "two"), 60, what="both nodes started")
+    p.send_signal(sig)
+    out, _ = p.communicate(timeout=60)
+    assert p.returncode == 0, out.decode(errors="replace")
+    assert report(tmp_path, "one", "clean") is not None
+    assert report(tmp_path, "two", "clean") is not None
+
+
+def test_udp_multicast_can_between_processes_gets_a_private_netns(ros_env: dict[str, str], tmp_path: Path) -> None:
+    """Outside a private namespace, a udp_multicast profile re-runs itself inside a new one."""
+    nodes = [
+        {**reporter("can_a", tmp_path), "can": True},
+        {**reporter("can_b", tmp_path, finish_after_s=1.5), "can": True, "ends_graph": True},
+    ]
+    prof = make_profile(tmp_path, nodes, can={"interface": "udp_multicast", "channel": "239.74.163.2"})
+    env = {k: v for k, v in ros_env.items() if k != "BAC_PRIVATE_NETNS"}
+    p = launch(env, str(prof))
+    out, _ = p.communicate(timeout=90)
+    assert p.returncode == 0, out.decode(errors="replace")
+    a, b = report(tmp_path, "can_a"), report(tmp_path, "can_b")
+    assert a is not None and b is not None
+    assert a["can_interface"] == "udp_multicast"
+    assert a["netns"] == b["netns"] != os.stat("/proc/self/ns/net").st_ino
+
+
+def test_single_process_uses_the_virtual_bus(ros_env: dict[str, str], tmp_path: Path) -> None:
+    nodes = [{**reporter("can_a", tmp_path, finish_after_s=1.0), "can": True, "ends_graph": True}]
+    prof = make_profile(tmp_path, nodes, can={"interface": "udp_multicast", "channel": "239.74.163.2"})
+    p = launch(ros_env, str(prof), "--single-process")
+    out, _ = p.communicate(timeout=90)
+    assert p.returncode == 0, out.decode(errors="replace")
+    a = report(tmp_path, "can_a")
+    assert a is not None and a["can_interface"] == "virtual"
+    assert a["netns"] == os.stat("/proc/self/ns/net").st_ino
+
+
+def test_profiles_shipped_load() -> None:
+    for name in ("sim", "car", "replay", "smoke"):
+        prof = load_profile(name)
+        assert prof.nodes
+    sim = load_profile("sim")
+    assert sim.use_sim_time and sim.can is not None and sim.can.interface == "udp_multicast"
+    assert [n.name for n in sim.nodes if n.ends_graph] == ["bo_agent"]
+    car = load_profile("car")
+    assert not car.use_sim_time and "vehicle_sim" not in [n.name for n in car.nodes]
+
+
+def test_bad_profiles_are_refused(tmp_path: Path) -> None:
+    with pytest.raises(ProfileError, match="unknown profile"):
+        load_profile("no_such_profile")
+    bad = tmp_path / "bad.yaml"
+    bad.write_text("nodes: [{name: x}]\n")
+    with pytest.raises(ProfileError, match="entry"):
+        load_profile(bad)
+
+
+@pytest.mark.parametrize(
+    ("value", "text"), [("hello world", "hello world"), ("42", "'42'"), (42, "42"), (True, "true"), ([1, 2], "[1, 2]")]
+)
+def test_param_values_keep_their_type_on_the_command_line(value: Any, text: str) -> None:
+    assert format_param_value(value) == text

@@ -1,0 +1,55 @@
+"""Small nodes for launcher tests: they report what they see and can crash or finish on demand."""
+
+from __future__ import annotations
+
+import json
+import os
+import sys
+from pathlib import Path
+from typing import Any
+
+from bac_common.rosnode import BacNode, run_node
+
+
+class Reporter(BacNode):
+    def __init__(self, **kwargs: Any) -> None:
+        super().__init__("reporter", **kwargs)
+        self.out_dir = Path(self.declare_str("out_dir", "/tmp", "where to write reports"))
+        self.tag = self.declare_str("tag", "", "a value to report back")
+        crash = self.declare_float("crash_after_s", -1.0, "raise after this long (wall), -1 = never")
+        finish = self.declare_float("finish_after_s", -1.0, "finish(0) after this long (wall), -1 = never")
+        self.can_interface = self.declare_str("can.interface", "", "CAN interface given by the launcher")
+        report = {
+            "name": self.get_name(),
+            "pid": os.getpid(),
+            "tag": self.tag,
+            "can_interface": self.can_interface,
+            "discovery_range": os.environ.get("ROS_AUTOMATIC_DISCOVERY_RANGE"),
+            "netns": os.stat("/proc/self/ns/net").st_ino,
+            "use_sim_time": self.get_parameter("use_sim_time").value,
+        }
+        (self.out_dir / f"{self.get_name()}.start.json").write_text(json.dumps(report))
+        if crash >= 0:
+            self._t1 = self.create_timer(crash, self._crash, clock=self._wall())
+        if finish >= 0:
+            self._t2 = self.create_timer(finish, lambda: self.finish(0), clock=self._wall())
+
+    def _wall(self) -> Any:
+        from rclpy.clock import Clock, ClockType
+
+        return Clock(clock_type=ClockType.STEADY_TIME)
+
+    def _crash(self) -> None:
+        raise RuntimeError("reporter crashed on purpose")
+
+    def destroy_node(self) -> None:
+        (self.out_dir / f"{self.get_name()}.clean.json").write_text("{}")
+        super().destroy_node()
+
+
+def main(args: list[str] | None = None) -> int:
+    return run_node(Reporter, args)
+
+
+if __name__ == "__main__":
+    sys.exit(main())
