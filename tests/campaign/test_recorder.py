@@ -1,0 +1,113 @@
+"""campaign_recorder: one mcap bag per trial, readable by rosbags and rclpy alike."""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+from typing import Any
+
+import pytest
+from rosbags.highlevel import AnyReader
+
+from bac_agent.recording import bac_typestore
+from bac_common.rosnode import QOS_EVENTS, QOS_LATCHED, QOS_STREAM
+from bac_msgs.msg import RunScore, Trial
+
+from conftest import wait_for
+
+pytestmark = pytest.mark.integration
+
+
+def trial(trial_id: int, state: int, stamp_s: float) -> Trial:
+    t = Trial(
+        campaign_id="c1",
+        trial_id=trial_id,
+        attempt=1,
+        state=state,
+        last_j=math.nan,
+        best_j=math.nan,
+        predicted_j=math.nan,
+        predicted_j_std=math.nan,
+    )
+    t.stamp.sec, t.stamp.nanosec = int(stamp_s), int((stamp_s % 1) * 1e9)
+    return t
+
+
+def imu(stamp_s: float, az: float) -> Any:
+    from sensor_msgs.msg import Imu
+
+    m = Imu()
+    m.header.stamp.sec, m.header.stamp.nanosec = int(stamp_s), round((stamp_s % 1) * 1e9)
+    m.linear_acceleration.z = az
+    return m
+
+
+def read_bag(path: Path) -> dict[str, list[Any]]:
+    out: dict[str, list[Any]] = {}
+    with AnyReader([path], default_typestore=bac_typestore()) as reader:
+        for conn, _t, raw in reader.messages():
+            out.setdefault(conn.topic, []).append(reader.deserialize(raw, conn.msgtype))
+    return out
+
+
+def test_one_bag_per_trial(procs: Any, ros_context: Any, tmp_path: Path) -> None:
+    from nav_msgs.msg import Odometry
+    from sensor_msgs.msg import Imu
+
+    camp = tmp_path / "campaign"
+    procs.python(
+        "recorder",
+        ["-m", "bac_agent.recorder_node", "--ros-args", "-p", f"campaign_dir:={camp}", "-p", "close_grace_s:=1.5"],
+    )
+    node = ros_context.node("feeder")
+    p_trial = node.create_publisher(Trial, "bac/trial", QOS_LATCHED)
+    p_imu = node.create_publisher(Imu, "imu/vehicle", QOS_STREAM)
+    p_odom = node.create_publisher(Odometry, "vehicle/odom", QOS_STREAM)
+    p_score = node.create_publisher(RunScore, "bac/run_score", QOS_EVENTS)
+    for p in (p_trial, p_imu, p_odom, p_score):
+        wait_for(lambda p=p: p.get_subscription_count() > 0, 60, what=f"recorder on {p.topic_name}")
+
+    # trial 2 is announced before trial 1's samples arrive: they still go to trial 1 by their stamps
+    p_trial.publish(trial(1, Trial.STATE_READY_TO_DRIVE, 10.0))
+    wait_for(lambda: (camp / "bags" / "trial_0001").exists(), 20, what="bag of trial 1 opened")
+    p_trial.publish(trial(2, Trial.STATE_READY_TO_DRIVE, 20.0))
+    wait_for(lambda: (camp / "bags" / "trial_0002").exists(), 20, what="bag of trial 2 opened")
+    for i in range(50):
+        p_imu.publish(imu(10.0 + 0.1 * i, 0.1 * i))
+    o = Odometry()
+    o.header.stamp.sec = 15
+    o.twist.twist.linear.x = 8.33
+    p_odom.publish(o)
+    p_score.publish(RunScore(campaign_id="c1", trial_id=1, attempt=1, j=1.2345, valid=True))
+    for i in range(10):
+        p_imu.publish(imu(20.0 + 0.1 * i, -1.0))
+    p_trial.publish(trial(2, Trial.STATE_DONE, 22.0))
+    for n in (1, 2):
+        wait_for(lambda n=n: (camp / "bags" / f"trial_000{n}" / "metadata.yaml").exists(), 30, what=f"bag {n} closed")
+
+    b1 = read_bag(camp / "bags" / "trial_0001")
+    assert len(b1["imu/vehicle"]) == 50
+    assert [round(m.linear_acceleration.z, 6) for m in b1["imu/vehicle"]][:3] == [0.0, 0.1, 0.2]
+    assert b1["bac/run_score"][0].j == 1.2345 and b1["vehicle/odom"][0].twist.twist.linear.x == 8.33
+    assert [t.trial_id for t in b1["bac/trial"]] == [1]
+    b2 = read_bag(camp / "bags" / "trial_0002")
+    assert [m.linear_acceleration.z for m in b2["imu/vehicle"]] == [-1.0] * 10
+    assert [t.state for t in b2["bac/trial"]] == [Trial.STATE_READY_TO_DRIVE, Trial.STATE_DONE]
+    assert list((camp / "bags" / "trial_0001").glob("*.mcap"))
+
+
+def test_bag_bytes_deserialize_with_rclpy(tmp_path: Path) -> None:
+    from rclpy.serialization import deserialize_message, serialize_message
+
+    from bac_agent.recording import TrialBagWriter
+
+    msg = RunScore(campaign_id="x", trial_id=3, attempt=2, j=0.75, psd_accel_z=[1.0, 2.0], valid=True)
+    with TrialBagWriter(tmp_path / "b", storage="mcap") as w:
+        w.write("bac/run_score", 1_000, serialize_message(msg))
+    with AnyReader([tmp_path / "b"], default_typestore=bac_typestore()) as reader:
+        ((conn, t, raw),) = list(reader.messages())
+    assert t == 1_000 and conn.msgtype == "bac_msgs/msg/RunScore"
+    back = deserialize_message(raw, RunScore)
+    assert back == msg
+    with pytest.raises(OSError, match="never overwritten"):
+        TrialBagWriter(tmp_path / "b")
