@@ -1,0 +1,62 @@
+"""Space-filling designs on the unit cube (scipy.stats.qmc) and the grid baseline."""
+
+from __future__ import annotations
+
+import itertools
+import math
+import warnings
+
+import numpy as np
+from numpy.typing import NDArray
+from scipy.stats import qmc
+
+FloatArray = NDArray[np.float64]
+
+
+def default_n_initial(dim: int, budget: int) -> int:
+    """Initial design size for ``dim`` dimensions and a ``budget`` of trials.
+
+    Small in few dimensions (the GP with good priors learns quickly: 3 runs for d = 2),
+    about d + 1 beyond, never more than a third of the budget (at least 2).
+    """
+    n = 3 if dim <= 2 else dim + 1
+    return int(max(2, min(n, max(2, budget // 3))))
+
+
+def sobol(n: int, dim: int, seed: int) -> FloatArray:
+    """``n`` scrambled Sobol points in [0, 1]^dim (a balanced power-of-two prefix is not required)."""
+    if n <= 0:
+        return np.zeros((0, dim))
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", UserWarning)  # "balance properties" warning for n != 2^m
+        pts = qmc.Sobol(d=dim, scramble=True, seed=np.random.default_rng(seed)).random(n)
+    return np.asarray(pts, dtype=float)
+
+
+def lhs(n: int, dim: int, seed: int) -> FloatArray:
+    """``n`` Latin-hypercube points, optimized for space filling ("random-cd")."""
+    if n <= 0:
+        return np.zeros((0, dim))
+    return np.asarray(qmc.LatinHypercube(d=dim, optimization="random-cd", seed=np.random.default_rng(seed)).random(n))
+
+
+def initial_design(n: int, dim: int, seed: int) -> FloatArray:
+    """The initial design: a Latin hypercube (space filling for any n), points kept off the faces."""
+    pts = lhs(n, dim, seed)
+    return 0.02 + 0.96 * pts
+
+
+def grid(size: int, dim: int) -> FloatArray:
+    """A full factorial grid with ``size`` levels per dimension, cell centres excluded: levels 0..1."""
+    if size < 1:
+        raise ValueError("grid size must be >= 1")
+    if size**dim > 1_000_000:
+        raise ValueError(f"a {size}^{dim} grid has {size**dim} points; too many for a campaign")
+    levels = np.array([0.5]) if size == 1 else np.linspace(0.0, 1.0, size)
+    return np.array(list(itertools.product(levels, repeat=dim)), dtype=float)
+
+
+def candidates(n: int, dim: int, rng: np.random.Generator) -> FloatArray:
+    """Space-filling candidate set for maximizing the acquisition (Sobol, a power of two)."""
+    m = max(1, math.ceil(math.log2(max(n, 2))))
+    return np.asarray(qmc.Sobol(d=dim, scramble=True, seed=rng).random_base2(m), dtype=float)

@@ -1,0 +1,383 @@
+"""The ask/tell optimizer: paper algorithm 1's brain, without ROS.
+
+>>> from bac_agent.bo import Engine
+>>> eng = Engine({"damping_front": (0.0, 1.0), "damping_rear": (0.0, 1.0)}, budget=12, seed=1)
+>>> while not eng.done:
+...     p = eng.ask()
+...     eng.tell(p, run_on_the_car(p))          # doctest: +SKIP
+>>> eng.recommend()                             # doctest: +SKIP
+Recommendation(params={...}, predicted_j=..., predicted_std=..., ...)
+
+* the first ``n_initial`` asks are a space-filling design (a Latin hypercube);
+* then a GP (Matérn-5/2 ARD, MAP hyperparameters, learned noise) is fitted to what
+  was told, and the next point maximizes log Expected Improvement over the best
+  *posterior mean* at an observed point (an incumbent that noise cannot fool);
+  points asked but not yet told are "fantasized" at their posterior mean, so two
+  asks in a row give two different points;
+* the recommendation is the argmin of the posterior mean over the whole domain
+  (the paper), with its predicted J and standard deviation;
+* asks are quantized to the space's resolution and always within bounds, so the
+  values told are the values the ECU holds.
+
+The whole state (observations, failures, pending asks, the random generator, the
+last hyperparameters) serializes to JSON; ``Engine.from_json(eng.to_json())``
+continues exactly where ``eng`` was.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from collections.abc import Mapping
+from dataclasses import asdict, dataclass, field, replace
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+from scipy.optimize import minimize
+
+from bac_agent.bo.acquisition import log_ei, log_ei_with_grad
+from bac_agent.bo.design import candidates, default_n_initial, initial_design
+from bac_agent.bo.gp import GP, GPConfig, Hyper
+from bac_agent.bo.space import SearchSpace
+from bac_common.errors import BacError
+
+FloatArray = NDArray[np.float64]
+
+STATE_VERSION = 1
+KIND_INITIAL = "initial"
+KIND_OPTIMIZED = "optimized"
+KIND_RANDOM = "random"
+KIND_GRID = "grid"
+
+
+class EngineError(BacError, ValueError):
+    """The optimizer was used wrongly (nothing told yet, a bad value, a bad saved state)."""
+
+
+@dataclass(frozen=True)
+class EngineConfig:
+    """Configuration of a campaign's optimizer."""
+
+    budget: int = 15  # trials of the campaign (told + failed)
+    n_initial: int = 0  # initial design size; 0 = automatic (see design.default_n_initial)
+    seed: int = 0
+    n_candidates: int = 1024  # space-filling candidates for the acquisition maximizer
+    n_local: int = 256  # candidates around the best points
+    acq_restarts: int = 4  # L-BFGS-B starts from the best candidates
+    recommend_beta: float = 0.0  # recommendation minimizes mean + beta * std (0 = the paper's argmin of the mean)
+    gp: GPConfig = field(default_factory=GPConfig)
+
+    def __post_init__(self) -> None:
+        if self.budget < 1:
+            raise EngineError(f"budget must be >= 1, got {self.budget}")
+        if self.n_initial < 0:
+            raise EngineError(f"n_initial must be >= 0 (0 = automatic), got {self.n_initial}")
+
+    def to_dict(self) -> dict[str, Any]:
+        d = asdict(self)
+        d["gp"] = asdict(self.gp)
+        return d
+
+    @classmethod
+    def from_dict(cls, d: Mapping[str, Any]) -> EngineConfig:
+        data = dict(d)
+        gp = dict(data.pop("gp", {}) or {})
+        for k in ("ls_bounds", "os_bounds"):
+            if k in gp:
+                gp[k] = tuple(gp[k])
+        return cls(**data, gp=GPConfig(**gp))
+
+
+@dataclass(frozen=True)
+class Suggestion:
+    """One ask: the parameters, why they were chosen and what the model expects."""
+
+    params: dict[str, float]
+    kind: str  # KIND_*
+    predicted_j: float = math.nan
+    predicted_std: float = math.nan
+
+
+@dataclass(frozen=True)
+class Recommendation:
+    """The campaign's answer: argmin of the posterior mean, with its prediction."""
+
+    params: dict[str, float]
+    predicted_j: float
+    predicted_std: float
+    n_observations: int
+    best_observed_params: dict[str, float] | None = None
+    best_observed_j: float = math.nan
+
+    def to_dict(self) -> dict[str, Any]:
+        return asdict(self)
+
+
+@dataclass(frozen=True)
+class Observation:
+    params: dict[str, float]
+    value: float
+
+
+@dataclass(frozen=True)
+class Failure:
+    params: dict[str, float]
+    reason: str
+
+
+class Engine:
+    """Bayesian optimization by ask/tell over a :class:`SearchSpace` (see the module doc)."""
+
+    def __init__(
+        self,
+        space: Any,
+        config: EngineConfig | None = None,
+        *,
+        budget: int | None = None,
+        n_initial: int | None = None,
+        seed: int | None = None,
+    ) -> None:
+        self.space = SearchSpace.from_spec(space)
+        cfg = config or EngineConfig()
+        over: dict[str, Any] = {}
+        if budget is not None:
+            over["budget"] = int(budget)
+        if n_initial is not None:
+            over["n_initial"] = int(n_initial)
+        if seed is not None:
+            over["seed"] = int(seed)
+        self.config = replace(cfg, **over) if over else cfg
+        self.observations: list[Observation] = []
+        self.failures: list[Failure] = []
+        self.pending: list[dict[str, float]] = []
+        self.rng = np.random.default_rng(self.config.seed)
+        self._gp = GP(self.config.gp)
+        self._gp_key: tuple[int, int] | None = None
+        self._design = initial_design(self.n_initial, self.space.dim, self.config.seed)
+
+    # --- facts ------------------------------------------------------------------------
+    @property
+    def n_initial(self) -> int:
+        return self.config.n_initial or default_n_initial(self.space.dim, self.config.budget)
+
+    @property
+    def n_trials(self) -> int:
+        """Trials finished: told or failed."""
+        return len(self.observations) + len(self.failures)
+
+    @property
+    def done(self) -> bool:
+        return self.n_trials >= self.config.budget
+
+    @property
+    def names(self) -> tuple[str, ...]:
+        return self.space.names
+
+    def best_observed(self) -> Observation | None:
+        return min(self.observations, key=lambda o: o.value) if self.observations else None
+
+    # --- ask ----------------------------------------------------------------------------------
+    def ask(self) -> dict[str, float]:
+        """The next parameters to run, name -> value (fixed values included)."""
+        return self.ask_with_info().params
+
+    def ask_with_info(self) -> Suggestion:
+        """The next parameters with the reason they were chosen and the model's prediction."""
+        k = self.n_trials + len(self.pending)
+        if k < self.n_initial and k < self._design.shape[0]:
+            u = self._design[k]
+            s = self._suggest(u, KIND_INITIAL)
+        elif len(self.observations) < 2 or float(np.ptp([o.value for o in self.observations])) == 0.0:
+            s = self._suggest(self.rng.random(self.space.dim), KIND_RANDOM)
+        else:
+            s = self._suggest(self._maximize_acquisition(), KIND_OPTIMIZED)
+        self.pending.append(dict(s.params))
+        return s
+
+    def _suggest(self, u: FloatArray, kind: str) -> Suggestion:
+        x = self.space.from_unit(u)
+        params = self.space.to_params(x)
+        mean, std = (math.nan, math.nan)
+        if len(self.observations) >= 1 and kind == KIND_OPTIMIZED:
+            m, s = self._model().predict(self.space.to_unit(x)[None, :])
+            mean, std = float(m[0]), float(s[0])
+        return Suggestion(params, kind, mean, std)
+
+    def _model(self) -> GP:
+        """The GP fitted to every observation (refitted only when they changed)."""
+        if not self.observations:
+            raise EngineError("nothing has been told yet: tell() at least one result first")
+        key = (len(self.observations), hash(tuple(o.value for o in self.observations)))
+        if self._gp_key != key:
+            X = self.space.to_unit(np.array([self.space.to_array(o.params) for o in self.observations]))
+            y = np.array([o.value for o in self.observations])
+            self._gp.fit(X, y, self.rng)
+            self._gp_key = key
+        return self._gp
+
+    def _maximize_acquisition(self) -> FloatArray:
+        gp = self._model()
+        d = self.space.dim
+        X_obs = gp.X
+        mu_obs, _ = gp.predict_std_units(X_obs)
+        best = float(np.min(mu_obs))
+        model = gp
+        if self.pending:
+            # kriging believer: pending points are fantasized at their posterior mean
+            Xp = self.space.to_unit(np.array([self.space.to_array(p) for p in self.pending]))
+            mp, _ = gp.predict(Xp)
+            y_all = np.concatenate([gp.y_mean + gp.y_std * gp._z, mp])
+            model = GP(self.config.gp).condition(np.vstack([X_obs, Xp]), y_all, gp.hyper)
+            best = float((np.min(model.predict(X_obs)[0]) - model.y_mean) / model.y_std)
+        cand = candidates(self.config.n_candidates, d, self.rng)
+        # local candidates around the best points by posterior mean
+        assert gp.hyper is not None
+        top = X_obs[np.argsort(mu_obs)[: min(5, X_obs.shape[0])]]
+        scale = np.minimum(0.1 * gp.hyper.lengthscales, 0.1)
+        idx = self.rng.integers(0, top.shape[0], self.config.n_local)
+        local = np.clip(top[idx] + self.rng.standard_normal((self.config.n_local, d)) * scale, 0.0, 1.0)
+        cand = np.vstack([cand, local])
+        mu, var = model.predict_std_units(cand)
+        acq = log_ei(mu, np.sqrt(var), best)
+        acq = np.where(self._near_failures(cand), -np.inf, acq)
+        order = np.argsort(-acq)
+        starts = cand[order[: self.config.acq_restarts]]
+        k = starts.shape[0]
+
+        def f(flat: FloatArray) -> tuple[float, FloatArray]:
+            Xq = flat.reshape(k, d)
+            m, s, dm, ds = model.predict_with_grad(Xq)
+            lei, g = log_ei_with_grad(m, s, dm, ds, best)
+            return -float(np.sum(lei)), -g.ravel()
+
+        res = minimize(f, starts.ravel(), jac=True, method="L-BFGS-B", bounds=[(0.0, 1.0)] * (k * d))
+        opt = np.clip(res.x.reshape(k, d), 0.0, 1.0)
+        m2, v2 = model.predict_std_units(np.vstack([opt, starts]))
+        acq2 = log_ei(m2, np.sqrt(v2), best)
+        acq2 = np.where(self._near_failures(np.vstack([opt, starts])), -np.inf, acq2)
+        acq2 = np.where(np.isfinite(acq2), acq2, -np.inf)
+        i = int(np.argmax(acq2))
+        if not np.isfinite(acq2[i]):
+            return self.rng.random(d)
+        return np.asarray(np.vstack([opt, starts])[i], dtype=float)
+
+    def _near_failures(self, U: FloatArray, radius: float = 0.01) -> NDArray[np.bool_]:
+        if not self.failures:
+            return np.zeros(U.shape[0], dtype=bool)
+        F = self.space.to_unit(np.array([self.space.to_array(f.params) for f in self.failures]))
+        d2 = np.sum((U[:, None, :] - F[None, :, :]) ** 2, axis=2)
+        return np.asarray(np.any(d2 < radius**2, axis=1))
+
+    # --- tell ---------------------------------------------------------------------------------
+    def tell(self, params: Mapping[str, float], value: float) -> None:
+        """Record the (noisy) J measured with ``params``."""
+        v = float(value)
+        if not math.isfinite(v):
+            raise EngineError(f"value must be finite, got {value!r}; use tell_failed() for a run without a result")
+        x = self.space.to_array(params)
+        p = self.space.to_params(x)
+        self._drop_pending(x)
+        self.observations.append(Observation(p, v))
+
+    def tell_failed(self, params: Mapping[str, float], reason: str) -> None:
+        """Record that ``params`` could not be evaluated (never re-proposed exactly)."""
+        x = self.space.to_array(params)
+        self._drop_pending(x)
+        self.failures.append(Failure(self.space.to_params(x), str(reason)))
+
+    def _drop_pending(self, x: FloatArray) -> None:
+        for i, p in enumerate(self.pending):
+            if np.allclose(self.space.to_array(p), x, rtol=0.0, atol=1e-12):
+                del self.pending[i]
+                return
+
+    def forget_pending(self) -> None:
+        """Drop every ask that was never told (e.g. abandoned trials)."""
+        self.pending.clear()
+
+    # --- the model's view ----------------------------------------------------------------------
+    def predict(self, params: Mapping[str, float]) -> tuple[float, float]:
+        """Posterior mean and standard deviation of J at ``params``."""
+        x = self.space.to_array(params)
+        m, s = self._model().predict(self.space.to_unit(x)[None, :])
+        return float(m[0]), float(s[0])
+
+    def predict_unit(self, U: FloatArray) -> tuple[FloatArray, FloatArray]:
+        """Posterior mean and std at unit-cube points (m, d), in J units (for plots)."""
+        return self._model().predict(np.atleast_2d(U))
+
+    @property
+    def hyper(self) -> Hyper | None:
+        return self._gp.hyper
+
+    def recommend(self) -> Recommendation:
+        """argmin over the domain of the posterior mean (+ recommend_beta · std), with its prediction."""
+        gp = self._model()
+        d = self.space.dim
+        beta = self.config.recommend_beta
+        rng = np.random.default_rng(self.config.seed + 7919 * len(self.observations))
+        cand = np.vstack([candidates(self.config.n_candidates, d, rng), gp.X])
+        mu, var = gp.predict_std_units(cand)
+        score = mu + beta * np.sqrt(var)
+        starts = cand[np.argsort(score)[: max(1, self.config.acq_restarts)]]
+        k = starts.shape[0]
+
+        def f(flat: FloatArray) -> tuple[float, FloatArray]:
+            m, s, dm, ds = gp.predict_with_grad(flat.reshape(k, d))
+            return float(np.sum(m + beta * s)), (dm + beta * ds).ravel()
+
+        res = minimize(f, starts.ravel(), jac=True, method="L-BFGS-B", bounds=[(0.0, 1.0)] * (k * d))
+        pts = np.vstack([np.clip(res.x.reshape(k, d), 0.0, 1.0), starts])
+        xs = self.space.from_unit(pts)
+        m, s = gp.predict(self.space.to_unit(xs))
+        i = int(np.argmin(m + beta * s))
+        best = self.best_observed()
+        return Recommendation(
+            params=self.space.to_params(xs[i]),
+            predicted_j=float(m[i]),
+            predicted_std=float(s[i]),
+            n_observations=len(self.observations),
+            best_observed_params=dict(best.params) if best else None,
+            best_observed_j=best.value if best else math.nan,
+        )
+
+    # --- state ------------------------------------------------------------------------------------
+    def state_dict(self) -> dict[str, Any]:
+        return {
+            "version": STATE_VERSION,
+            "space": self.space.to_dict(),
+            "config": self.config.to_dict(),
+            "observations": [{"params": o.params, "value": o.value} for o in self.observations],
+            "failures": [{"params": f.params, "reason": f.reason} for f in self.failures],
+            "pending": [dict(p) for p in self.pending],
+            "rng": self.rng.bit_generator.state,
+            "hyper": self._gp.hyper.to_dict() if self._gp.hyper is not None else None,
+        }
+
+    def to_json(self) -> str:
+        return json.dumps(self.state_dict())
+
+    @classmethod
+    def from_state_dict(cls, data: Mapping[str, Any]) -> Engine:
+        if data.get("version") != STATE_VERSION:
+            raise EngineError(f"saved engine state has version {data.get('version')!r}, expected {STATE_VERSION}")
+        try:
+            eng = cls(SearchSpace.from_dict(data["space"]), EngineConfig.from_dict(data["config"]))
+            eng.observations = [Observation(dict(o["params"]), float(o["value"])) for o in data["observations"]]
+            eng.failures = [Failure(dict(f["params"]), str(f["reason"])) for f in data["failures"]]
+            eng.pending = [dict(p) for p in data["pending"]]
+            eng.rng.bit_generator.state = data["rng"]
+            if data.get("hyper"):
+                eng._gp.hyper = Hyper.from_dict(data["hyper"])
+        except (KeyError, TypeError) as exc:
+            raise EngineError(f"malformed engine state: {exc}") from exc
+        return eng
+
+    @classmethod
+    def from_json(cls, text: str) -> Engine:
+        try:
+            data = json.loads(text)
+        except json.JSONDecodeError as exc:
+            raise EngineError(f"engine state is not valid JSON: {exc}") from exc
+        return cls.from_state_dict(data)

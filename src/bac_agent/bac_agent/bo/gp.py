@@ -1,0 +1,274 @@
+"""A Gaussian process with a Matérn-5/2 ARD kernel and learned observation noise.
+
+Inputs live on the unit cube (the engine scales them), outputs are standardized
+here (zero mean, unit variance), so the hyperparameter priors are the same for
+every problem:
+
+* lengthscales ℓ_k: log-normal, median ``exp(ls_loc + ½·log d)`` (longer in more
+  dimensions, as in Hvarfner et al. 2024, "vanilla BO in high dimensions");
+* outputscale s²: log-normal around 1 (the standardized variance);
+* noise σ²: log-normal around ``exp(noise_loc)``, bounded below by ``noise_floor``
+  (a learned noise level: runs are noisy, and the GP must not interpolate them).
+
+The hyperparameters are the maximum a posteriori (the marginal likelihood times
+these priors), found by L-BFGS-B with analytic gradients from several starts
+(the prior mode, the previous fit, draws from the prior). Everything here is
+vectorized numpy; no Python loop over samples.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+import scipy.linalg as sla
+from numpy.typing import NDArray
+from scipy.optimize import minimize
+
+from bac_agent.bo.kernel import matern52_dr2_factor, matern52_from_r2, sq_dist
+from bac_common.errors import BacError
+
+FloatArray = NDArray[np.float64]
+
+LOG_2PI = math.log(2.0 * math.pi)
+
+
+class GPError(BacError, ValueError):
+    """The GP cannot be fitted or used (no data, NaN, a singular kernel)."""
+
+
+@dataclass(frozen=True)
+class GPConfig:
+    """Priors and bounds of the hyperparameters (log space, on standardized outputs)."""
+
+    ls_loc: float = 0.0  # log-lengthscale prior mean is ls_loc + 0.5 log d
+    ls_scale: float = 1.0
+    ls_bounds: tuple[float, float] = (0.01, 50.0)
+    os_loc: float = 0.0  # log outputscale prior
+    os_scale: float = 1.0
+    os_bounds: tuple[float, float] = (0.02, 50.0)
+    noise_loc: float = -4.0  # log noise-variance prior
+    noise_scale: float = 1.5
+    noise_floor: float = 1e-6  # smallest noise variance (standardized units)
+    noise_ceiling: float = 2.0
+    restarts: int = 2  # random starts besides the prior mode and the previous fit
+    maxiter: int = 200
+
+
+@dataclass
+class Hyper:
+    """Fitted hyperparameters (lengthscales on the unit cube, standardized units)."""
+
+    lengthscales: FloatArray
+    outputscale: float
+    noise: float
+
+    def to_vector(self) -> FloatArray:
+        return np.concatenate([np.log(self.lengthscales), [math.log(self.outputscale), math.log(self.noise)]])
+
+    @classmethod
+    def from_vector(cls, v: FloatArray) -> Hyper:
+        v = np.asarray(v, dtype=float)
+        return cls(np.exp(v[:-2]), float(math.exp(v[-2])), float(math.exp(v[-1])))
+
+    def to_dict(self) -> dict[str, Any]:
+        return {"lengthscales": self.lengthscales.tolist(), "outputscale": self.outputscale, "noise": self.noise}
+
+    @classmethod
+    def from_dict(cls, d: dict[str, Any]) -> Hyper:
+        return cls(np.asarray(d["lengthscales"], dtype=float), float(d["outputscale"]), float(d["noise"]))
+
+
+@dataclass
+class GP:
+    """GP regression on the unit cube. ``fit`` learns hyperparameters; ``condition`` only factorizes."""
+
+    config: GPConfig = field(default_factory=GPConfig)
+    hyper: Hyper | None = None
+    X: FloatArray = field(default_factory=lambda: np.zeros((0, 0)))
+    y_mean: float = 0.0
+    y_std: float = 1.0
+    _L: FloatArray = field(default_factory=lambda: np.zeros((0, 0)))
+    _alpha: FloatArray = field(default_factory=lambda: np.zeros(0))
+    _z: FloatArray = field(default_factory=lambda: np.zeros(0))
+
+    # --- priors ------------------------------------------------------------------
+    def _prior(self, d: int) -> tuple[FloatArray, FloatArray]:
+        c = self.config
+        loc = np.concatenate([np.full(d, c.ls_loc + 0.5 * math.log(d)), [c.os_loc, c.noise_loc]])
+        scale = np.concatenate([np.full(d, c.ls_scale), [c.os_scale, c.noise_scale]])
+        return loc, scale
+
+    def _bounds(self, d: int) -> list[tuple[float, float]]:
+        c = self.config
+        ls = (math.log(c.ls_bounds[0]), math.log(c.ls_bounds[1]))
+        return [ls] * d + [
+            (math.log(c.os_bounds[0]), math.log(c.os_bounds[1])),
+            (math.log(c.noise_floor), math.log(c.noise_ceiling)),
+        ]
+
+    # --- data ------------------------------------------------------------------------
+    def _set_data(self, X: FloatArray, y: FloatArray) -> None:
+        X = np.atleast_2d(np.asarray(X, dtype=float))
+        y = np.asarray(y, dtype=float).ravel()
+        if X.shape[0] == 0 or X.shape[0] != y.shape[0]:
+            raise GPError(f"need matching, non-empty X and y, got X {X.shape} and y {y.shape}")
+        if not (np.all(np.isfinite(X)) and np.all(np.isfinite(y))):
+            raise GPError("X and y must be finite (NaN or inf observations cannot be modelled)")
+        self.X = X
+        self.y_mean = float(np.mean(y))
+        sd = float(np.std(y))
+        self.y_std = sd if sd > 1e-12 * max(1.0, abs(self.y_mean)) else 1.0
+        self._z = (y - self.y_mean) / self.y_std
+
+    # --- the objective: negative log posterior and its gradient ------------------------------
+    def neg_log_posterior(self, v: FloatArray, D2: FloatArray | None = None) -> tuple[float, FloatArray]:
+        """-(log marginal likelihood + log prior) of log-hyperparameters ``v`` and its gradient."""
+        X, z = self.X, self._z
+        n, d = X.shape
+        ls = np.exp(v[:d])
+        s2 = math.exp(v[d])
+        sn2 = math.exp(v[d + 1])
+        if D2 is None:
+            D2 = (X[:, None, :] - X[None, :, :]) ** 2
+        r2 = D2 @ (1.0 / ls**2)
+        Kf = matern52_from_r2(r2, s2)
+        K = Kf + (sn2 + 1e-10 * s2) * np.eye(n)
+        try:
+            L = np.linalg.cholesky(K)
+        except np.linalg.LinAlgError:
+            return 1e10, np.zeros_like(v)
+        alpha = sla.cho_solve((L, True), z, check_finite=False)
+        Kinv = sla.cho_solve((L, True), np.eye(n), check_finite=False)
+        mll = -0.5 * float(z @ alpha) - float(np.sum(np.log(np.diag(L)))) - 0.5 * n * LOG_2PI
+        W = np.outer(alpha, alpha) - Kinv
+        F = matern52_dr2_factor(r2, s2)
+        M = W * F
+        # d mll / d log l_k = 0.5 * sum_ij M_ij (x_ik - x_jk)^2 / l_k^2
+        g_ls = 0.5 * np.tensordot(M, D2, axes=([0, 1], [0, 1])) / ls**2
+        g_os = 0.5 * float(np.sum(W * Kf))
+        g_sn = 0.5 * sn2 * float(np.trace(W))
+        grad = np.concatenate([g_ls, [g_os, g_sn]])
+        loc, scale = self._prior(d)
+        lp = -0.5 * float(np.sum(((v - loc) / scale) ** 2))
+        glp = -(v - loc) / scale**2
+        return -(mll + lp), -(grad + glp)
+
+    def log_marginal_likelihood(self, hyper: Hyper) -> float:
+        """Log marginal likelihood of the standardized data under ``hyper`` (no prior)."""
+        v = hyper.to_vector()
+        nlp, _ = self.neg_log_posterior(v)
+        loc, scale = self._prior(self.X.shape[1])
+        return -nlp + 0.5 * float(np.sum(((v - loc) / scale) ** 2))
+
+    # --- fitting -------------------------------------------------------------------------
+    def fit(self, X: FloatArray, y: FloatArray, rng: np.random.Generator | None = None) -> GP:
+        """Learn the hyperparameters (MAP, multi-start L-BFGS-B) and condition on (X, y)."""
+        self._set_data(X, y)
+        d = self.X.shape[1]
+        rng = rng if rng is not None else np.random.default_rng(0)
+        loc, scale = self._prior(d)
+        bounds = self._bounds(d)
+        lo = np.array([b[0] for b in bounds])
+        hi = np.array([b[1] for b in bounds])
+        starts = [np.clip(loc, lo, hi)]
+        if self.hyper is not None and self.hyper.lengthscales.shape[0] == d:
+            starts.append(np.clip(self.hyper.to_vector(), lo, hi))
+        for _ in range(self.config.restarts):
+            starts.append(np.clip(loc + scale * rng.standard_normal(d + 2) * 0.7, lo, hi))
+        D2 = (self.X[:, None, :] - self.X[None, :, :]) ** 2
+        best_v, best_f = starts[0], math.inf
+        for v0 in starts:
+            try:
+                res = minimize(
+                    self.neg_log_posterior,
+                    v0,
+                    args=(D2,),
+                    jac=True,
+                    method="L-BFGS-B",
+                    bounds=bounds,
+                    options={"maxiter": self.config.maxiter},
+                )
+            except (np.linalg.LinAlgError, ValueError, FloatingPointError):
+                continue
+            if np.isfinite(res.fun) and res.fun < best_f:
+                best_f, best_v = float(res.fun), np.asarray(res.x)
+        self.hyper = Hyper.from_vector(best_v)
+        self._factorize()
+        return self
+
+    def condition(self, X: FloatArray, y: FloatArray, hyper: Hyper | None = None) -> GP:
+        """Condition on (X, y) with given (or the current) hyperparameters, no fitting."""
+        self._set_data(X, y)
+        if hyper is not None:
+            self.hyper = hyper
+        if self.hyper is None:
+            loc, _ = self._prior(self.X.shape[1])
+            self.hyper = Hyper.from_vector(loc)
+        self._factorize()
+        return self
+
+    def _factorize(self) -> None:
+        assert self.hyper is not None
+        h = self.hyper
+        n = self.X.shape[0]
+        K = matern52_from_r2(sq_dist(self.X, self.X, h.lengthscales), h.outputscale)
+        jitter = 1e-10 * h.outputscale
+        for _ in range(6):
+            try:
+                self._L = np.asarray(np.linalg.cholesky(K + (h.noise + jitter) * np.eye(n)), dtype=float)
+                break
+            except np.linalg.LinAlgError:
+                jitter *= 100.0
+        else:
+            raise GPError("kernel matrix is not positive definite even with jitter; duplicate points with no noise?")
+        self._alpha = np.asarray(sla.cho_solve((self._L, True), self._z, check_finite=False), dtype=float)
+
+    # --- prediction ------------------------------------------------------------------------
+    @property
+    def fitted(self) -> bool:
+        return self.hyper is not None and self._alpha.size > 0
+
+    def predict_std_units(self, Xq: FloatArray) -> tuple[FloatArray, FloatArray]:
+        """Posterior mean and variance of the latent function, standardized units."""
+        if not self.fitted:
+            raise GPError("the GP has no data yet")
+        assert self.hyper is not None
+        h = self.hyper
+        Xq = np.atleast_2d(np.asarray(Xq, dtype=float))
+        Ks = matern52_from_r2(sq_dist(Xq, self.X, h.lengthscales), h.outputscale)
+        mu = Ks @ self._alpha
+        V = sla.solve_triangular(self._L, Ks.T, lower=True, check_finite=False)
+        var = np.maximum(h.outputscale - np.sum(V * V, axis=0), 1e-12 * h.outputscale)
+        return mu, var
+
+    def predict(self, Xq: FloatArray) -> tuple[FloatArray, FloatArray]:
+        """Posterior mean and standard deviation of the latent function, in the units of y."""
+        mu, var = self.predict_std_units(Xq)
+        return self.y_mean + self.y_std * mu, self.y_std * np.sqrt(var)
+
+    def predict_with_grad(self, Xq: FloatArray) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray]:
+        """Standardized mean, std and their gradients w.r.t. the query points: (m,), (m,), (m, d), (m, d)."""
+        if not self.fitted:
+            raise GPError("the GP has no data yet")
+        assert self.hyper is not None
+        h = self.hyper
+        Xq = np.atleast_2d(np.asarray(Xq, dtype=float))
+        il2 = 1.0 / h.lengthscales**2
+        r2 = sq_dist(Xq, self.X, h.lengthscales)
+        Ks = matern52_from_r2(r2, h.outputscale)
+        F = matern52_dr2_factor(r2, h.outputscale)
+        mu = Ks @ self._alpha
+        Vt = sla.cho_solve((self._L, True), Ks.T, check_finite=False).T  # (m, n) = Ks K^-1
+        var_raw = h.outputscale - np.sum(Ks * Vt, axis=1)
+        var = np.maximum(var_raw, 1e-12 * h.outputscale)
+        Fa = F * self._alpha[None, :]
+        dmu = -(Xq * Fa.sum(axis=1)[:, None] - Fa @ self.X) * il2
+        FV = F * Vt
+        dvar = 2.0 * (Xq * FV.sum(axis=1)[:, None] - FV @ self.X) * il2
+        dvar[var_raw <= 1e-12 * h.outputscale] = 0.0
+        sd = np.sqrt(var)
+        dsd = dvar / (2.0 * sd[:, None])
+        return mu, sd, dmu, dsd

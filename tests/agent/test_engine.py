@@ -1,0 +1,179 @@
+"""The ask/tell engine: bounds, quantization, design, JSON state, recommendation, acquisition."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+from scipy.stats import norm
+
+from bac_agent.bo import Engine, EngineConfig, EngineError, SearchSpace, SpaceError
+from bac_agent.bo.acquisition import log_ei, log_ei_with_grad, log_h
+from bac_common.errors import OutOfBoundsError, UnknownParameterError
+from bac_common.paramspace import CalibrationDefinition, MetaParameter, RawParameter, uniform_parameters
+
+
+def quad(p: dict[str, float]) -> float:
+    return (p["a"] - 0.3) ** 2 + 2.0 * (p["b"] - 0.7) ** 2
+
+
+def test_log_h_matches_direct_formula_and_stays_finite() -> None:
+    z = np.array([-0.5, 0.0, 1.0, 3.0, -2.0, -5.0])
+    direct = np.log(norm.pdf(z) + z * norm.cdf(z))
+    np.testing.assert_allclose(log_h(z), direct, rtol=1e-9)
+    far = log_h(np.array([-40.0, -1e3, -1e9]))
+    assert np.all(np.isfinite(far))
+    assert far[0] > far[1] > far[2]
+    # asymptotic: h(z) ~ phi(z)/z^2 for z -> -inf
+    assert far[1] == pytest.approx(norm.logpdf(-1e3) - 2 * math.log(1e3), rel=1e-6)
+
+
+def test_log_ei_gradient_matches_finite_difference() -> None:
+    mu, sd, best = np.array([0.3]), np.array([0.2]), 0.1
+    dmu, dsd = np.array([[1.0, 0.0]]), np.array([[0.0, 1.0]])
+    _, g = log_ei_with_grad(mu, sd, dmu, dsd, best)
+    eps = 1e-7
+    fd_mu = (log_ei(mu + eps, sd, best) - log_ei(mu - eps, sd, best)) / (2 * eps)
+    fd_sd = (log_ei(mu, sd + eps, best) - log_ei(mu, sd - eps, best)) / (2 * eps)
+    np.testing.assert_allclose(g[0], [fd_mu[0], fd_sd[0]], rtol=1e-5)
+
+
+def test_asks_never_leave_bounds_and_follow_resolution() -> None:
+    space = [("a", -2.0, 3.0, 0.25), ("b", 10.0, 10.5)]
+    eng = Engine(space, budget=14, seed=4)
+    rng = np.random.default_rng(0)
+    for _ in range(14):
+        p = eng.ask()
+        assert -2.0 <= p["a"] <= 3.0 and 10.0 <= p["b"] <= 10.5
+        assert (p["a"] + 2.0) / 0.25 == pytest.approx(round((p["a"] + 2.0) / 0.25), abs=1e-9)
+        # an objective whose optimum lies on the boundary pushes asks to the edges
+        eng.tell(p, -p["a"] - 5 * p["b"] + 0.1 * rng.standard_normal())
+    r = eng.recommend()
+    assert -2.0 <= r.params["a"] <= 3.0 and 10.0 <= r.params["b"] <= 10.5
+    assert r.params["a"] == pytest.approx(3.0) and r.params["b"] > 10.4
+
+
+def test_asks_from_definition_are_what_the_ecu_holds() -> None:
+    defn = CalibrationDefinition(
+        name="t",
+        parameters=(
+            RawParameter("damping_front", 0, 0.0, 1.0, 0.5, 0.01),
+            *uniform_parameters("p", 3, 0.0, 1000.0, 500.0, 0.5, start_index=1),
+        ),
+        tuned=("damping_front", "m1"),
+        meta=(MetaParameter("m1", ("p01", "p02", "p03"), 0.0, 1000.0),),
+    )
+    eng = Engine(defn, budget=8, seed=0)
+    assert eng.names == ("damping_front", "m1")
+    for i in range(8):
+        p = eng.ask()
+        raw = defn.expand(p)  # never raises: inside the declared bounds
+        for name in ("p01", "p02", "p03"):
+            q = defn.parameter(name).quantize(raw[name])
+            assert q == pytest.approx(raw[name], abs=1e-9)  # nothing lost in the CAN encoding
+        assert defn.parameter("damping_front").quantize(p["damping_front"]) == pytest.approx(p["damping_front"])
+        eng.tell(p, float(i))
+
+
+def test_initial_design_is_space_filling_and_seeded() -> None:
+    a = Engine({"x": (0, 1), "y": (0, 1), "z": (0, 1)}, budget=30, n_initial=8, seed=3)
+    b = Engine({"x": (0, 1), "y": (0, 1), "z": (0, 1)}, budget=30, n_initial=8, seed=3)
+    pa = [a.ask() for _ in range(8)]
+    pb = [b.ask() for _ in range(8)]
+    assert pa == pb
+    X = np.array([[p["x"], p["y"], p["z"]] for p in pa])
+    # Latin hypercube: one point in each eighth of every axis
+    for k in range(3):
+        assert sorted(np.floor((X[:, k] - 0.02) / 0.96 * 8).astype(int).tolist()) == list(range(8))
+    c = Engine({"x": (0, 1), "y": (0, 1), "z": (0, 1)}, budget=30, n_initial=8, seed=4)
+    assert [c.ask() for _ in range(8)] != pa
+
+
+def test_engine_finds_quadratic_minimum_under_noise() -> None:
+    eng = Engine({"a": (0.0, 1.0), "b": (0.0, 1.0)}, budget=15, seed=2)
+    rng = np.random.default_rng(2)
+    while not eng.done:
+        p = eng.ask()
+        eng.tell(p, quad(p) + 0.02 * rng.standard_normal())
+    r = eng.recommend()
+    assert quad(r.params) < 0.01  # true J of the recommendation: near the minimum 0
+    assert abs(r.predicted_j - quad(r.params)) < 0.05
+    assert 0 < r.predicted_std < 0.1
+    assert r.n_observations == 15
+    assert r.best_observed_j == min(o.value for o in eng.observations)
+
+
+def test_two_asks_without_tell_differ_and_tell_clears_pending() -> None:
+    eng = Engine({"a": (0.0, 1.0), "b": (0.0, 1.0)}, budget=10, n_initial=3, seed=0)
+    for _ in range(3):
+        p = eng.ask()
+        eng.tell(p, quad(p))
+    p1, p2 = eng.ask(), eng.ask()
+    assert p1 != p2
+    assert len(eng.pending) == 2
+    eng.tell(p2, quad(p2))
+    assert eng.pending == [p1]
+    eng.tell_failed(p1, "ECU busy")
+    assert eng.pending == [] and eng.n_trials == 5
+    assert eng.failures[0].reason == "ECU busy"
+
+
+def test_failed_point_is_not_proposed_again() -> None:
+    eng = Engine({"a": (0.0, 1.0)}, budget=10, n_initial=2, seed=0)
+    for p in ({"a": 0.1}, {"a": 0.9}):
+        eng.tell(p, (p["a"] - 0.5) ** 2)
+    nxt = eng.ask()
+    eng.tell_failed(nxt, "apply failed")
+    again = eng.ask()
+    assert abs(again["a"] - nxt["a"]) > 0.005
+
+
+def test_json_round_trip_continues_identically() -> None:
+    eng = Engine({"a": (0.0, 1.0), "b": (0.0, 1.0), "c": 0.25}, budget=12, seed=7)
+    for i in range(6):
+        p = eng.ask()
+        assert p["c"] == 0.25  # fixed values pass through
+        if i == 4:
+            eng.tell_failed(p, "invalid")
+        else:
+            eng.tell(p, quad(p))
+    pending = eng.ask()
+    clone = Engine.from_json(eng.to_json())
+    assert clone.pending == [pending]
+    assert clone.config == eng.config
+    eng.tell(pending, quad(pending))
+    clone.tell(pending, quad(pending))
+    assert clone.ask() == eng.ask()
+    assert clone.recommend() == eng.recommend()
+    with pytest.raises(EngineError, match="version"):
+        Engine.from_json('{"version": 99}')
+    with pytest.raises(EngineError, match="JSON"):
+        Engine.from_json("{torn")
+
+
+def test_bad_input_is_refused_clearly() -> None:
+    eng = Engine({"a": (0.0, 1.0), "c": 0.25}, budget=5)
+    with pytest.raises(OutOfBoundsError, match="outside its declared bounds"):
+        eng.tell({"a": 1.5}, 1.0)
+    with pytest.raises(UnknownParameterError, match="unknown parameter 'zz'"):
+        eng.tell({"a": 0.5, "zz": 1.0}, 1.0)
+    with pytest.raises(SpaceError, match=r"fixed at 0\.25"):
+        eng.tell({"a": 0.5, "c": 0.3}, 1.0)
+    with pytest.raises(EngineError, match="finite"):
+        eng.tell({"a": 0.5}, float("nan"))
+    with pytest.raises(EngineError, match="nothing has been told"):
+        eng.recommend()
+    with pytest.raises(SpaceError, match="lower < upper"):
+        Engine({"a": (1.0, 0.0)})
+    with pytest.raises(EngineError, match="budget"):
+        EngineConfig(budget=0)
+
+
+def test_search_space_from_spec_forms() -> None:
+    s1 = SearchSpace.from_spec({"x": (0, 2), "y": (1, 3, 0.5), "k": 4})
+    s2 = SearchSpace.from_spec([("x", 0, 2), ("y", 1, 3, 0.5)])
+    assert s1.names == s2.names == ("x", "y")
+    assert s1.fixed == {"k": 4.0}
+    np.testing.assert_allclose(s1.from_unit(np.array([0.5, 0.3])), [1.0, 1.5])
+    assert SearchSpace.from_dict(s1.to_dict()) == s1

@@ -1,0 +1,105 @@
+"""The GP against scikit-learn's GaussianProcessRegressor (the test oracle), and its gradients."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from scipy.optimize import approx_fprime
+from sklearn.gaussian_process import GaussianProcessRegressor
+from sklearn.gaussian_process.kernels import ConstantKernel, Matern, WhiteKernel
+
+from bac_agent.bo.gp import GP, GPConfig, GPError, Hyper
+from bac_agent.bo.kernel import matern52
+
+
+def _data(n: int, d: int, seed: int) -> tuple[np.ndarray, np.ndarray]:
+    rng = np.random.default_rng(seed)
+    X = rng.random((n, d))
+    y = np.sin(3 * X[:, 0]) + X[:, -1] ** 2 + 0.1 * rng.standard_normal(n)
+    return X, y
+
+
+@pytest.mark.parametrize(("n", "d"), [(7, 1), (25, 3), (60, 6)])
+def test_posterior_equals_sklearn(n: int, d: int) -> None:
+    X, y = _data(n, d, seed=n)
+    rng = np.random.default_rng(1)
+    ls = 0.2 + rng.random(d)
+    s2, noise = 1.7, 0.03
+    gp = GP().condition(X, y, Hyper(ls, s2, noise))
+    # sklearn on the same standardized targets: alpha = noise on the training diagonal only
+    z = (y - gp.y_mean) / gp.y_std
+    kern = ConstantKernel(s2, "fixed") * Matern(length_scale=ls, length_scale_bounds="fixed", nu=2.5)
+    sk = GaussianProcessRegressor(kern, alpha=noise + 1e-10 * s2, optimizer=None, normalize_y=False).fit(X, z)
+    Xq = rng.random((50, d))
+    mu_sk, sd_sk = sk.predict(Xq, return_std=True)
+    mu, var = gp.predict_std_units(Xq)
+    np.testing.assert_allclose(mu, mu_sk, rtol=1e-6, atol=1e-9)
+    np.testing.assert_allclose(var, sd_sk**2, rtol=1e-6, atol=1e-9)
+    # in J units: mean and std scale back
+    m_j, s_j = gp.predict(Xq)
+    np.testing.assert_allclose(m_j, gp.y_mean + gp.y_std * mu_sk, rtol=1e-6)
+    np.testing.assert_allclose(s_j, gp.y_std * sd_sk, rtol=1e-6)
+
+
+def test_kernel_equals_sklearn() -> None:
+    rng = np.random.default_rng(3)
+    A, B = rng.random((9, 4)), rng.random((5, 4))
+    ls = np.array([0.3, 0.9, 2.0, 0.05])
+    k_sk = (ConstantKernel(0.7) * Matern(length_scale=ls, nu=2.5))(A, B)
+    np.testing.assert_allclose(matern52(A, B, ls, 0.7), k_sk, rtol=1e-10, atol=1e-14)
+
+
+def test_marginal_likelihood_and_gradient_equal_sklearn() -> None:
+    X, y = _data(30, 3, seed=5)
+    hyper = Hyper(np.array([0.4, 0.7, 1.3]), 1.2, 0.05)
+    gp = GP().condition(X, y, hyper)
+    z = gp._z
+    kern = ConstantKernel(1.2) * Matern(length_scale=[0.4, 0.7, 1.3], nu=2.5) + WhiteKernel(0.05 + 1e-10 * 1.2)
+    sk = GaussianProcessRegressor(kern, alpha=0.0, optimizer=None).fit(X, z)
+    theta = sk.kernel_.theta  # log: [s2, l1, l2, l3, noise]
+    lml_sk, grad_sk = sk.log_marginal_likelihood(theta, eval_gradient=True)
+    assert gp.log_marginal_likelihood(hyper) == pytest.approx(lml_sk, rel=1e-8)
+    # our gradient of -(mll + prior) minus the prior's part = -grad mll
+    v = hyper.to_vector()
+    _, g = gp.neg_log_posterior(v)
+    loc, scale = gp._prior(3)
+    g_mll = -(g - (v - loc) / scale**2)
+    np.testing.assert_allclose(g_mll[:3], grad_sk[1:4], rtol=1e-5)
+    assert g_mll[3] == pytest.approx(grad_sk[0], rel=1e-5)
+    # sklearn's noise term includes the jitter; ours is d/dlog(noise) of the noise only
+    assert g_mll[4] == pytest.approx(grad_sk[4] * 0.05 / (0.05 + 1.2e-10), rel=1e-5)
+
+
+def test_predict_gradients_match_finite_differences() -> None:
+    X, y = _data(20, 3, seed=9)
+    gp = GP().condition(X, y, Hyper(np.array([0.3, 0.5, 0.8]), 1.0, 0.01))
+    x0 = np.array([[0.31, 0.62, 0.17]])
+    _, _, dmu, dsd = gp.predict_with_grad(x0)
+    fd_mu = approx_fprime(x0[0], lambda x: gp.predict_std_units(x[None])[0][0], 1e-7)
+    fd_sd = approx_fprime(x0[0], lambda x: np.sqrt(gp.predict_std_units(x[None])[1][0]), 1e-7)
+    np.testing.assert_allclose(dmu[0], fd_mu, rtol=1e-4, atol=1e-6)
+    np.testing.assert_allclose(dsd[0], fd_sd, rtol=1e-4, atol=1e-6)
+
+
+def test_fit_learns_noise_and_relevance() -> None:
+    rng = np.random.default_rng(0)
+    X = rng.random((60, 3))
+    y = np.sin(6 * X[:, 0]) + 0.3 * rng.standard_normal(60)  # only x0 matters; noise sd 0.3
+    gp = GP(GPConfig()).fit(X, y, rng)
+    assert gp.hyper is not None
+    ls = gp.hyper.lengthscales
+    assert ls[0] < 0.5 * min(ls[1], ls[2])  # the relevant dimension has the short lengthscale
+    noise_sd = np.sqrt(gp.hyper.noise) * gp.y_std
+    assert 0.15 < noise_sd < 0.5  # the learned noise is near the true 0.3
+    # and the fit is better than the prior mode
+    loc, _ = gp._prior(3)
+    assert gp.log_marginal_likelihood(gp.hyper) > gp.log_marginal_likelihood(Hyper.from_vector(loc))
+
+
+def test_bad_data_is_refused() -> None:
+    with pytest.raises(GPError, match="finite"):
+        GP().condition(np.zeros((2, 1)), np.array([1.0, np.nan]))
+    with pytest.raises(GPError, match="non-empty"):
+        GP().condition(np.zeros((0, 1)), np.zeros(0))
+    with pytest.raises(GPError, match="no data"):
+        GP().predict(np.zeros((1, 1)))
