@@ -67,6 +67,12 @@ def launch_main(argv: Sequence[str]) -> int:
     ap.add_argument("--exclude", default="", help="comma-separated node names not to start")
     ap.add_argument("--log-dir", type=Path, help="write each node's output to LOG_DIR/<node>.log")
     ap.add_argument("--timeout", type=float, help="stop the graph after this many seconds (exit 124)")
+    ap.add_argument(
+        "--campaign-dir",
+        type=Path,
+        help="campaign folder (journal, bags, report) for profiles that run a campaign; "
+        "default: a new folder campaigns/<profile>-<date>-<time> here; an existing folder is resumed",
+    )
     args = ap.parse_args(list(argv))
     try:
         profile = load_profile(args.profile)
@@ -79,6 +85,13 @@ def launch_main(argv: Sequence[str]) -> int:
             only=args.only.split(",") if args.only else None,
             exclude=[x for x in args.exclude.split(",") if x],
         )
+        if profile.campaign:
+            camp = args.campaign_dir or default_campaign_dir(profile.name)
+            camp = camp.resolve()
+            camp.mkdir(parents=True, exist_ok=True)
+            profile = profile.with_overrides(global_params={"campaign_dir": str(camp)})
+            argv = [*argv, "--campaign-dir", str(camp)] if args.campaign_dir is None else argv
+            logging.getLogger("bac.launch").info("campaign folder: %s", camp)
     except ProfileError as exc:
         logging.getLogger("bac.launch").error("%s", exc)
         return 2
@@ -89,6 +102,12 @@ def launch_main(argv: Sequence[str]) -> int:
             logging.getLogger("bac.launch").error("%s", exc)
             return 3
     return launcher.run_graph(profile, single_process=args.single_process, log_dir=args.log_dir, timeout_s=args.timeout)
+
+
+def default_campaign_dir(profile_name: str) -> Path:
+    import time
+
+    return Path("campaigns") / f"{profile_name}-{time.strftime('%Y%m%d-%H%M%S')}"
 
 
 def _resolve(name: str) -> Callable[[Sequence[str]], int] | None:

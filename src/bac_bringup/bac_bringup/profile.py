@@ -12,6 +12,8 @@ A profile is the bac equivalent of a launch file::
 
 ``entry`` is ``module:Class``: the process mode runs ``python -m module`` (the
 module's ``main()``), the single-process mode instantiates ``Class``.
+``campaign: true`` makes the launcher give every node a ``campaign_dir``
+parameter (one new folder per launch unless ``--campaign-dir`` names one).
 ``can: true`` gives the node the profile's CAN settings as ``can.*``
 parameters. ``ends_graph: true`` marks the node whose normal exit (code 0)
 ends the whole graph; any other node exiting is a failure.
@@ -78,6 +80,7 @@ class Profile:
     can: CanSpec | None = None
     description: str = ""
     global_params: Mapping[str, Any] = field(default_factory=dict)  # given to every node
+    campaign: bool = False  # nodes take a campaign_dir (the launcher makes one per run)
 
     @property
     def needs_can(self) -> bool:
@@ -203,6 +206,7 @@ def load_profile(name_or_path: str | Path) -> Profile:
         can=can,
         description=str(data.get("description", "")),
         global_params=dict(data.get("global_params") or {}),
+        campaign=bool(data.get("campaign", False)),
     )
 
 
