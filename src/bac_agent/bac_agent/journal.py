@@ -1,0 +1,185 @@
+"""The campaign journal: ``campaign_dir/journal.jsonl``, append-only, durable per event.
+
+One JSON object per line, one line per event. Each append writes the whole line
+with a single ``write`` on a file opened ``O_APPEND``, then ``fsync``: once
+:meth:`Journal.append` returns, the event survives ``kill -9`` and a power cut.
+A process killed in the middle of a write can leave a *torn* last line (no
+newline, or not JSON): :class:`Journal` detects it when it opens the file,
+reports it (``Journal.torn``), moves the torn bytes to ``journal.jsonl.torn``
+and truncates the file after the last complete line, so the earlier events are
+kept and new ones start on a clean line. A bad line *before* the last one is
+not a torn write but corruption: :class:`JournalCorruptError`, nothing guessed.
+
+Every event has ``seq`` (0-based line number), ``event`` (its type), ``wall_time``
+(ISO 8601 UTC) and whatever fields its type defines; the schema is documented in
+docs/agent.md and versioned by ``SCHEMA_VERSION`` (in the ``campaign_started``
+event). Non-finite floats are written as ``null`` (strict JSON).
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+from collections.abc import Iterator, Mapping
+from dataclasses import dataclass
+from datetime import UTC, datetime
+from pathlib import Path
+from typing import Any
+
+from bac_common.errors import BacError
+
+SCHEMA_VERSION = 1
+JOURNAL_NAME = "journal.jsonl"
+
+
+class JournalError(BacError):
+    """The journal cannot be used (unreadable, from another campaign, ...)."""
+
+
+class JournalCorruptError(JournalError):
+    """A line other than the last one is not a JSON object: the file was damaged, not torn."""
+
+
+@dataclass(frozen=True)
+class JournalRead:
+    """What :func:`read_journal` found."""
+
+    events: list[dict[str, Any]]
+    good_bytes: int  # length of the prefix made of complete, valid lines
+    torn: bytes  # the torn tail (empty when the file ended cleanly)
+
+
+def _clean(value: Any) -> Any:
+    """Strict-JSON form: non-finite floats become None, recursively."""
+    if isinstance(value, float):
+        return value if math.isfinite(value) else None
+    if isinstance(value, Mapping):
+        return {str(k): _clean(v) for k, v in value.items()}
+    if isinstance(value, list | tuple):
+        return [_clean(v) for v in value]
+    return value
+
+
+def read_journal(path: str | Path) -> JournalRead:
+    """Read every complete event; a torn last line is returned apart, never guessed at."""
+    p = Path(path)
+    try:
+        data = p.read_bytes()
+    except FileNotFoundError:
+        return JournalRead([], 0, b"")
+    except OSError as exc:
+        raise JournalError(f"cannot read the journal {p}: {exc}") from exc
+    events: list[dict[str, Any]] = []
+    pos = 0
+    lines = data.split(b"\n")
+    for i, raw in enumerate(lines):
+        last = i == len(lines) - 1
+        if last:
+            # after the final newline: empty when the file ended cleanly, else a torn write
+            return JournalRead(events, pos, raw)
+        try:
+            obj = json.loads(raw)
+        except (json.JSONDecodeError, UnicodeDecodeError):
+            obj = None
+        if not isinstance(obj, dict) or "event" not in obj:
+            if i == len(lines) - 2 and lines[-1] == b"":
+                # the last complete-looking line is garbage: a torn write that happened to end in a newline
+                return JournalRead(events, pos, raw + b"\n")
+            raise JournalCorruptError(
+                f"{p}: line {i + 1} is not a journal event ({raw[:80]!r}); the file is damaged before its end. "
+                "Keep a copy, then remove the damaged lines by hand or start a new campaign_dir."
+            )
+        events.append(obj)
+        pos += len(raw) + 1
+    return JournalRead(events, pos, b"")  # pragma: no cover - split always yields a last element
+
+
+class Journal:
+    """An append-only, fsynced JSON-lines journal (see the module doc)."""
+
+    def __init__(self, campaign_dir: str | Path) -> None:
+        self.dir = Path(campaign_dir)
+        try:
+            self.dir.mkdir(parents=True, exist_ok=True)
+        except OSError as exc:
+            raise JournalError(f"cannot create the campaign folder {self.dir}: {exc}") from exc
+        self.path = self.dir / JOURNAL_NAME
+        read = read_journal(self.path)
+        self.torn: bytes = read.torn
+        if read.torn:
+            torn_path = self.path.with_name(JOURNAL_NAME + ".torn")
+            with torn_path.open("ab") as f:
+                f.write(read.torn + b"\n")
+                f.flush()
+                os.fsync(f.fileno())
+            with self.path.open("r+b") as f:
+                f.truncate(read.good_bytes)
+                f.flush()
+                os.fsync(f.fileno())
+        self._events = read.events
+        new = not self.path.exists()
+        self._fd = os.open(self.path, os.O_WRONLY | os.O_APPEND | os.O_CREAT, 0o644)
+        if new:
+            self._fsync_dir()
+
+    def _fsync_dir(self) -> None:
+        try:
+            dfd = os.open(self.dir, os.O_RDONLY)
+        except OSError:
+            return
+        try:
+            os.fsync(dfd)
+        finally:
+            os.close(dfd)
+
+    @property
+    def events(self) -> list[dict[str, Any]]:
+        return list(self._events)
+
+    def __iter__(self) -> Iterator[dict[str, Any]]:
+        return iter(list(self._events))
+
+    def __len__(self) -> int:
+        return len(self._events)
+
+    def append(self, event: str, **fields: Any) -> dict[str, Any]:
+        """Write one event durably (write + fsync) and return it as written."""
+        if self._fd < 0:
+            raise JournalError(f"journal {self.path} is closed")
+        rec: dict[str, Any] = {
+            "seq": len(self._events),
+            "event": event,
+            "wall_time": datetime.now(UTC).isoformat(timespec="milliseconds"),
+        }
+        rec.update(_clean(fields))
+        line = (json.dumps(rec, allow_nan=False, separators=(",", ":")) + "\n").encode()
+        n = os.write(self._fd, line)
+        if n != len(line):  # a short write on a regular file: disk full
+            raise JournalError(f"journal {self.path}: short write ({n} of {len(line)} bytes); is the disk full?")
+        os.fsync(self._fd)
+        self._events.append(rec)
+        return rec
+
+    def close(self) -> None:
+        if self._fd >= 0:
+            os.close(self._fd)
+            self._fd = -1
+
+    def __enter__(self) -> Journal:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+
+def write_json_atomic(path: str | Path, data: Mapping[str, Any]) -> None:
+    """Write a JSON file so that a reader sees the old or the new content, never a mix."""
+    p = Path(path)
+    tmp = p.with_name(p.name + ".tmp")
+    with tmp.open("w") as f:
+        json.dump(_clean(data), f, indent=2, allow_nan=False)
+        f.write("\n")
+        f.flush()
+        os.fsync(f.fileno())
+    os.replace(tmp, p)

@@ -1,0 +1,77 @@
+"""The journal: durable appends, torn last lines, corruption, strict JSON."""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+from pathlib import Path
+
+import pytest
+
+from bac_agent.journal import JOURNAL_NAME, Journal, JournalCorruptError, read_journal, write_json_atomic
+
+
+def test_append_and_reopen(tmp_path: Path) -> None:
+    with Journal(tmp_path / "c1") as j:
+        j.append("campaign_started", names=["a"])
+        rec = j.append("trial_scored", trial_id=1, j=1.5, predicted_j=math.nan)
+    assert rec["seq"] == 1 and rec["predicted_j"] is None  # NaN written as null: strict JSON
+    lines = (tmp_path / "c1" / JOURNAL_NAME).read_text().splitlines()
+    assert [json.loads(x)["event"] for x in lines] == ["campaign_started", "trial_scored"]
+    j2 = Journal(tmp_path / "c1")
+    assert len(j2) == 2 and j2.torn == b""
+    assert j2.append("x")["seq"] == 2
+    j2.close()
+
+
+def test_torn_last_line_is_reported_moved_and_earlier_lines_kept(tmp_path: Path) -> None:
+    with Journal(tmp_path) as j:
+        j.append("campaign_started")
+        j.append("trial_proposed", trial_id=1)
+    path = tmp_path / JOURNAL_NAME
+    with path.open("ab") as f:
+        f.write(b'{"seq":2,"event":"trial_sco')  # kill -9 in the middle of a write
+    read = read_journal(path)
+    assert [e["event"] for e in read.events] == ["campaign_started", "trial_proposed"]
+    assert read.torn == b'{"seq":2,"event":"trial_sco'
+    j = Journal(tmp_path)
+    assert j.torn == b'{"seq":2,"event":"trial_sco'
+    assert len(j) == 2
+    assert (tmp_path / (JOURNAL_NAME + ".torn")).read_bytes().startswith(b'{"seq":2')
+    j.append("trial_scored", trial_id=1, j=2.0)
+    j.close()
+    events = [json.loads(x) for x in path.read_text().splitlines()]
+    assert [e["event"] for e in events] == ["campaign_started", "trial_proposed", "trial_scored"]
+    assert Journal(tmp_path).torn == b""  # repaired for good
+
+
+def test_garbage_last_line_with_newline_counts_as_torn(tmp_path: Path) -> None:
+    path = tmp_path / JOURNAL_NAME
+    path.write_bytes(b'{"seq":0,"event":"campaign_started"}\n\x00\x00\x00\n')
+    j = Journal(tmp_path)
+    assert len(j) == 1 and j.torn
+    j.close()
+
+
+def test_damage_before_the_end_is_an_error(tmp_path: Path) -> None:
+    path = tmp_path / JOURNAL_NAME
+    path.write_bytes(b'{"seq":0,"event":"campaign_started"}\nnot json\n{"seq":2,"event":"x"}\n')
+    with pytest.raises(JournalCorruptError, match="line 2"):
+        Journal(tmp_path)
+
+
+def test_each_event_is_on_disk_when_append_returns(tmp_path: Path) -> None:
+    j = Journal(tmp_path)
+    j.append("a", v=1)
+    # another reader (another process) sees it at once, without close()
+    assert read_journal(tmp_path / JOURNAL_NAME).events[0]["v"] == 1
+    fd_flags = os.stat(tmp_path / JOURNAL_NAME).st_size
+    assert fd_flags > 0
+    j.close()
+
+
+def test_write_json_atomic(tmp_path: Path) -> None:
+    write_json_atomic(tmp_path / "r.json", {"j": float("nan"), "p": {"a": 1.0}})
+    assert json.loads((tmp_path / "r.json").read_text()) == {"j": None, "p": {"a": 1.0}}
+    assert not (tmp_path / "r.json.tmp").exists()
