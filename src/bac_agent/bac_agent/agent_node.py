@@ -1,0 +1,364 @@
+"""``bo_agent``: runs a calibration campaign (paper algorithm 1) through the graph.
+
+A thin node around :class:`bac_agent.campaign.Campaign`: it converts messages,
+declares the parameters, and executes the campaign's actions:
+
+* ``Publish``  → ``bac/trial`` (bac_msgs/Trial, latched);
+* ``Apply``    → ``ecu_bridge/apply_calibration`` called asynchronously, waited for
+  with a time limit (the service's appearance too), never blocking a callback;
+* ``AwaitRun`` → a run deadline in ROS time (sim time under ``use_sim_time``);
+* ``Finish``   → ``self.finish(code)`` (the launcher ends the graph).
+
+Scores come from ``bac/run_score`` (bac_msgs/RunScore). Everything the node
+does runs in one mutually exclusive callback group (a 20 Hz steady-clock tick
+polls the pending service call and the deadlines), so the campaign sees one
+event at a time.
+"""
+
+from __future__ import annotations
+
+import math
+import os
+import sys
+import threading
+import time
+from collections.abc import Mapping
+from pathlib import Path
+from typing import Any
+
+from builtin_interfaces.msg import Time as TimeMsg
+from rclpy.callback_groups import MutuallyExclusiveCallbackGroup
+from rclpy.clock import Clock
+from rclpy.clock_type import ClockType
+
+from bac_agent.bo.baselines import GridStrategy, RandomStrategy
+from bac_agent.bo.engine import Engine, EngineConfig
+from bac_agent.campaign import (
+    Action,
+    Apply,
+    AwaitRun,
+    Campaign,
+    CampaignConfig,
+    Finish,
+    Log,
+    Optimizer,
+    Publish,
+    TrialStatus,
+)
+from bac_agent.journal import Journal
+from bac_common.contracts import SRV_APPLY_CALIBRATION, TOPIC_RUN_SCORE, TOPIC_TRIAL
+from bac_common.errors import BacError
+from bac_common.paramspace import CalibrationDefinition
+from bac_common.rosnode import QOS_EVENTS, QOS_LATCHED, BacNode, run_node
+from bac_msgs.msg import Calibration, RunScore, Trial
+from bac_msgs.srv import ApplyCalibration
+
+STRATEGIES = ("bo", "grid", "random")
+
+
+def resolve_definition(value: str) -> Path:
+    """A definition file as given, else by name in ros_ws/config/calibrations/ ($BAC_WS or found upwards)."""
+    p = Path(value).expanduser()
+    if p.is_file():
+        return p
+    roots: list[Path] = []
+    if os.environ.get("BAC_WS"):
+        roots.append(Path(os.environ["BAC_WS"]))
+    for start in (Path.cwd(), Path(__file__).resolve()):
+        roots.extend(d / "ros_ws" for d in (start, *start.parents) if (d / "ros_ws").is_dir())
+    for root in roots:
+        for cand in (root / "config" / "calibrations" / p.name, root / "config" / "calibrations" / f"{p.name}.yaml"):
+            if cand.is_file():
+                return cand
+    raise BacError(
+        f"calibration definition '{value}' not found (looked as a path and in ros_ws/config/calibrations/); "
+        "set definition_file to a YAML file"
+    )
+
+
+def make_verifier(defn: CalibrationDefinition) -> Any:
+    """Check the raw values the ECU echoed against the expansion of what was asked (within one LSB)."""
+
+    def verify(params: Mapping[str, float], applied: Mapping[str, float]) -> str | None:
+        if not applied:
+            return None  # the bridge's success already says the ECU acknowledged these values
+        expected = defn.expand(params)
+        bad = []
+        for name, value in applied.items():
+            if name in expected:
+                tol = defn.parameter(name).resolution * 1.01
+                if abs(float(value) - expected[name]) > tol:
+                    bad.append(f"{name}={value:g} (asked {expected[name]:g})")
+        return ", ".join(bad) or None
+
+    return verify
+
+
+class BoAgentNode(BacNode):
+    """The campaign agent (see the module doc and docs/agent.md)."""
+
+    def __init__(self, **kwargs: Any) -> None:
+        super().__init__("bo_agent", **kwargs)
+        definition_file = self.declare_str(
+            "definition_file",
+            "controller_i",
+            "calibration definition (YAML path, or a name in ros_ws/config/calibrations/)",
+            read_only=True,
+        )
+        campaign_dir = self.declare_str(
+            "campaign_dir", "campaigns/default", "campaign folder: journal.jsonl, recommendation.json", read_only=True
+        )
+        campaign_id = self.declare_str(
+            "campaign_id", "", "campaign id carried by every run (default: the campaign folder's name)", read_only=True
+        )
+        self.strategy = self.declare_str(
+            "strategy", "bo", "how calibrations are chosen", choices=STRATEGIES, read_only=True
+        )
+        budget = self.declare_int("budget", 15, "trials of the campaign (bo, random)", 1, 10_000, read_only=True)
+        n_initial = self.declare_int(
+            "n_initial", 0, "space-filling initial trials (0 = automatic: 3 for d <= 2, else d + 1)", 0, 1000, True
+        )
+        seed = self.declare_int("seed", 0, "random seed of the optimizer", 0, 2**31 - 1, read_only=True)
+        grid_size = self.declare_int("grid_size", 4, "levels per dimension of the grid strategy", 1, 100, True)
+        max_attempts = self.declare_int("max_attempts", 3, "runs per trial before it is given up", 1, 100)
+        apply_timeout = self.declare_float("apply_timeout_s", 10.0, "time limit of one apply, s", 0.1, 600.0)
+        apply_retries = self.declare_int("apply_retries", 2, "further apply tries after a failed one", 0, 20)
+        self.service_wait_s = self.declare_float(
+            "service_wait_s", 15.0, "how long to wait for the ECU bridge's service to appear, s", 0.1, 3600.0
+        )
+        run_timeout = self.declare_float(
+            "run_timeout_s", 300.0, "ROS time from READY_TO_DRIVE to a score before the run counts invalid, s", 1.0, 1e6
+        )
+        confirmation = self.declare_bool("confirmation_run", False, "drive the recommendation once more before DONE")
+        max_failures = self.declare_int(
+            "max_consecutive_failures", 3, "failed trials in a row that end the campaign", 1, 1000
+        )
+        resume = self.declare_bool(
+            "resume", True, "continue the campaign in campaign_dir's journal (false: refuse an existing one)", True
+        )
+
+        self.definition = CalibrationDefinition.load(resolve_definition(definition_file))
+        cdir = Path(campaign_dir).expanduser()
+        cid = campaign_id or cdir.resolve().name
+        journal = Journal(cdir)
+        if len(journal) and not resume:
+            journal.close()
+            raise BacError(f"{cdir} already holds a campaign journal and resume is false: choose a new campaign_dir")
+        optimizer: Optimizer
+        if self.strategy == "grid":
+            grid = GridStrategy(self.definition, grid_size, seed)
+            budget = grid.budget
+            optimizer = grid
+        elif self.strategy == "random":
+            optimizer = RandomStrategy(self.definition, budget, seed)
+        else:
+            optimizer = Engine(self.definition, EngineConfig(budget=budget, n_initial=n_initial, seed=seed))
+        cfg = CampaignConfig(
+            campaign_id=cid,
+            budget=budget,
+            strategy=self.strategy,
+            seed=seed,
+            max_attempts=max_attempts,
+            apply_retries=apply_retries,
+            apply_timeout_s=apply_timeout,
+            run_timeout_s=run_timeout,
+            confirmation_run=confirmation,
+            max_consecutive_failures=max_failures,
+            extra={"n_initial": n_initial, "grid_size": grid_size, "definition_file": str(definition_file)},
+        )
+        self.campaign = Campaign(
+            optimizer,
+            journal,
+            cfg,
+            clock=lambda: self.get_clock().now().nanoseconds * 1e-9,
+            definition=self.definition.to_dict(),
+            verify_applied=make_verifier(self.definition),
+        )
+        self._lock = threading.Lock()
+        self._group = MutuallyExclusiveCallbackGroup()
+        self.pub_trial = self.create_publisher(Trial, TOPIC_TRIAL, QOS_LATCHED)
+        self.client = self.create_client(ApplyCalibration, SRV_APPLY_CALIBRATION, callback_group=self._group)
+        self.sub_score = self.create_subscription(
+            RunScore, TOPIC_RUN_SCORE, self._on_score, QOS_EVENTS, callback_group=self._group
+        )
+        # pending work polled by the tick
+        self._apply: Apply | None = None
+        self._apply_future: Any = None
+        self._apply_deadline = 0.0  # monotonic
+        self._apply_started = 0.0
+        self._run: AwaitRun | None = None
+        self._run_deadline_ns = 0  # ROS time
+        self._started = False
+        self._tick = self.create_timer(
+            0.05, self._on_tick, callback_group=self._group, clock=Clock(clock_type=ClockType.STEADY_TIME)
+        )
+        self.get_logger().info(
+            f"bo_agent: definition '{self.definition.name}' ({', '.join(optimizer.names)}), strategy {self.strategy}, "
+            f"budget {budget}, campaign '{cid}' in {cdir}"
+        )
+
+    # --- actions ----------------------------------------------------------------------------------
+    def _do(self, actions: list[Action]) -> None:
+        for a in actions:
+            if isinstance(a, Publish):
+                self.pub_trial.publish(self._trial_msg(a.status))
+            elif isinstance(a, Apply):
+                self._apply = a
+                self._apply_future = None
+                self._apply_started = time.monotonic()
+                self._apply_deadline = self._apply_started + self.service_wait_s
+                self._run = None
+            elif isinstance(a, AwaitRun):
+                self._run = a
+                self._run_deadline_ns = self.get_clock().now().nanoseconds + int(a.timeout_s * 1e9)
+            elif isinstance(a, Log):
+                # rclpy refuses one call site logging at several severities: one call per level
+                if a.level == "error":
+                    self.get_logger().error(a.text)
+                elif a.level == "warn":
+                    self.get_logger().warning(a.text)
+                else:
+                    self.get_logger().info(a.text)
+            elif isinstance(a, Finish):
+                self._apply = None
+                self._run = None
+                self.campaign.journal.close()
+                self.finish(a.code)
+
+    def _trial_msg(self, s: TrialStatus) -> Trial:
+        m = Trial()
+        ns = int(s.stamp * 1e9) if math.isfinite(s.stamp) else 0
+        m.stamp = TimeMsg(sec=ns // 1_000_000_000, nanosec=ns % 1_000_000_000)
+        m.campaign_id = s.campaign_id
+        m.trial_id = int(s.trial_id)
+        m.attempt = int(s.attempt)
+        m.state = int(s.state)
+        m.kind = int(s.kind)
+        m.calibration = Calibration(
+            trial_id=int(s.trial_id), names=list(s.params), values=[float(v) for v in s.params.values()]
+        )
+        m.budget = int(s.budget)
+        m.trials_done = int(s.trials_done)
+        m.last_j = float(s.last_j)
+        m.best_j = float(s.best_j)
+        m.best_trial_id = int(s.best_trial_id)
+        m.predicted_j = float(s.predicted_j)
+        m.predicted_j_std = float(s.predicted_j_std)
+        m.instruction = s.instruction
+        m.reason = s.reason
+        return m
+
+    # --- callbacks ----------------------------------------------------------------------------------
+    def _on_tick(self) -> None:
+        with self._lock:
+            if self.exit_code is not None:
+                return
+            if not self._started:
+                self._started = True
+                self._do(self.campaign.start())
+                return
+            self._poll_apply()
+            self._poll_run()
+
+    def _poll_apply(self) -> None:
+        a = self._apply
+        if a is None:
+            return
+        now = time.monotonic()
+        if self._apply_future is None:
+            if self.client.service_is_ready():
+                req = ApplyCalibration.Request()
+                req.calibration = Calibration(
+                    trial_id=int(a.trial_id), names=list(a.params), values=[float(v) for v in a.params.values()]
+                )
+                req.timeout_s = float(a.timeout_s)
+                self._apply_future = self.client.call_async(req)
+                self._apply_started = now
+                self._apply_deadline = now + a.timeout_s + 1.0
+            elif now > self._apply_deadline:
+                self._apply = None
+                self._do(
+                    self.campaign.on_apply_timeout(
+                        a.trial_id,
+                        a.apply_try,
+                        f"service {SRV_APPLY_CALIBRATION} not available within {self.service_wait_s:g} s "
+                        "(is ecu_bridge running?)",
+                    )
+                )
+            return
+        fut = self._apply_future
+        if fut.done():
+            self._apply = None
+            self._apply_future = None
+            try:
+                res = fut.result()
+            except Exception as exc:  # the call itself failed (e.g. the service went away)
+                self._do(self.campaign.on_apply_timeout(a.trial_id, a.apply_try, f"apply call failed: {exc}"))
+                return
+            if res is None:
+                self._do(self.campaign.on_apply_timeout(a.trial_id, a.apply_try, "apply call returned nothing"))
+                return
+            applied = {str(n): float(v) for n, v in zip(res.applied.names, res.applied.values, strict=False)}
+            self._do(
+                self.campaign.on_apply_result(
+                    a.trial_id,
+                    a.apply_try,
+                    bool(res.success),
+                    int(res.error_code),
+                    str(res.message),
+                    applied,
+                    float(res.latency_s),
+                )
+            )
+        elif now > self._apply_deadline:
+            self.client.remove_pending_request(fut)
+            self._apply = None
+            self._apply_future = None
+            self._do(
+                self.campaign.on_apply_timeout(
+                    a.trial_id, a.apply_try, f"no answer from {SRV_APPLY_CALIBRATION} within {a.timeout_s + 1.0:g} s"
+                )
+            )
+
+    def _poll_run(self) -> None:
+        r = self._run
+        if r is None:
+            return
+        if self.get_clock().now().nanoseconds > self._run_deadline_ns:
+            self._run = None
+            self._do(self.campaign.on_run_timeout(r.trial_id, r.attempt))
+
+    def _on_score(self, msg: RunScore) -> None:
+        with self._lock:
+            if self.exit_code is not None or not self._started:
+                return
+            details = {
+                "rms_accel_z": float(msg.rms_accel_z),
+                "rms_pitch_rate": float(msg.rms_pitch_rate),
+                "weighted_rms_accel_z": float(msg.weighted_rms_accel_z),
+                "vdv_accel_z": float(msg.vdv_accel_z),
+                "kpi": str(msg.kpi),
+            }
+            self._do(
+                self.campaign.on_score(
+                    str(msg.campaign_id),
+                    int(msg.trial_id),
+                    int(msg.attempt),
+                    bool(msg.valid),
+                    float(msg.j),
+                    str(msg.reason),
+                    details,
+                )
+            )
+
+    def destroy_node(self) -> None:
+        self.campaign.journal.close()
+        super().destroy_node()
+
+
+def main(args: list[str] | None = None) -> int:
+    return run_node(BoAgentNode, args)
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,102 @@
+"""Stand-ins for the agent's neighbours in integration tests, run as real processes.
+
+    python standins.py bridge --ros-args -p fail_trials:=2 -p log_file:=/tmp/b.jsonl
+    python standins.py chain  --ros-args -p invalid_runs:=1:1 -p log_file:=/tmp/c.jsonl
+
+* ``bridge`` serves ecu_bridge/apply_calibration: success with the values echoed, except
+  for the trial ids in ``fail_trials`` (comma list), answered with ERROR_ECU_BUSY.
+* ``chain`` plays the driver, the segmenter and the scorer: on each READY_TO_DRIVE it
+  publishes, after ``delay_s`` (wall), a RunScore with the same (campaign, trial, attempt)
+  and J = 1 + (x0 - 0.3)^2 + (x1 - 0.6)^2 of the calibration in the Trial message,
+  invalid for the "trial:attempt" pairs in ``invalid_runs``.
+Both append what they did to ``log_file`` (JSON lines, flushed).
+"""
+
+from __future__ import annotations
+
+import json
+import sys
+from pathlib import Path
+from typing import Any
+
+from rclpy.clock import Clock, ClockType
+
+from bac_common.contracts import SRV_APPLY_CALIBRATION, TOPIC_RUN_SCORE, TOPIC_TRIAL
+from bac_common.rosnode import QOS_EVENTS, QOS_LATCHED, BacNode, run_node
+from bac_msgs.msg import RunScore, Trial
+from bac_msgs.srv import ApplyCalibration
+
+
+def known_j(values: list[float]) -> float:
+    return 1.0 + (values[0] - 0.3) ** 2 + (values[1] - 0.6) ** 2
+
+
+def _log(path: str, rec: dict[str, Any]) -> None:
+    if path:
+        with Path(path).open("a") as f:
+            f.write(json.dumps(rec) + "\n")
+            f.flush()
+
+
+class FakeBridge(BacNode):
+    def __init__(self, **kwargs: Any) -> None:
+        super().__init__("ecu_bridge", **kwargs)
+        self.fail = {int(x) for x in self.declare_str("fail_trials", "", "trial ids to refuse").split(",") if x}
+        self.log_file = self.declare_str("log_file", "", "JSONL log of the requests")
+        self.srv = self.create_service(ApplyCalibration, SRV_APPLY_CALIBRATION, self._apply)
+
+    def _apply(self, req: Any, res: Any) -> Any:
+        cal = req.calibration
+        ok = cal.trial_id not in self.fail
+        res.success = ok
+        res.error_code = 0 if ok else ApplyCalibration.Response.ERROR_ECU_BUSY
+        res.message = "" if ok else "ECU busy (stand-in refuses this trial)"
+        res.attempts = 1
+        res.latency_s = 0.01
+        if ok:
+            res.applied.trial_id = cal.trial_id
+            res.applied.names = list(cal.names)
+            res.applied.values = list(cal.values)
+        _log(self.log_file, {"trial_id": cal.trial_id, "values": list(cal.values), "success": ok})
+        return res
+
+
+class FakeChain(BacNode):
+    def __init__(self, **kwargs: Any) -> None:
+        super().__init__("fake_chain", **kwargs)
+        spec = self.declare_str("invalid_runs", "", "trial:attempt pairs scored invalid")
+        self.invalid = {tuple(int(v) for v in x.split(":")) for x in spec.split(",") if x}
+        self.delay = self.declare_float("delay_s", 0.2, "wall time from READY_TO_DRIVE to the score")
+        self.log_file = self.declare_str("log_file", "", "JSONL log of the scores")
+        self.seen: set[tuple[str, int, int]] = set()
+        self.pub = self.create_publisher(RunScore, TOPIC_RUN_SCORE, QOS_EVENTS)
+        self.sub = self.create_subscription(Trial, TOPIC_TRIAL, self._on_trial, QOS_LATCHED)
+        self.timers_: list[Any] = []
+
+    def _on_trial(self, t: Trial) -> None:
+        key = (t.campaign_id, int(t.trial_id), int(t.attempt))
+        if t.state != Trial.STATE_READY_TO_DRIVE or key in self.seen:
+            return
+        self.seen.add(key)
+        values = list(t.calibration.values)
+        holder: list[Any] = []
+
+        def fire() -> None:
+            holder[0].cancel()
+            msg = RunScore()
+            msg.campaign_id, msg.trial_id, msg.attempt = key
+            valid = (key[1], key[2]) not in self.invalid
+            msg.valid = valid
+            msg.j = known_j(values) if valid else float("nan")
+            msg.reason = "" if valid else "speed off target (stand-in)"
+            msg.kpi = "rms"
+            self.pub.publish(msg)
+            _log(self.log_file, {"trial_id": key[1], "attempt": key[2], "valid": valid, "j": msg.j, "values": values})
+
+        holder.append(self.create_timer(self.delay, fire, clock=Clock(clock_type=ClockType.STEADY_TIME)))
+        self.timers_.append(holder[0])
+
+
+if __name__ == "__main__":
+    which = sys.argv.pop(1)
+    sys.exit(run_node({"bridge": FakeBridge, "chain": FakeChain}[which], sys.argv))

@@ -1,0 +1,141 @@
+"""bo_agent in a real process with a stand-in ECU bridge and a stand-in measurement chain."""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import sys
+from pathlib import Path
+from typing import Any
+
+import pytest
+
+from conftest import wait_for
+
+pytestmark = pytest.mark.integration
+
+HERE = Path(__file__).resolve().parent
+DEFN = HERE.parents[1] / "ros_ws" / "config" / "calibrations" / "controller_i.yaml"
+
+
+def jsonl(path: Path) -> list[dict[str, Any]]:
+    if not path.exists():
+        return []
+    return [json.loads(x) for x in path.read_text().splitlines() if x.strip()]
+
+
+def start_standins(procs: Any, tmp: Path, bridge_args: list[str] = (), chain_args: list[str] = ()) -> None:  # type: ignore[assignment]
+    procs.python(
+        "bridge",
+        [str(HERE / "standins.py"), "bridge", "--ros-args", "-p", f"log_file:={tmp / 'bridge.jsonl'}", *bridge_args],
+    )
+    procs.python(
+        "chain",
+        [str(HERE / "standins.py"), "chain", "--ros-args", "-p", f"log_file:={tmp / 'chain.jsonl'}", *chain_args],
+    )
+
+
+def start_agent(procs: Any, name: str, cdir: Path, *params: str) -> Any:
+    args = ["-m", "bac_agent.agent_node", "--ros-args", "-p", f"definition_file:={DEFN}", "-p", f"campaign_dir:={cdir}"]
+    for p in params:
+        args += ["-p", p]
+    return procs.python(name, args)
+
+
+def wait_exit(proc: Any, timeout: float, what: str) -> int:
+    wait_for(lambda: proc.poll() is not None, timeout, what=what)
+    return int(proc.returncode)
+
+
+def check_scores_on_confirmed_calibrations(events: list[dict[str, Any]]) -> None:
+    """Every trial_scored follows, in the same agent life, a successful apply of that trial."""
+    confirmed: set[int] = set()
+    for e in events:
+        if e["event"] in ("campaign_started", "campaign_resumed"):
+            confirmed = set()
+        elif e["event"] == "apply_requested":
+            confirmed.discard(e["trial_id"])
+        elif e["event"] == "apply_result" and e["success"]:
+            confirmed.add(e["trial_id"])
+        elif e["event"] == "trial_scored":
+            assert e["trial_id"] in confirmed, f"trial {e['trial_id']} scored on an unconfirmed calibration"
+
+
+def test_campaign_runs_to_done_and_recommends(procs: Any, tmp_path: Path) -> None:
+    cdir = tmp_path / "camp"
+    start_standins(procs, tmp_path)
+    agent = start_agent(procs, "agent", cdir, "budget:=5", "seed:=3", "confirmation_run:=true")
+    assert wait_exit(agent, 90, "bo_agent to finish") == 0, procs.log("agent")
+    ev = jsonl(cdir / "journal.jsonl")
+    scored = [e for e in ev if e["event"] == "trial_scored"]
+    assert [e["trial_id"] for e in scored] == [1, 2, 3, 4, 5, 6]  # 5 trials + the confirmation run
+    assert scored[-1]["kind"] == 2
+    chain = jsonl(tmp_path / "chain.jsonl")
+    for e in scored:  # the J booked is the J the chain measured for that trial's calibration
+        run = next(c for c in chain if c["trial_id"] == e["trial_id"] and c["attempt"] == e["attempt"])
+        assert e["j"] == pytest.approx(run["j"])
+        assert list(e["params"].values()) == pytest.approx(run["values"])
+    rec = json.loads((cdir / "recommendation.json").read_text())
+    assert set(rec["params"]) == {"damping_front", "damping_rear"}
+    assert rec["confirmation_j"] == pytest.approx(scored[-1]["j"])
+    for p in [e["params"] for e in ev if e["event"] == "trial_proposed"]:
+        assert all(0.0 <= v <= 1.0 for v in p.values())  # asks never leave the bounds
+    log = procs.log("agent")
+    assert "trial 5/5 damping_front=" in log and "best=" in log
+    check_scores_on_confirmed_calibrations(ev)
+
+
+def test_invalid_run_repeated_and_failed_apply_never_scored(procs: Any, tmp_path: Path) -> None:
+    cdir = tmp_path / "camp"
+    start_standins(procs, tmp_path, ["-p", "fail_trials:='2'"], ["-p", "invalid_runs:='1:1,3:1,3:2'"])
+    agent = start_agent(procs, "agent", cdir, "budget:=4", "max_attempts:=2", "apply_retries:=1")
+    assert wait_exit(agent, 90, "bo_agent to finish") == 0, procs.log("agent")
+    ev = jsonl(cdir / "journal.jsonl")
+    # trial 1: run 1 invalid, the same calibration driven again (run 2) and scored
+    rej = [e for e in ev if e["event"] == "run_rejected"]
+    assert [(e["trial_id"], e["attempt"]) for e in rej] == [(1, 1), (3, 1), (3, 2)]
+    s1 = next(e for e in ev if e["event"] == "trial_scored" and e["trial_id"] == 1)
+    assert s1["attempt"] == 2
+    chain = jsonl(tmp_path / "chain.jsonl")
+    t1 = [c for c in chain if c["trial_id"] == 1]
+    assert len(t1) == 2 and t1[0]["values"] == t1[1]["values"]
+    # trial 2: the ECU refused it twice; never driven, never scored, failed
+    bridge = jsonl(tmp_path / "bridge.jsonl")
+    assert [b["success"] for b in bridge if b["trial_id"] == 2] == [False, False]
+    assert not [c for c in chain if c["trial_id"] == 2]
+    assert not [e for e in ev if e["event"] in ("trial_scored", "run_ready") and e["trial_id"] == 2]
+    f2 = next(e for e in ev if e["event"] == "trial_failed" and e["trial_id"] == 2)
+    assert "ECU apply failed (error 4)" in f2["reason"]
+    # trial 3: two invalid runs = max_attempts: failed
+    assert any(e["event"] == "trial_failed" and e["trial_id"] == 3 for e in ev)
+    assert [e["trial_id"] for e in ev if e["event"] == "trial_scored"] == [1, 4]
+    check_scores_on_confirmed_calibrations(ev)
+
+
+def test_resume_after_kill_9_loses_no_trial(procs: Any, tmp_path: Path) -> None:
+    cdir = tmp_path / "camp"
+    start_standins(procs, tmp_path, chain_args=["-p", "delay_s:=0.4"])
+    agent = start_agent(procs, "agent1", cdir, "budget:=7", "seed:=5")
+    journal = cdir / "journal.jsonl"
+    wait_for(lambda: sum(e["event"] == "trial_scored" for e in jsonl(journal)) >= 3, 90, what="3 scored trials")
+    os.killpg(agent.pid, signal.SIGKILL)
+    agent.wait(timeout=10)
+    before = jsonl(journal)
+    scored_before = {e["trial_id"]: e["j"] for e in before if e["event"] == "trial_scored"}
+    agent2 = start_agent(procs, "agent2", cdir, "budget:=7", "seed:=5")
+    assert wait_exit(agent2, 120, "the restarted bo_agent to finish") == 0, procs.log("agent2")
+    ev = jsonl(journal)
+    assert ev[: len(before)] == before  # nothing rewritten
+    assert sum(e["event"] == "campaign_resumed" for e in ev) == 1
+    scored = [e for e in ev if e["event"] == "trial_scored"]
+    assert sorted(e["trial_id"] for e in scored) == list(range(1, 8))  # every trial, each once
+    for tid, j in scored_before.items():
+        assert next(e["j"] for e in scored if e["trial_id"] == tid) == j
+    assert "resumed" in procs.log("agent2")
+    assert json.loads((cdir / "recommendation.json").read_text())["trials_done"] == 7
+    check_scores_on_confirmed_calibrations(ev)
+
+
+if __name__ == "__main__":
+    sys.exit(pytest.main([__file__, "-q"]))
