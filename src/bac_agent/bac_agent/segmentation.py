@@ -1,0 +1,924 @@
+"""Run segmentation: "cut & align" of paper algorithm 1 (pure core of ``run_segmenter``).
+
+A run is the IMU stream (``imu/vehicle``: vertical acceleration without
+gravity, pitch rate, fixed rate) and the odometry (``vehicle/odom``:
+distance since the run started, speed) buffered from the moment its trial
+became ready to drive. :func:`cut_run` cuts the segment of interest out of
+it and aligns it with a reference run:
+
+* **event** mode (a speed bump): the impact is the first sample whose
+  ``|a_z|`` reaches ``trigger_threshold_mps2``; the window starts
+  ``pre_trigger_s`` before it and lasts ``window_s``;
+* **distance** mode (a test road): the section ``[distance_start_m,
+  distance_end_m]`` of odometry, resampled on a distance grid (step
+  ``distance_step_m``, by default the distance travelled at the target speed
+  in one IMU sample), so that a run driven a little faster or slower is not
+  stretched against the reference.
+
+Then the cut is refined by normalized cross-correlation with the reference
+(the first valid run of the campaign, or a stored template) over
+``+-max_lag_s`` (event) or ``+-max_shift_m`` (distance), to sub-sample lag
+(parabolic peak), and the signals are re-sampled at the aligned positions
+(cubic spline). The run is **invalid**, with its reason, when the IMU data
+does not cover the window (gaps, NaN: ``min_coverage``), the mean speed is
+off the target by more than ``speed_tolerance``, the alignment correlation
+is below ``min_alignment`` or its peak sits at the edge of the search range,
+or the window is not complete.
+
+:func:`cut_run` is a pure function of (buffered arrays, run start, config,
+reference): the node calls it as soon as :func:`run_status` says the window
+is complete, and an offline tool calling it on the whole recording gets the
+same segment, bit for bit (``tests/measure/test_segmentation.py``).
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+import tempfile
+from collections.abc import Mapping
+from dataclasses import dataclass, field, fields, replace
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import numpy.typing as npt
+from scipy import ndimage, signal
+
+from bac_common.errors import BacError
+
+FloatArray = npt.NDArray[np.float64]
+IntArray = npt.NDArray[np.int64]
+
+NS = 1_000_000_000
+MODE_EVENT = 0  # bac_msgs/RunSegment.MODE_EVENT
+MODE_DISTANCE = 1  # bac_msgs/RunSegment.MODE_DISTANCE
+MODES = {"event": MODE_EVENT, "distance": MODE_DISTANCE}
+ALIGN_SIGNALS = ("accel_z", "pitch_rate", "both")
+DISTANCE_ORIGINS = ("odom", "run_start")
+ODOM_RESET_M = 1.0  # a drop of the odometry distance larger than this is a reset (a new run)
+SPLINE_MARGIN = 16  # samples around a re-sampled window (the cubic prefilter's support, to 1e-9)
+RATE_PROBE = 200  # stamp steps used to measure the IMU rate when it is not configured
+
+
+class SegmentationError(BacError, ValueError):
+    """Bad configuration, malformed arrays, or a reference that does not fit the configuration."""
+
+
+@dataclass(frozen=True)
+class RunId:
+    """A run: one attempt of one trial of a campaign (RunSegment / RunScore carry it)."""
+
+    campaign_id: str = ""
+    trial_id: int = 0
+    attempt: int = 0
+
+    def __str__(self) -> str:
+        return f"{self.campaign_id or '-'}/trial {self.trial_id}/attempt {self.attempt}"
+
+
+@dataclass(frozen=True)
+class ImuSeries:
+    """``imu/vehicle`` samples: stamps (ns), vertical acceleration (m/s^2), pitch rate (rad/s)."""
+
+    stamp_ns: IntArray
+    accel_z: FloatArray
+    pitch_rate: FloatArray
+
+    def __post_init__(self) -> None:
+        t = np.asarray(self.stamp_ns, dtype=np.int64).reshape(-1)
+        az = np.asarray(self.accel_z, dtype=np.float64).reshape(-1)
+        q = np.asarray(self.pitch_rate, dtype=np.float64).reshape(-1)
+        if not (t.shape == az.shape == q.shape):
+            raise SegmentationError(f"IMU arrays differ in length: {t.shape}, {az.shape}, {q.shape}")
+        object.__setattr__(self, "stamp_ns", t)
+        object.__setattr__(self, "accel_z", az)
+        object.__setattr__(self, "pitch_rate", q)
+
+    def __len__(self) -> int:
+        return int(self.stamp_ns.shape[0])
+
+    @staticmethod
+    def empty() -> ImuSeries:
+        return ImuSeries(np.zeros(0, np.int64), np.zeros(0), np.zeros(0))
+
+
+@dataclass(frozen=True)
+class OdomSeries:
+    """``vehicle/odom`` samples: stamps (ns), distance since the run started (m), speed (m/s)."""
+
+    stamp_ns: IntArray
+    distance_m: FloatArray
+    speed_mps: FloatArray
+
+    def __post_init__(self) -> None:
+        t = np.asarray(self.stamp_ns, dtype=np.int64).reshape(-1)
+        d = np.asarray(self.distance_m, dtype=np.float64).reshape(-1)
+        v = np.asarray(self.speed_mps, dtype=np.float64).reshape(-1)
+        if not (t.shape == d.shape == v.shape):
+            raise SegmentationError(f"odometry arrays differ in length: {t.shape}, {d.shape}, {v.shape}")
+        object.__setattr__(self, "stamp_ns", t)
+        object.__setattr__(self, "distance_m", d)
+        object.__setattr__(self, "speed_mps", v)
+
+    def __len__(self) -> int:
+        return int(self.stamp_ns.shape[0])
+
+    @staticmethod
+    def empty() -> OdomSeries:
+        return OdomSeries(np.zeros(0, np.int64), np.zeros(0), np.zeros(0))
+
+
+@dataclass(frozen=True)
+class SegmentConfig:
+    """How runs are cut, aligned and checked (the run_segmenter node's parameters, same names)."""
+
+    mode: str = "event"  # "event" (speed bump) or "distance" (test road)
+    target_speed_mps: float = 30.0 / 3.6  # the speed the run must be driven at, m/s
+    speed_tolerance: float = 0.05  # accepted relative deviation of the mean speed from the target
+    imu_rate_hz: float = 0.0  # rate of imu/vehicle, Hz; 0 = measured from its stamps
+    align_signal: str = "both"  # signal(s) cross-correlated with the reference: accel_z, pitch_rate, both
+    min_alignment: float = 0.6  # minimum normalized cross-correlation with the reference
+    min_coverage: float = 1.0  # minimum fraction of the window with valid IMU samples (1 = every sample)
+    # event mode
+    trigger_threshold_mps2: float = 2.0  # |a_z| that marks the impact, m/s^2
+    trigger_after_m: float = 0.0  # ignore impacts before this odometry distance, m
+    pre_trigger_s: float = 0.3  # the window starts this long before the impact, s
+    window_s: float = 2.5  # window length, s
+    max_lag_s: float = 0.25  # alignment search range, +- s
+    # distance mode
+    distance_start_m: float = 100.0  # section start s0, odometry m
+    distance_end_m: float = 1600.0  # section end s1, odometry m
+    distance_step_m: float = 0.0  # distance grid step, m; 0 = target speed / IMU rate
+    max_shift_m: float = 15.0  # alignment search range, +- m (covers the driver's start offset)
+    distance_origin: str = "odom"  # "odom": pose.x is the distance since the run started; "run_start": subtract it
+
+    def __post_init__(self) -> None:
+        p = []
+        if self.mode not in MODES:
+            p.append(f"mode must be one of {tuple(MODES)}, got {self.mode!r}")
+        if not (0.1 <= self.target_speed_mps <= 100.0):
+            p.append(f"target_speed_mps must be in [0.1, 100], got {self.target_speed_mps}")
+        if not (0.0 < self.speed_tolerance < 1.0):
+            p.append(f"speed_tolerance must be in (0, 1), got {self.speed_tolerance}")
+        if not (self.imu_rate_hz == 0.0 or 1.0 <= self.imu_rate_hz <= 10_000.0):
+            p.append(f"imu_rate_hz must be 0 (measure) or in [1, 10000], got {self.imu_rate_hz}")
+        if self.align_signal not in ALIGN_SIGNALS:
+            p.append(f"align_signal must be one of {ALIGN_SIGNALS}, got {self.align_signal!r}")
+        if not (-1.0 <= self.min_alignment <= 1.0):
+            p.append(f"min_alignment must be in [-1, 1], got {self.min_alignment}")
+        if not (0.0 < self.min_coverage <= 1.0):
+            p.append(f"min_coverage must be in (0, 1], got {self.min_coverage}")
+        if not self.trigger_threshold_mps2 > 0:
+            p.append("trigger_threshold_mps2 must be > 0")
+        if not (0.0 <= self.pre_trigger_s < self.window_s):
+            p.append("pre_trigger_s must be >= 0 and shorter than window_s")
+        if not (0.0 < self.window_s <= 600.0):
+            p.append(f"window_s must be in (0, 600], got {self.window_s}")
+        if not (0.0 <= self.max_lag_s <= 10.0):
+            p.append(f"max_lag_s must be in [0, 10], got {self.max_lag_s}")
+        if not (0.0 <= self.distance_start_m < self.distance_end_m):
+            p.append("distance_start_m must be >= 0 and below distance_end_m")
+        if self.distance_step_m < 0:
+            p.append("distance_step_m must be >= 0 (0 = automatic)")
+        if not (0.0 <= self.max_shift_m <= 1000.0):
+            p.append(f"max_shift_m must be in [0, 1000], got {self.max_shift_m}")
+        if self.distance_origin not in DISTANCE_ORIGINS:
+            p.append(f"distance_origin must be one of {DISTANCE_ORIGINS}, got {self.distance_origin!r}")
+        if p:
+            raise SegmentationError("invalid segmentation configuration: " + "; ".join(p))
+
+    @property
+    def mode_id(self) -> int:
+        return MODES[self.mode]
+
+    @classmethod
+    def from_params(cls, params: Mapping[str, Any]) -> SegmentConfig:
+        """Build from a node's parameters (``ros__parameters`` of run_segmenter); unknown keys are ignored."""
+        config: SegmentConfig = from_params(cls, params)
+        return config
+
+
+def from_params(cls: Any, params: Mapping[str, Any]) -> Any:
+    """Build the dataclass ``cls`` from a mapping of node parameters (same names; others ignored)."""
+    kwargs: dict[str, Any] = {}
+    for f in fields(cls):
+        if f.name in params:
+            default = f.default
+            v = params[f.name]
+            kwargs[f.name] = type(default)(v) if isinstance(default, bool | int | float | str) else v
+    return cls(**kwargs)
+
+
+@dataclass(frozen=True)
+class Segment:
+    """One run cut and aligned (the content of a bac_msgs/RunSegment)."""
+
+    run: RunId
+    mode: int  # MODE_EVENT or MODE_DISTANCE
+    window_start_ns: int  # start of the window, ROS time (ns)
+    window_length_s: float
+    distance_start_m: float
+    distance_step_m: float
+    sample_rate_hz: float
+    lag_s: float
+    alignment_score: float
+    mean_speed_mps: float
+    target_speed_mps: float
+    coverage: float
+    accel_z: FloatArray = field(repr=False)
+    pitch_rate: FloatArray = field(repr=False)
+    valid: bool
+    reason: str
+
+    @property
+    def window_start_s(self) -> float:
+        return self.window_start_ns / NS
+
+    def __len__(self) -> int:
+        return int(self.accel_z.shape[0])
+
+
+@dataclass(frozen=True)
+class Progress:
+    """Whether the buffered data holds everything the cut needs, and if not, what is awaited."""
+
+    complete: bool
+    waiting_for: str = ""
+
+
+# --- the reference run -------------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class Reference:
+    """The aligned signals of the reference run (first valid run of a campaign, or a stored template)."""
+
+    mode: int
+    sample_rate_hz: float  # rate of the signals (distance mode: equivalent rate at the target speed)
+    distance_step_m: float  # distance mode: grid step, m; event mode: 0
+    accel_z: FloatArray = field(repr=False)
+    pitch_rate: FloatArray = field(repr=False)
+    run: RunId = RunId()
+    key: Mapping[str, float] = field(default_factory=dict)  # settings a run must share to be aligned with it
+
+    @staticmethod
+    def key_for(config: SegmentConfig, sample_rate_hz: float, step_m: float) -> dict[str, float]:
+        if config.mode == "event":
+            return {
+                "mode": MODE_EVENT,
+                "sample_rate_hz": round(sample_rate_hz, 6),
+                "samples": round(config.window_s * sample_rate_hz),
+                "pre_trigger_s": config.pre_trigger_s,
+            }
+        return {
+            "mode": MODE_DISTANCE,
+            "distance_step_m": round(step_m, 9),
+            "distance_start_m": config.distance_start_m,
+            "distance_end_m": config.distance_end_m,
+        }
+
+    @classmethod
+    def from_segment(cls, seg: Segment, config: SegmentConfig) -> Reference:
+        if not seg.valid:
+            raise SegmentationError(f"run {seg.run} is invalid ({seg.reason}); it cannot be a reference")
+        return cls(
+            mode=seg.mode,
+            sample_rate_hz=seg.sample_rate_hz,
+            distance_step_m=seg.distance_step_m,
+            accel_z=seg.accel_z.copy(),
+            pitch_rate=seg.pitch_rate.copy(),
+            run=seg.run,
+            key=cls.key_for(config, seg.sample_rate_hz, seg.distance_step_m),
+        )
+
+    def check(self, config: SegmentConfig, sample_rate_hz: float, step_m: float) -> None:
+        """Raise :class:`SegmentationError` unless runs cut with ``config`` can be aligned with this reference."""
+        want = self.key_for(config, sample_rate_hz, step_m)
+        diff = {k: (self.key.get(k), v) for k, v in want.items() if self.key.get(k) != v}
+        if diff:
+            shown = ", ".join(f"{k}: reference {a}, now {b}" for k, (a, b) in diff.items())
+            raise SegmentationError(
+                f"the reference run ({self.run}) was cut with other settings ({shown}); "
+                "delete the reference file or restore the settings"
+            )
+
+    def save(self, path: str | Path) -> None:
+        """Write atomically (a crash never leaves half a reference)."""
+        p = Path(path)
+        p.parent.mkdir(parents=True, exist_ok=True)
+        meta = {
+            "mode": self.mode,
+            "sample_rate_hz": self.sample_rate_hz,
+            "distance_step_m": self.distance_step_m,
+            "run": [self.run.campaign_id, self.run.trial_id, self.run.attempt],
+            "key": dict(self.key),
+        }
+        fd, tmp = tempfile.mkstemp(prefix=p.name + ".", suffix=".tmp", dir=p.parent)
+        try:
+            with os.fdopen(fd, "wb") as f:
+                np.savez(f, accel_z=self.accel_z, pitch_rate=self.pitch_rate, meta=np.array(json.dumps(meta)))
+                f.flush()
+                os.fsync(f.fileno())
+            os.replace(tmp, p)
+        except BaseException:
+            Path(tmp).unlink(missing_ok=True)
+            raise
+
+    @classmethod
+    def load(cls, path: str | Path) -> Reference:
+        p = Path(path)
+        try:
+            with np.load(p, allow_pickle=False) as data:
+                meta = json.loads(str(data["meta"]))
+                az = np.asarray(data["accel_z"], dtype=np.float64)
+                q = np.asarray(data["pitch_rate"], dtype=np.float64)
+            run = RunId(str(meta["run"][0]), int(meta["run"][1]), int(meta["run"][2]))
+            return cls(
+                mode=int(meta["mode"]),
+                sample_rate_hz=float(meta["sample_rate_hz"]),
+                distance_step_m=float(meta["distance_step_m"]),
+                accel_z=az,
+                pitch_rate=q,
+                run=run,
+                key={str(k): float(v) for k, v in meta["key"].items()},
+            )
+        except FileNotFoundError as exc:
+            raise SegmentationError(f"reference file not found: {p}") from exc
+        except (OSError, ValueError, KeyError, TypeError, IndexError) as exc:
+            raise SegmentationError(f"{p} is not a bac reference run file: {exc}") from exc
+
+
+class ReferenceStore:
+    """The reference of each campaign: the first valid run, kept in memory and, when a path is given, on disk.
+
+    ``path`` may contain ``{campaign_id}``. A ``template`` (a stored reference) is used for every campaign
+    and never replaced.
+    """
+
+    def __init__(self, path: str = "", template: Reference | None = None) -> None:
+        self.path = path
+        self.template = template
+        self._refs: dict[str, Reference] = {}
+
+    def file_for(self, campaign_id: str) -> Path | None:
+        if not self.path:
+            return None
+        return Path(self.path.replace("{campaign_id}", campaign_id or "default"))
+
+    def get(self, campaign_id: str) -> Reference | None:
+        if self.template is not None:
+            return self.template
+        if campaign_id in self._refs:
+            return self._refs[campaign_id]
+        f = self.file_for(campaign_id)
+        if f is not None and f.exists():
+            self._refs[campaign_id] = Reference.load(f)
+            return self._refs[campaign_id]
+        return None
+
+    def offer(self, seg: Segment, config: SegmentConfig) -> Reference | None:
+        """Make ``seg`` the campaign's reference if it is valid and there is none yet; return it if so."""
+        if not seg.valid or self.get(seg.run.campaign_id) is not None:
+            return None
+        ref = Reference.from_segment(seg, config)
+        self._refs[seg.run.campaign_id] = ref
+        f = self.file_for(seg.run.campaign_id)
+        if f is not None:
+            ref.save(f)
+        return ref
+
+
+# --- signal helpers -------------------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class _Grid:
+    """The IMU stream on a uniform time grid (NaN where no sample arrived)."""
+
+    t0_ns: int
+    step_ns: int
+    az: FloatArray
+    q: FloatArray
+
+    @property
+    def rate_hz(self) -> float:
+        return NS / self.step_ns
+
+    @property
+    def n(self) -> int:
+        return int(self.az.shape[0])
+
+    def pos(self, t_ns: npt.ArrayLike) -> FloatArray:
+        return np.asarray((np.asarray(t_ns, dtype=np.float64) - self.t0_ns) / self.step_ns, dtype=np.float64)
+
+    def time_ns(self, pos: float) -> int:
+        return self.t0_ns + round(pos * self.step_ns)
+
+
+def imu_rate(imu: ImuSeries, configured_hz: float = 0.0) -> float:
+    """The IMU rate: configured, else 1 / median of the first stamp steps."""
+    if configured_hz > 0:
+        return configured_hz
+    steps = np.diff(np.sort(imu.stamp_ns[: RATE_PROBE + 1]))
+    steps = steps[steps > 0]
+    if steps.size == 0:
+        raise SegmentationError("cannot measure the IMU rate: fewer than two distinct stamps")
+    return NS / float(np.median(steps))
+
+
+def _grid(imu: ImuSeries, rate_hz: float) -> _Grid:
+    step = round(NS / rate_hz)
+    order = np.argsort(imu.stamp_ns, kind="stable")
+    t = imu.stamp_ns[order]
+    t0 = int(t[0])
+    idx = np.rint((t - t0) / step).astype(np.int64)
+    n = int(idx[-1]) + 1
+    az = np.full(n, np.nan)
+    q = np.full(n, np.nan)
+    az[idx] = imu.accel_z[order]
+    q[idx] = imu.pitch_rate[order]
+    return _Grid(t0, step, az, q)
+
+
+def _fill_nan(y: FloatArray) -> FloatArray:
+    """Linear interpolation over NaN (constant at the ends); all-NaN stays NaN."""
+    bad = ~np.isfinite(y)
+    if not bad.any() or bad.all():
+        return y
+    k = np.arange(y.size)
+    out = y.copy()
+    out[bad] = np.interp(k[bad], k[~bad], y[~bad])
+    return out
+
+
+def _resample(y: FloatArray, pos: FloatArray, fill: bool) -> FloatArray:
+    """Cubic-spline values of the uniform signal ``y`` at fractional positions ``pos``."""
+    lo = max(math.floor(float(pos.min())) - SPLINE_MARGIN, 0)
+    hi = min(math.ceil(float(pos.max())) + SPLINE_MARGIN + 1, y.size)
+    seg = y[lo:hi]
+    if fill:
+        seg = _fill_nan(seg)
+    if not np.all(np.isfinite(seg)):
+        # no spline across missing data: linear, NaN where a neighbour is missing
+        k = np.arange(lo, hi, dtype=np.float64)
+        return np.asarray(np.interp(pos, k, seg), dtype=np.float64)
+    return np.asarray(ndimage.map_coordinates(seg, [pos - lo], order=3, mode="nearest"), dtype=np.float64)
+
+
+def _linear(y: FloatArray, pos: FloatArray) -> FloatArray:
+    k = np.arange(y.size, dtype=np.float64)
+    return np.asarray(np.interp(pos, k, _fill_nan(y)), dtype=np.float64)
+
+
+def normalized_xcorr(x: FloatArray, r: FloatArray) -> FloatArray:
+    """Normalized cross-correlation of ``r`` (length N) with every window ``x[k:k+N]``.
+
+    Returns len(x) - N + 1 values in [-1, 1] (NaN where a window or ``r`` is constant).
+    """
+    n = r.size
+    r0 = r - r.mean()
+    rn = float(np.sqrt(np.dot(r0, r0)))
+    num = signal.correlate(x, r0, mode="valid", method="fft" if x.size * n > 200_000 else "direct")
+    c1 = np.cumsum(np.concatenate([[0.0], x]))
+    c2 = np.cumsum(np.concatenate([[0.0], x * x]))
+    s1 = c1[n:] - c1[:-n]
+    s2 = c2[n:] - c2[:-n]
+    var = s2 - s1 * s1 / n
+    den = rn * np.sqrt(np.maximum(var, 0.0))
+    with np.errstate(divide="ignore", invalid="ignore"):
+        out = np.where(den > 1e-12 * max(rn, 1e-300), num / den, np.nan)
+    return np.asarray(out, dtype=np.float64)
+
+
+def _peak(c: FloatArray) -> tuple[float, bool]:
+    """Sub-sample position of the maximum (parabolic), and whether it lies on the search edge."""
+    if not np.any(np.isfinite(c)):
+        return math.nan, True
+    k = int(np.nanargmax(c))
+    if k == 0 or k == c.size - 1:
+        return float(k), True
+    a, b, d = float(c[k - 1]), float(c[k]), float(c[k + 1])
+    den = a - 2 * b + d
+    delta = 0.5 * (a - d) / den if den < 0 else 0.0
+    return k + min(max(delta, -0.5), 0.5), False
+
+
+def _corr(x: FloatArray, y: FloatArray) -> float:
+    x0, y0 = x - x.mean(), y - y.mean()
+    den = math.sqrt(float(np.dot(x0, x0)) * float(np.dot(y0, y0)))
+    return float(np.dot(x0, y0)) / den if den > 0 else math.nan
+
+
+def _alignment_curves(config: SegmentConfig, pairs: list[tuple[FloatArray, FloatArray]]) -> FloatArray:
+    """Average normalized cross-correlation over the chosen signals: pairs of (run, reference)."""
+    names = ["accel_z", "pitch_rate"]
+    use = [i for i, nme in enumerate(names) if config.align_signal in (nme, "both")]
+    curves = [normalized_xcorr(pairs[i][0], pairs[i][1]) for i in use]
+    return np.asarray(np.mean(curves, axis=0), dtype=np.float64)
+
+
+def _final_score(config: SegmentConfig, az: FloatArray, q: FloatArray, ref: Reference) -> float:
+    scores = []
+    if config.align_signal in ("accel_z", "both"):
+        scores.append(_corr(az, ref.accel_z))
+    if config.align_signal in ("pitch_rate", "both"):
+        scores.append(_corr(q, ref.pitch_rate))
+    return float(np.mean(scores))
+
+
+# --- odometry ----------------------------------------------------------------------------------------
+
+
+def _odom_run(odom: OdomSeries, start_ns: int, config: SegmentConfig) -> tuple[FloatArray, FloatArray, FloatArray]:
+    """The run's odometry: (stamps relative to nothing, ns as float; distance; speed), increasing stamps.
+
+    Samples before ``start_ns`` are ignored. With ``distance_origin = odom`` the run is the first
+    stretch without a reset whose distance starts below the section (older samples from the previous
+    run are skipped; a later reset ends it). With ``run_start`` the distance is counted from the
+    first sample of the run.
+    """
+    keep = odom.stamp_ns >= start_ns
+    t = odom.stamp_ns[keep]
+    d = odom.distance_m[keep]
+    v = odom.speed_mps[keep]
+    order = np.argsort(t, kind="stable")
+    t, d, v = t[order], d[order], v[order]
+    if t.size == 0:
+        return np.zeros(0), np.zeros(0), np.zeros(0)
+    if config.distance_origin == "run_start":
+        d = d - d[0]
+    else:
+        # stretches between resets; the run is the first one that starts before the section / near 0
+        resets = np.flatnonzero(np.diff(d) < -ODOM_RESET_M) + 1
+        bounds = [0, *resets.tolist(), int(t.size)]
+        begin = config.distance_start_m if config.mode == "distance" else ODOM_RESET_M
+        chosen = len(bounds) - 2  # none starts early enough: the last one
+        for i in range(len(bounds) - 1):
+            if d[bounds[i]] <= begin:
+                chosen = i
+                break
+        a, b = bounds[chosen], bounds[chosen + 1]
+        t, d, v = t[a:b], d[a:b], v[a:b]
+    return t.astype(np.float64), np.maximum.accumulate(d), v
+
+
+def _distance_to_time(t: FloatArray, d: FloatArray, s: FloatArray) -> FloatArray:
+    """Stamps (ns, float) at which the odometry reached distances ``s`` (linear between samples)."""
+    keep = np.concatenate([[True], np.diff(d) > 0])  # strictly increasing distance for the inverse
+    return np.asarray(np.interp(s, d[keep], t[keep]), dtype=np.float64)
+
+
+# --- the cut -----------------------------------------------------------------------------------------
+
+
+@dataclass
+class _Plan:
+    """What the cut needs, or what is missing."""
+
+    missing: str = ""
+    reasons: list[str] = field(default_factory=list)
+    segment: Segment | None = None
+
+
+def _speed_reason(config: SegmentConfig, mean_speed: float) -> str:
+    target = config.target_speed_mps
+    if not math.isfinite(mean_speed):
+        return "no odometry over the window: the mean speed is unknown"
+    rel = mean_speed / target - 1.0
+    if abs(rel) <= config.speed_tolerance:
+        return ""
+    word = "too slow" if rel < 0 else "too fast"
+    return (
+        f"{word}: mean speed {mean_speed * 3.6:.1f} km/h ({mean_speed:.2f} m/s) is {abs(rel) * 100:.1f} % "
+        f"{'below' if rel < 0 else 'above'} the target {target * 3.6:.1f} km/h "
+        f"(tolerance {config.speed_tolerance * 100:.0f} %)"
+    )
+
+
+def _coverage(g: _Grid, lo: float, hi: float) -> tuple[float, str]:
+    """Fraction of IMU grid samples with data in [lo, hi] (positions), and where the holes are."""
+    a = max(math.floor(lo), 0)
+    b = min(math.ceil(hi) + 1, g.n)
+    if b <= a:
+        return 0.0, "no IMU samples in the window"
+    ok = np.isfinite(g.az[a:b]) & np.isfinite(g.q[a:b])
+    cov = float(np.count_nonzero(ok)) / (b - a)
+    if cov >= 1.0:
+        return 1.0, ""
+    missing = np.flatnonzero(~ok)
+    t_first = g.time_ns(a + int(missing[0])) / NS
+    t_last = g.time_ns(a + int(missing[-1])) / NS
+    return cov, (
+        f"IMU data missing or invalid (gap, NaN/inf or saturation; see imu_ingest diagnostics) for "
+        f"{missing.size / g.rate_hz:.3f} s of the window, between t = {t_first:.3f} s and {t_last:.3f} s"
+    )
+
+
+def _cut_event(
+    g: _Grid, odom: tuple[FloatArray, FloatArray, FloatArray], config: SegmentConfig, ref: Reference | None
+) -> _Plan:
+    fs = g.rate_hz
+    n = round(config.window_s * fs)
+    pre = round(config.pre_trigger_s * fs)
+    lag_max = round(config.max_lag_s * fs) if ref is not None else 0
+    ot, od, _ = odom
+    hits = np.abs(np.nan_to_num(g.az, nan=0.0)) >= config.trigger_threshold_mps2
+    if config.trigger_after_m > 0:
+        if ot.size == 0:
+            return _Plan(missing="odometry (to place the impact search after trigger_after_m)")
+        d_at = np.interp(g.t0_ns + np.arange(g.n) * float(g.step_ns), ot, od, left=-math.inf, right=-math.inf)
+        hits &= d_at >= config.trigger_after_m
+    trig = np.flatnonzero(hits)
+    if trig.size == 0:
+        return _Plan(missing=f"the impact (|a_z| >= {config.trigger_threshold_mps2:g} m/s^2)")
+    i_trig = int(trig[0])
+    i0 = i_trig - pre
+    if i0 - lag_max < 0:
+        return _Plan(
+            reasons=[
+                f"impact at t = {g.time_ns(i_trig) / NS:.3f} s came too soon after the run started: "
+                f"the window needs {config.pre_trigger_s + config.max_lag_s:.2f} s of data before it"
+            ]
+        )
+    need = i0 + n + lag_max + SPLINE_MARGIN + 2
+    if g.n < need:
+        return _Plan(missing=f"IMU data up to t = {g.time_ns(need) / NS:.3f} s (end of the window)")
+    t_end_needed = g.t0_ns + (i0 + n + lag_max) * float(g.step_ns)
+    if ot.size == 0 or ot[-1] < t_end_needed:
+        return _Plan(missing=f"odometry up to t = {t_end_needed / NS:.3f} s (end of the window)")
+    reasons: list[str] = []
+    lag = 0.0
+    score = 1.0
+    if ref is not None:
+        ref.check(config, fs, 0.0)
+        span = np.arange(i0 - lag_max, i0 + n + lag_max, dtype=np.float64)
+        curve = _alignment_curves(
+            config,
+            [(_linear(g.az, span), ref.accel_z), (_linear(g.q, span), ref.pitch_rate)],
+        )
+        k, edge = _peak(curve)
+        if not math.isfinite(k):
+            reasons.append("alignment failed: the signals are flat or missing")
+            k = float(lag_max)
+        elif edge and lag_max > 0:
+            reasons.append(
+                f"alignment peak at the edge of the +-{config.max_lag_s:g} s search range: the run does not "
+                "match the reference (increase max_lag_s if the impact detection is that uncertain)"
+            )
+        lag = k - lag_max
+    start = i0 + lag
+    cov, hole = _coverage(g, start, start + n - 1)
+    if cov < config.min_coverage:
+        reasons.insert(0, hole)
+    pos = start + np.arange(n, dtype=np.float64)
+    az = _resample(g.az, pos, fill=cov >= config.min_coverage)
+    q = _resample(g.q, pos, fill=cov >= config.min_coverage)
+    if ref is not None:
+        score = _final_score(config, az, q, ref)
+        if not (score >= config.min_alignment) and not any(r.startswith("alignment") for r in reasons):
+            reasons.append(
+                f"alignment correlation {score:.3f} below {config.min_alignment:.3f}: the run does not match "
+                "the reference (another event, or a very different response)"
+            )
+    t_start = g.t0_ns + start * g.step_ns
+    t_end = t_start + n * g.step_ns
+    d0, d1 = np.interp([t_start, t_end], ot, od)
+    mean_speed = (d1 - d0) / (n / fs)
+    speed = _speed_reason(config, mean_speed)
+    if speed:
+        reasons.append(speed)
+    seg = Segment(
+        run=RunId(),
+        mode=MODE_EVENT,
+        window_start_ns=round(t_start),
+        window_length_s=n / fs,
+        distance_start_m=float(d0),
+        distance_step_m=0.0,
+        sample_rate_hz=fs,
+        lag_s=lag / fs,
+        alignment_score=score,
+        mean_speed_mps=float(mean_speed),
+        target_speed_mps=config.target_speed_mps,
+        coverage=cov,
+        accel_z=az,
+        pitch_rate=q,
+        valid=not reasons,
+        reason="; ".join(reasons),
+    )
+    return _Plan(segment=seg)
+
+
+def distance_step(config: SegmentConfig, imu_rate_hz: float) -> float:
+    """The distance grid step, m: configured, else the distance covered at the target speed in one IMU sample."""
+    return config.distance_step_m or config.target_speed_mps / imu_rate_hz
+
+
+def _cut_distance(
+    g: _Grid, odom: tuple[FloatArray, FloatArray, FloatArray], config: SegmentConfig, ref: Reference | None
+) -> _Plan:
+    ds = distance_step(config, g.rate_hz)
+    fs_eq = config.target_speed_mps / ds
+    n = round((config.distance_end_m - config.distance_start_m) / ds)
+    m = round(config.max_shift_m / ds) if ref is not None else 0
+    ot, od, _ = odom
+    s0 = config.distance_start_m
+    if ot.size < 2:
+        return _Plan(missing="odometry")
+    if od[0] > s0 - m * ds:
+        return _Plan(
+            reasons=[
+                f"the run's odometry starts at {od[0]:.1f} m, after the section start {s0 - m * ds:.1f} m "
+                "(distance_start_m - max_shift_m): the run started too late"
+            ]
+        )
+    s_need = s0 + (n + m) * ds
+    if od[-1] < s_need:
+        return _Plan(missing=f"odometry up to {s_need:.1f} m (now {od[-1]:.1f} m)")
+    t_need = _distance_to_time(ot, od, np.array([s_need]))[0]
+    p_need = (t_need - g.t0_ns) / g.step_ns + SPLINE_MARGIN + 2
+    if g.n < p_need:
+        return _Plan(missing=f"IMU data up to t = {g.time_ns(p_need) / NS:.3f} s (end of the section)")
+    if (_distance_to_time(ot, od, np.array([s0 - m * ds]))[0] - g.t0_ns) / g.step_ns < 0:
+        return _Plan(reasons=["the IMU stream starts after the section start: no data before the section"])
+    reasons: list[str] = []
+    shift = 0.0
+    score = 1.0
+    if ref is not None:
+        ref.check(config, fs_eq, ds)
+        s_coarse = s0 + (np.arange(n + 2 * m, dtype=np.float64) - m) * ds
+        p_coarse = (_distance_to_time(ot, od, s_coarse) - g.t0_ns) / g.step_ns
+        curve = _alignment_curves(
+            config,
+            [(_linear(g.az, p_coarse), ref.accel_z), (_linear(g.q, p_coarse), ref.pitch_rate)],
+        )
+        k, edge = _peak(curve)
+        if not math.isfinite(k):
+            reasons.append("alignment failed: the signals are flat or missing")
+            k = float(m)
+        elif edge and m > 0:
+            reasons.append(
+                f"alignment peak at the edge of the +-{config.max_shift_m:g} m search range: the run does not "
+                "match the reference, or the start offset is larger (increase max_shift_m)"
+            )
+        shift = (k - m) * ds
+    s_fine = s0 + shift + np.arange(n, dtype=np.float64) * ds
+    t_fine = _distance_to_time(ot, od, s_fine)
+    pos = (t_fine - g.t0_ns) / g.step_ns
+    cov, hole = _coverage(g, float(pos[0]), float(pos[-1]))
+    if cov < config.min_coverage:
+        reasons.insert(0, hole)
+    az = _resample(g.az, pos, fill=cov >= config.min_coverage)
+    q = _resample(g.q, pos, fill=cov >= config.min_coverage)
+    if ref is not None:
+        score = _final_score(config, az, q, ref)
+        if not (score >= config.min_alignment) and not any(r.startswith("alignment") for r in reasons):
+            reasons.append(
+                f"alignment correlation {score:.3f} below {config.min_alignment:.3f}: the run does not match "
+                f"the reference (wrong road section, or a start offset beyond the +-{config.max_shift_m:g} m "
+                "of max_shift_m)"
+            )
+    duration = (float(t_fine[-1]) - float(t_fine[0])) / NS
+    mean_speed = (n - 1) * ds / duration if duration > 0 else math.nan
+    speed = _speed_reason(config, mean_speed)
+    if speed:
+        reasons.append(speed)
+    seg = Segment(
+        run=RunId(),
+        mode=MODE_DISTANCE,
+        window_start_ns=round(float(t_fine[0])),
+        window_length_s=duration + 1 / fs_eq,
+        distance_start_m=float(s_fine[0]),
+        distance_step_m=ds,
+        sample_rate_hz=fs_eq,
+        lag_s=shift / config.target_speed_mps,
+        alignment_score=score,
+        mean_speed_mps=float(mean_speed),
+        target_speed_mps=config.target_speed_mps,
+        coverage=cov,
+        accel_z=az,
+        pitch_rate=q,
+        valid=not reasons,
+        reason="; ".join(reasons),
+    )
+    return _Plan(segment=seg)
+
+
+def _plan(
+    imu: ImuSeries, odom: OdomSeries, config: SegmentConfig, start_ns: int | None, ref: Reference | None
+) -> _Plan:
+    if start_ns is not None:
+        keep = imu.stamp_ns >= start_ns
+        if not np.all(keep):
+            imu = ImuSeries(imu.stamp_ns[keep], imu.accel_z[keep], imu.pitch_rate[keep])
+    if len(imu) < 2:
+        return _Plan(missing="IMU data (imu/vehicle)")
+    if np.any(np.diff(imu.stamp_ns) < 0):
+        return _Plan(reasons=["IMU stamps went backwards during the run (clock jump)"])
+    g = _grid(imu, imu_rate(imu, config.imu_rate_hz))
+    o = _odom_run(odom, imu.stamp_ns[0] if start_ns is None else start_ns, config)
+    if config.mode == "event":
+        return _cut_event(g, o, config, ref)
+    return _cut_distance(g, o, config, ref)
+
+
+def run_status(
+    imu: ImuSeries,
+    odom: OdomSeries,
+    config: SegmentConfig,
+    start_ns: int | None = None,
+    reference: Reference | None = None,
+) -> Progress:
+    """Whether the buffered run holds all the data :func:`cut_run` needs (then cut it: nothing more changes it)."""
+    plan = _plan(imu, odom, config, start_ns, reference)
+    return Progress(complete=not plan.missing, waiting_for=plan.missing)
+
+
+def cut_run(
+    imu: ImuSeries,
+    odom: OdomSeries,
+    config: SegmentConfig,
+    start_ns: int | None = None,
+    reference: Reference | None = None,
+    run: RunId | None = None,
+) -> Segment:
+    """Cut and align one run (see the module docstring). Never raises for bad data: the segment says why.
+
+    ``start_ns``: the run start (the trial became ready to drive); samples before it are ignored.
+    ``reference``: align with it (None: this run is not aligned, lag 0, alignment score 1).
+    Raises :class:`SegmentationError` only when ``reference`` does not fit ``config``.
+    """
+    plan = _plan(imu, odom, config, start_ns, reference)
+    rid = run or RunId()
+    if plan.segment is not None:
+        return _with_run(plan.segment, rid)
+    reason = "; ".join(plan.reasons) or f"incomplete run: still waiting for {plan.missing}"
+    return Segment(
+        run=rid,
+        mode=config.mode_id,
+        window_start_ns=int(start_ns or (imu.stamp_ns[0] if len(imu) else 0)),
+        window_length_s=0.0,
+        distance_start_m=config.distance_start_m if config.mode == "distance" else 0.0,
+        distance_step_m=0.0,
+        sample_rate_hz=config.imu_rate_hz,
+        lag_s=0.0,
+        alignment_score=math.nan,
+        mean_speed_mps=math.nan,
+        target_speed_mps=config.target_speed_mps,
+        coverage=0.0,
+        accel_z=np.zeros(0),
+        pitch_rate=np.zeros(0),
+        valid=False,
+        reason=reason,
+    )
+
+
+def _with_run(seg: Segment, run: RunId) -> Segment:
+    return replace(seg, run=run)
+
+
+def invalid_segment(config: SegmentConfig, run: RunId, start_ns: int, reason: str) -> Segment:
+    """An invalid segment with only a reason (e.g. a run that timed out or was cancelled)."""
+    seg = cut_run(ImuSeries.empty(), OdomSeries.empty(), config, start_ns=start_ns, run=run)
+    return replace(seg, reason=reason)
+
+
+def window_segment(
+    imu: ImuSeries,
+    start_ns: int | None = None,
+    end_ns: int | None = None,
+    imu_rate_hz: float = 0.0,
+    run: RunId | None = None,
+) -> Segment:
+    """A plain time window of an IMU stream as a segment (no alignment, no speed check): for scoring
+    any recording, e.g. a bag that was not driven as a bac run."""
+    t = imu.stamp_ns
+    keep = np.ones(t.shape, bool)
+    if start_ns is not None:
+        keep &= t >= start_ns
+    if end_ns is not None:
+        keep &= t <= end_ns
+    sub = ImuSeries(t[keep], imu.accel_z[keep], imu.pitch_rate[keep])
+    if len(sub) < 2:
+        raise SegmentationError("the window holds fewer than two IMU samples")
+    g = _grid(sub, imu_rate(sub, imu_rate_hz))
+    cov, hole = _coverage(g, 0, g.n - 1)
+    return Segment(
+        run=run or RunId(),
+        mode=MODE_EVENT,
+        window_start_ns=g.t0_ns,
+        window_length_s=g.n / g.rate_hz,
+        distance_start_m=0.0,
+        distance_step_m=0.0,
+        sample_rate_hz=g.rate_hz,
+        lag_s=0.0,
+        alignment_score=math.nan,
+        mean_speed_mps=math.nan,
+        target_speed_mps=math.nan,
+        coverage=cov,
+        accel_z=g.az,
+        pitch_rate=g.q,
+        valid=cov >= 1.0,
+        reason=hole,
+    )
