@@ -1,0 +1,292 @@
+"""The suspension controllers under calibration, vectorized over a batch of calibrations.
+
+* **Controller I** (paper sec. IV-C-1): constant damping command front and rear, two parameters in
+  [0, 1] (``damping_front``, ``damping_rear``; 1 = ``Phi_max``).
+* **Controller II** (paper sec. IV-C-2): a semi-active comfort logic with 20 parameters ``p01..p20``
+  in [0, 1000] that the calibration treats as a black box. Inside, it is a production-style blend:
+  modal skyhook (heave, pitch and roll body velocities estimated by leaky integration of body
+  accelerometers), groundhook on the wheel velocities, an acceleration-driven-damper (ADD) term,
+  a deadband, an inverse damper map from the demanded force to the command, per-axle floors, a cap,
+  a vehicle-speed gain table, end-stop protection, cornering roll control, anti-dive, and a command
+  filter. :data:`CONTROLLER_II_PARAMETERS` gives each parameter's meaning and physical range: the
+  truth the black-box reduction should rediscover (some matter much, some hardly at all, the speed
+  table entries away from the test speed and the cornering gain not at all on a straight road).
+
+Each controller is evaluated once per simulation step on ``(4, B)`` arrays (corners FL, FR, RL, RR).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Protocol
+
+import numpy as np
+
+from bac_common.paramspace import CalibrationDefinition, RawParameter, uniform_parameters
+from bac_sim.errors import ControllerError
+from bac_sim.vehicle import N_CORNERS, VehicleParams
+
+FloatArray = np.ndarray[Any, Any]
+
+REPO_CALIBRATIONS = Path(__file__).resolve().parents[3] / "ros_ws" / "config" / "calibrations"
+
+
+# --- definitions ----------------------------------------------------------------------------
+def controller_i_definition() -> CalibrationDefinition:
+    """Controller I's definition (ros_ws/config/calibrations/controller_i.yaml when present)."""
+    path = REPO_CALIBRATIONS / "controller_i.yaml"
+    if path.is_file():
+        return CalibrationDefinition.load(path)
+    params = (
+        RawParameter("damping_front", 0, 0.0, 1.0, 0.5, 0.0001, "1", "constant damping command of both front dampers"),
+        RawParameter("damping_rear", 1, 0.0, 1.0, 0.5, 0.0001, "1", "constant damping command of both rear dampers"),
+    )
+    return CalibrationDefinition(
+        "controller_i", params, baseline={"damping_front": 0.5, "damping_rear": 0.5}, description="Constant damping"
+    )
+
+
+def controller_ii_definition() -> CalibrationDefinition:
+    """Controller II's definition (ros_ws/config/calibrations/controller_ii.yaml when present)."""
+    path = REPO_CALIBRATIONS / "controller_ii.yaml"
+    if path.is_file():
+        return CalibrationDefinition.load(path)
+    return CalibrationDefinition(
+        "controller_ii", uniform_parameters("p", 20, 0.0, 1000.0, 500.0, 0.01), description="Semi-active logic"
+    )
+
+
+@dataclass(frozen=True)
+class ParamSpec:
+    """Meaning of one Controller II parameter: value = lower + u (upper - lower), u = raw / 1000."""
+
+    name: str
+    meaning: str
+    unit: str
+    lower: float
+    upper: float
+    log: bool = False
+
+    def physical(self, raw: FloatArray) -> FloatArray:
+        u = np.asarray(raw, dtype=float) / 1000.0
+        if self.log:
+            return np.asarray(self.lower * (self.upper / self.lower) ** u)
+        return np.asarray(self.lower + u * (self.upper - self.lower))
+
+
+CONTROLLER_II_PARAMETERS: tuple[ParamSpec, ...] = (
+    ParamSpec("p01", "body-velocity estimator high-pass corner (integrator leak)", "Hz", 0.05, 2.0, log=True),
+    ParamSpec("p02", "suspension-velocity filter corner", "Hz", 4.0, 80.0, log=True),
+    ParamSpec("p03", "command filter corner", "Hz", 1.0, 40.0, log=True),
+    ParamSpec("p04", "skyhook deadband on body velocity", "m/s", 0.0, 0.06),
+    ParamSpec("p05", "skyhook gain, front axle", "N s/m", 0.0, 10000.0),
+    ParamSpec("p06", "skyhook gain, rear axle", "N s/m", 0.0, 10000.0),
+    ParamSpec("p07", "pitch weight of the modal skyhook", "1", 0.0, 2.0),
+    ParamSpec("p08", "groundhook gain (wheel velocity), both axles", "N s/m", 0.0, 5000.0),
+    ParamSpec("p09", "minimum damping command (floor), front axle", "1", 0.0, 0.7),
+    ParamSpec("p10", "roll weight of the modal skyhook", "1", 0.0, 2.0),
+    ParamSpec("p11", "minimum damping command (floor), rear axle", "1", 0.0, 0.7),
+    ParamSpec("p12", "acceleration-driven-damper (ADD) mass", "kg", 0.0, 600.0),
+    ParamSpec("p13", "ADD acceleration low-pass corner", "Hz", 1.0, 30.0, log=True),
+    ParamSpec("p14", "maximum damping command (cap)", "1", 0.3, 1.0),
+    ParamSpec("p15", "skyhook gain factor at 30 km/h", "1", 0.3, 1.7),
+    ParamSpec("p16", "skyhook gain factor at 60 km/h", "1", 0.3, 1.7),
+    ParamSpec("p17", "skyhook gain factor at 90 km/h", "1", 0.3, 1.7),
+    ParamSpec("p18", "skyhook gain factor at 120 km/h", "1", 0.3, 1.7),
+    ParamSpec("p19", "cornering roll-control gain (per g of lateral acceleration)", "1/g", 0.0, 2.0),
+    ParamSpec("p20", "end-stop protection threshold (travel from static)", "m", 0.015, 0.09),
+)
+SPEED_TABLE_KMH = np.array([30.0, 60.0, 90.0, 120.0])
+ACTUATOR_BANDWIDTH_HZ = 15.0  # valve + current driver of the semi-active damper (first-order)
+
+
+# --- batch controller protocol --------------------------------------------------------------
+class BatchController(Protocol):
+    """What the simulator needs from a controller (see :mod:`bac_sim.engine`)."""
+
+    batch: int
+    constant: FloatArray | None  # (4, B) command when it never changes, else None
+
+    def reset(self, dt: float, speed: FloatArray, x0: FloatArray) -> None:
+        """Start a run: step ``dt``, speed of each run (B,), initial state (14, B)."""
+
+    def command(
+        self, x: FloatArray, v: FloatArray, travel: FloatArray, acc: FloatArray, phi_min: FloatArray, dphi: FloatArray
+    ) -> FloatArray:
+        """Damping command (4, B) in [0, 1] for this step.
+
+        ``x`` state (14, B); ``v`` suspension extension velocity (4, B); ``travel`` suspension
+        extension from static (4, B); ``acc`` body vertical acceleration at the corners (4, B);
+        ``phi_min``, ``dphi``: ``Phi_min(v)`` and ``Phi_max(v) - Phi_min(v)`` (4, B).
+        """
+        ...
+
+
+def _as_batch(values: FloatArray | Sequence[Sequence[float]], dim: int, what: str) -> FloatArray:
+    arr = np.atleast_2d(np.asarray(values, dtype=float))
+    if arr.ndim != 2 or arr.shape[1] != dim:
+        raise ControllerError(f"{what}: expected an (n, {dim}) array of parameters, got shape {arr.shape}")
+    if not np.all(np.isfinite(arr)):
+        raise ControllerError(f"{what}: parameters contain NaN or infinite values")
+    return arr
+
+
+def check_bounds(definition: CalibrationDefinition, raw: FloatArray) -> None:
+    """Raise :class:`ControllerError` if any raw value is outside its declared bounds."""
+    lo = np.array([p.lower for p in definition.parameters])
+    hi = np.array([p.upper for p in definition.parameters])
+    bad = (raw < lo) | (raw > hi)
+    if np.any(bad):
+        row, col = (int(i) for i in np.argwhere(bad)[0])
+        p = definition.parameters[col]
+        raise ControllerError(
+            f"{definition.name}: parameter '{p.name}' = {raw[row, col]!r} (row {row}) is outside its bounds "
+            f"[{p.lower:g}, {p.upper:g}]"
+        )
+
+
+def raw_matrix(definition: CalibrationDefinition, calibrations: Sequence[Mapping[str, float]]) -> FloatArray:
+    """Raw calibrations (every parameter by name) -> (n, P) array in the definition's order."""
+    names = definition.parameter_names
+    rows = []
+    for cal in calibrations:
+        unknown = set(cal) - set(names)
+        if unknown:
+            raise ControllerError(f"{definition.name}: unknown parameters {sorted(unknown)}; known: {list(names)}")
+        missing = [n for n in names if n not in cal]
+        if missing:
+            raise ControllerError(f"{definition.name}: calibration lacks {missing}")
+        rows.append([float(cal[n]) for n in names])
+    raw = _as_batch(rows, len(names), definition.name)
+    check_bounds(definition, raw)
+    return raw
+
+
+class ControllerI:
+    """Constant damping: ``damping_front`` on both front dampers, ``damping_rear`` on both rear ones."""
+
+    def __init__(self, raw: FloatArray) -> None:
+        raw = _as_batch(raw, 2, "Controller I")
+        if np.any(raw < 0) or np.any(raw > 1):
+            raise ControllerError("Controller I: damping commands must lie in [0, 1]")
+        self.batch = raw.shape[0]
+        self.constant: FloatArray | None = np.ascontiguousarray(raw[:, [0, 0, 1, 1]].T)
+
+    def reset(self, dt: float, speed: FloatArray, x0: FloatArray) -> None:
+        return None
+
+    def command(
+        self, x: FloatArray, v: FloatArray, travel: FloatArray, acc: FloatArray, phi_min: FloatArray, dphi: FloatArray
+    ) -> FloatArray:
+        assert self.constant is not None
+        return self.constant
+
+
+def _lowpass_alpha(corner_hz: FloatArray, dt: float) -> FloatArray:
+    return np.asarray(1.0 - np.exp(-2 * np.pi * corner_hz * dt))
+
+
+class ControllerII:
+    """The 20-parameter semi-active logic (see the module doc and :data:`CONTROLLER_II_PARAMETERS`)."""
+
+    def __init__(self, raw: FloatArray, vehicle: VehicleParams | None = None) -> None:
+        raw = _as_batch(raw, len(CONTROLLER_II_PARAMETERS), "Controller II")
+        if np.any(raw < 0) or np.any(raw > 1000):
+            raise ControllerError("Controller II: parameters must lie in [0, 1000]")
+        self.batch = raw.shape[0]
+        self.constant: FloatArray | None = None
+        vp = vehicle or VehicleParams()
+        P = {spec.name: spec.physical(raw[:, i]) for i, spec in enumerate(CONTROLLER_II_PARAMETERS)}
+        self.P = P
+        self._cx = -vp.corner_x[:, None]  # body height at corner = z - x theta + y phi
+        self._cy = vp.corner_y[:, None]
+        self._sky = np.vstack([P["p05"], P["p05"], P["p06"], P["p06"]])  # (4, B)
+        self._floor = np.vstack([P["p09"], P["p09"], P["p11"], P["p11"]])
+        self._cap = np.maximum(P["p14"], self._floor.max(axis=0))[None, :]
+        self._state: dict[str, FloatArray] = {}
+
+    def reset(self, dt: float, speed: FloatArray, x0: FloatArray) -> None:
+        P, b = self.P, self.batch
+        kmh = np.broadcast_to(np.asarray(speed, dtype=float), (b,)) * 3.6
+        table = np.vstack([P["p15"], P["p16"], P["p17"], P["p18"]])  # (4, B)
+        factor = np.array([np.interp(kmh[i], SPEED_TABLE_KMH, table[:, i]) for i in range(b)])
+        self._gain = self._sky * factor[None, :]  # (4, B) N s/m
+        self._a_hp = np.exp(-2 * np.pi * P["p01"] * dt)[None, :]  # (1, B)
+        self._a_v = _lowpass_alpha(P["p02"], dt)[None, :]
+        self._a_cmd = _lowpass_alpha(P["p03"], dt)[None, :]
+        self._a_add = _lowpass_alpha(P["p13"], dt)[None, :]
+        self._a_act = float(1.0 - np.exp(-2 * np.pi * ACTUATOR_BANDWIDTH_HZ * dt))
+        self._db = P["p04"][None, :]
+        self._gh = P["p08"][None, :]
+        self._pw = P["p07"]
+        self._rw = P["p10"]
+        self._add = P["p12"][None, :]
+        self._endstop = P["p20"][None, :]
+        self._lat = P["p19"]  # x lateral acceleration: 0 on a straight road
+        w0 = np.asarray(x0[7:10], dtype=float)
+        self._state = {
+            "w_prev": np.array(w0, copy=True),
+            "hp": np.zeros((3, b)),
+            "v_f": np.zeros((N_CORNERS, b)),
+            "acc_f": np.zeros((N_CORNERS, b)),
+            "cmd_f": np.repeat(self._floor.mean(axis=0, keepdims=True), N_CORNERS, axis=0),
+            "c_act": np.repeat(self._floor.mean(axis=0, keepdims=True), N_CORNERS, axis=0),
+        }
+
+    def command(
+        self, x: FloatArray, v: FloatArray, travel: FloatArray, acc: FloatArray, phi_min: FloatArray, dphi: FloatArray
+    ) -> FloatArray:
+        st = self._state
+        w = x[7:10]  # heave velocity, pitch rate, roll rate
+        hp = st["hp"]
+        # leaky integration of the accelerometers == first-order high-pass of the body velocities
+        hp += w
+        hp -= st["w_prev"]
+        hp *= self._a_hp
+        st["w_prev"][...] = w
+        # modal skyhook velocity at each corner
+        zsky = hp[0][None, :] + self._cx * (self._pw * hp[1])[None, :] + self._cy * (self._rw * hp[2])[None, :]
+        zsky -= np.clip(zsky, -self._db, self._db)  # deadband
+        # filtered suspension velocity and body acceleration (ECU signal conditioning)
+        v_f = st["v_f"]
+        v_f += self._a_v * (v - v_f)
+        acc_f = st["acc_f"]
+        acc_f += self._a_add * (acc - acc_f)
+        # demanded force on the body (up): skyhook + groundhook + ADD
+        demand = self._gh * x[10:14]
+        demand -= self._gain * zsky
+        demand -= self._add * acc_f
+        # inverse damper map: damper force on the body is -(Phi_min + c dPhi)
+        num = -demand - phi_min
+        cmd = num * dphi / (dphi * dphi + 25.0)  # regularized num / dphi (dphi ~ 0 at rest)
+        np.maximum(cmd, self._floor, out=cmd)
+        np.minimum(cmd, self._cap, out=cmd)
+        # end-stop protection: firm when the travel from static exceeds the threshold
+        cmd[np.abs(travel) > self._endstop] = 1.0
+        cmd_f = st["cmd_f"]
+        cmd_f += self._a_cmd * (cmd - cmd_f)
+        c_act = st["c_act"]
+        c_act += self._a_act * (cmd_f - c_act)
+        return c_act
+
+
+def make_controller(
+    definition: CalibrationDefinition, raw: FloatArray, vehicle: VehicleParams | None = None
+) -> ControllerI | ControllerII:
+    """The controller simulating ``definition`` for raw calibrations ``raw`` (n, P)."""
+    raw = _as_batch(raw, len(definition.parameters), definition.name)
+    check_bounds(definition, raw)
+    names = definition.parameter_names
+    if set(names) == {"damping_front", "damping_rear"}:
+        order = [names.index("damping_front"), names.index("damping_rear")]
+        return ControllerI(raw[:, order])
+    expected = tuple(spec.name for spec in CONTROLLER_II_PARAMETERS)
+    if set(names) == set(expected):
+        order = [names.index(n) for n in expected]
+        return ControllerII(raw[:, order], vehicle)
+    raise ControllerError(
+        f"no simulated controller for definition '{definition.name}' (parameters {list(names)}); "
+        "the simulator knows Controller I (damping_front, damping_rear) and Controller II (p01..p20)"
+    )
