@@ -500,10 +500,12 @@ class CalibrationClient:
     ) -> dict[K, Any]:
         """Send ``requests``, each until its reply matches; a window of them in flight at once.
 
-        A request is sent again when its reply is ``step_timeout_s`` late, or at
-        once when a reply to a request sent after it arrives first (the ECU
-        answers in order, so its request or its reply was lost: "fast
-        retransmit"); at most ``step_retries`` times.
+        A request is sent again when its reply is ``step_timeout_s`` late or
+        wrong, at most ``step_retries`` times (so a step is bounded in time);
+        and at once, without waiting for the timeout, when a reply to a request
+        sent after it arrives first: the ECU answers in order, so its request
+        or its reply was probably lost ("fast retransmit", at most
+        ``step_retries`` times per request too, never counted as a timeout).
         """
         cfg = self.config
         results: dict[K, Any] = {}
@@ -512,21 +514,27 @@ class CalibrationClient:
         problem: BridgeError | None = None
         order = 0
 
-        def send(k: K, pending: _Pending | None) -> None:
+        def send(k: K, pending: _Pending | None, fast: bool = False) -> None:
             nonlocal order
+            retries = fasts = 0
             if pending is not None:
-                if pending.sends > cfg.step_retries:
-                    raise _RetryableError(
-                        problem
-                        or EcuTimeoutError(
-                            f"no valid answer to {phase} of {self._key_text(phase, k)} (seq {seq}) after "
-                            f"{pending.sends} tries of {cfg.step_timeout_s * 1e3:g} ms"
+                retries, fasts = pending.retries, pending.fasts
+                if fast:
+                    fasts += 1
+                else:
+                    if retries >= cfg.step_retries:
+                        raise _RetryableError(
+                            problem
+                            or EcuTimeoutError(
+                                f"no valid answer to {phase} of {self._key_text(phase, k)} (seq {seq}) after "
+                                f"{1 + retries + fasts} sends, {retries + 1} waits of {cfg.step_timeout_s * 1e3:g} ms"
+                            )
                         )
-                    )
+                    retries += 1
                 self.stats.retransmissions += 1
             self._send(requests[k])
             order += 1
-            outstanding[k] = _Pending(self._clock(), 1 if pending is None else pending.sends + 1, order)
+            outstanding[k] = _Pending(self._clock(), retries, fasts, order)
 
         while True:
             while queue and len(outstanding) < cfg.window:
@@ -568,8 +576,8 @@ class CalibrationClient:
             del outstanding[key]
             results[key] = value
             for k, other in list(outstanding.items()):
-                if other.order < pending.order:
-                    send(k, other)  # answered out of order: its request or reply was lost
+                if other.order < pending.order and other.fasts < cfg.step_retries:
+                    send(k, other, fast=True)  # overtaken: its request or its reply was probably lost
 
     def _key_text(self, phase: str, k: object) -> str:
         if phase in ("WRITE", "READ") and isinstance(k, int):
@@ -646,7 +654,8 @@ class CalibrationClient:
 @dataclass
 class _Pending:
     sent_at: float
-    sends: int
+    retries: int  # re-sends after a timeout or a wrong answer
+    fasts: int  # fast retransmits
     order: int  # send order within the exchange
 
 

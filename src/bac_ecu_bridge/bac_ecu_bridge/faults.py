@@ -17,7 +17,9 @@ sent, received or both, with given probabilities and a seed:
   ``nack_ops``) are replaced by a well-formed negative response with this
   reason, with probability ``nack_p`` (an ECU that refuses).
 
-Faults are applied to frames whose id is in ``ids`` (all when empty). Counters
+Faults are applied to frames whose id is in ``ids`` and whose opcode (data
+byte 1) is in ``ops`` (all when empty; e.g. ``drop=1,ops=ack`` loses every
+acknowledgment). Counters
 in :attr:`FaultyBus.counts` say what was done.
 
 The same settings parse from a compact spec for command lines::
@@ -82,6 +84,7 @@ class FaultConfig:
     nack_ops: tuple[int, ...] = (int(Op.ACK),)
     direction: Direction = "both"
     ids: tuple[int, ...] = ()
+    ops: tuple[int, ...] = ()  # only protocol frames with these opcodes (all frames when empty)
     seed: int | None = None
 
     def __post_init__(self) -> None:
@@ -126,7 +129,7 @@ class FaultConfig:
                     kwargs[key] = (
                         int(_REASON_ALIASES[value.lower()]) if value.lower() in _REASON_ALIASES else int(value, 0)
                     )
-                elif key == "nack_ops":
+                elif key in ("nack_ops", "ops"):
                     kwargs[key] = tuple(
                         int(_OP_ALIASES[v.lower()]) if v.lower() in _OP_ALIASES else int(v, 0) for v in value.split("+")
                     )
@@ -194,18 +197,23 @@ class FaultyBus(can.BusABC):
         cfg = self.config
         if cfg.direction not in ("both", direction):
             return False
-        return not cfg.ids or msg.arbitration_id in cfg.ids
+        if cfg.ids and msg.arbitration_id not in cfg.ids:
+            return False
+        return not cfg.ops or (len(msg.data) > 1 and msg.data[1] in cfg.ops)
 
     def _corrupt(self, msg: can.Message) -> can.Message:
+        """Flip 1-4 distinct bits, or (one time in four) replace bytes 1.. at random; never a no-op."""
         data = bytearray(msg.data)
         if not data:
             return msg
+        original = bytes(data)
         if self._rng.random() < 0.25 and len(data) > 1:
             data[1:] = bytes(self._rng.randrange(256) for _ in range(len(data) - 1))
         else:
-            for _ in range(self._rng.randint(1, 4)):
-                bit = self._rng.randrange(8 * len(data))
+            for bit in self._rng.sample(range(8 * len(data)), min(self._rng.randint(1, 4), 8 * len(data))):
                 data[bit // 8] ^= 1 << (bit % 8)
+        if bytes(data) == original:
+            data[-1] ^= 0x01
         return _copy(msg, bytes(data))
 
     def _nack(self, msg: can.Message) -> can.Message | None:

@@ -1,0 +1,281 @@
+"""The bridge's apply transaction against the simulated ECU on a python-can virtual bus."""
+
+from __future__ import annotations
+
+import threading
+import time
+from typing import Any
+
+import can
+import pytest
+from bridge_rig import FAST, RigFactory, load
+
+from bac_common.errors import OutOfBoundsError, UnknownParameterError
+from bac_common.paramspace import CalibrationDefinition, RawParameter
+from bac_ecu_bridge.client import CalibrationClient, ClientConfig
+from bac_ecu_bridge.errors import BridgeError, BusError, ErrorCode
+from bac_ecu_bridge.faults import FaultConfig
+from bac_ecu_bridge.protocol import Ack, CalibrationCodec, Commit, Op, Reason, decode_request, encode
+
+II = load("controller_ii")
+
+
+def ramp(offset: float = 0.0) -> dict[str, float]:
+    """A controller II calibration with every parameter different (and not on the 0.01 grid)."""
+    return {p.name: 10.0 + 47.123 * k + offset for k, p in enumerate(II.parameters)}
+
+
+def test_happy_path_applies_exactly_the_quantized_values(make_rig: RigFactory) -> None:
+    rig = make_rig("controller_ii")
+    want = ramp()
+    res = rig.client.apply(want)
+    quantized = rig.codec.quantize(want)
+    assert res.values == quantized
+    assert res.values["p02"] == pytest.approx(57.12)  # 57.123 on the 0.01 grid
+    assert rig.ecu.active == quantized
+    assert res.crc == rig.codec.crc(want) == rig.ecu.active_crc
+    assert res.attempts == 1 and res.read_back
+    assert rig.ecu.commits == 1
+    assert rig.client.stats.retransmissions == 0 and rig.client.stats.applies_ok == 1
+    assert list(res.values) == [p.name for p in II.parameters]
+
+
+def test_read_back_and_status(make_rig: RigFactory) -> None:
+    rig = make_rig("controller_i")
+    assert rig.client.read_active().values == {"damping_front": 0.5, "damping_rear": 0.5}  # the baseline
+    rig.client.apply({"damping_front": 0.12346, "damping_rear": 0.9})
+    rd = rig.client.read_active()
+    assert rd.values == {"damping_front": pytest.approx(0.1235), "damping_rear": pytest.approx(0.9)}
+    st = rig.client.status()
+    assert (st.count, st.crc) == (2, rd.crc)
+
+
+def test_out_of_bounds_and_unknown_names_are_refused_before_anything_is_sent(make_rig: RigFactory) -> None:
+    rig = make_rig("controller_ii")
+    bad = ramp()
+    bad["p07"] = 1000.01
+    with pytest.raises(OutOfBoundsError, match="p07"):
+        rig.client.apply(bad)
+    with pytest.raises(UnknownParameterError, match="p99"):
+        rig.client.apply({"p99": 1.0})
+    assert rig.client.stats.frames_sent == 0
+    rig.client.apply(ramp())  # frames sent before this apply would have reached the ECU first
+    assert rig.ecu.engine.stats.requests == 1 + 20 + 1 + 20
+
+
+def test_busy_while_driving(make_rig: RigFactory) -> None:
+    rig = make_rig("controller_i")
+    rig.ecu.set_driving(True)
+    with pytest.raises(BridgeError, match="moving") as err:
+        rig.client.apply({"damping_front": 0.1, "damping_rear": 0.1})
+    assert err.value.code == ErrorCode.ECU_BUSY
+    assert err.value.attempts == 1 and not err.value.uncertain
+    assert rig.ecu.active == {"damping_front": 0.5, "damping_rear": 0.5}
+    rig.ecu.set_driving(False)
+    assert rig.client.apply({"damping_front": 0.1, "damping_rear": 0.1}).attempts == 1
+
+
+def narrowed(definition: CalibrationDefinition, name: str, **changes: Any) -> CalibrationDefinition:
+    params = []
+    for p in definition.parameters:
+        if p.name == name:
+            fields = {**p.__dict__, **changes}
+            params.append(RawParameter(**fields))
+        else:
+            params.append(p)
+    return CalibrationDefinition(definition.name, tuple(params))
+
+
+def test_ecu_out_of_range(make_rig: RigFactory) -> None:
+    # the ECU's software holds p12 in [0, 500] at the same resolution; the definition says [0, 1000]
+    rig = make_rig("controller_ii", ecu_definition=narrowed(II, "p12", upper=500.0, nominal=250.0))
+    want = ramp()
+    assert want["p12"] > 500
+    with pytest.raises(BridgeError, match=r"p12 = 528.35 \(CAN index 11\) as out of its range") as err:
+        rig.client.apply(want)
+    assert err.value.code == ErrorCode.ECU_OUT_OF_RANGE and err.value.attempts == 1
+    assert rig.ecu.commits == 0
+
+
+def test_ecu_does_not_know_a_parameter(make_rig: RigFactory) -> None:
+    rig = make_rig("controller_ii", ecu_definition=narrowed(II, "p20", index=40))
+    with pytest.raises(BridgeError, match=r"does not know parameter p20 \(CAN index 19\)") as err:
+        rig.client.apply(ramp())
+    assert err.value.code == ErrorCode.UNKNOWN_PARAMETER
+    smaller = CalibrationDefinition("c", II.parameters[:19])
+    rig2 = make_rig("controller_ii", ecu_definition=smaller)
+    with pytest.raises(BridgeError, match="it holds 19") as err:
+        rig2.client.apply(ramp())
+    assert err.value.code == ErrorCode.UNKNOWN_PARAMETER
+
+
+@pytest.mark.parametrize(
+    ("reason", "code", "match"),
+    [
+        (Reason.CRC_MISMATCH, ErrorCode.CRC_MISMATCH, "CRC over the staged set does not match"),
+        (Reason.SEQUENCE, ErrorCode.SEQUENCE, "sequence error"),
+        (Reason.COUNT_MISMATCH, ErrorCode.SEQUENCE, "incomplete"),
+    ],
+)
+def test_retryable_refusals_are_retried_then_reported(
+    make_rig: RigFactory, reason: Reason, code: ErrorCode, match: str
+) -> None:
+    rig = make_rig("controller_i", ecu_faults=FaultConfig(nack=int(reason), direction="send"))
+    with pytest.raises(BridgeError, match=match) as err:
+        rig.client.apply({"damping_front": 0.3, "damping_rear": 0.3})
+    assert err.value.code == code
+    assert err.value.attempts == FAST.max_attempts
+    assert "gave up after 3 transaction(s)" in str(err.value)
+
+
+def test_a_silent_ecu_times_out_within_the_bound(make_rig: RigFactory) -> None:
+    config = ClientConfig(step_timeout_s=0.01, step_retries=2, max_attempts=3, timeout_s=5.0)
+    rig = make_rig("controller_i", ecu_faults=FaultConfig(silent=True), config=config)
+    t0 = time.monotonic()
+    with pytest.raises(BridgeError, match="no valid answer to BEGIN") as err:
+        rig.client.apply({"damping_front": 0.3, "damping_rear": 0.3})
+    elapsed = time.monotonic() - t0
+    assert err.value.code == ErrorCode.TIMEOUT and err.value.attempts == 3 and not err.value.uncertain
+    assert 3 * 3 * 0.01 <= elapsed < 1.0  # 3 transactions x 3 sends x 10 ms, far from the 5 s limit
+    # the overall limit cuts retries short
+    slow = make_rig("controller_i", ecu_faults=FaultConfig(silent=True), config=ClientConfig(step_timeout_s=0.05))
+    t0 = time.monotonic()
+    with pytest.raises(BridgeError, match="overall timeout") as err:
+        slow.client.apply({"damping_front": 0.3, "damping_rear": 0.3}, timeout_s=0.12)
+    assert err.value.code == ErrorCode.TIMEOUT
+    assert 0.12 <= time.monotonic() - t0 < 0.3
+
+
+def test_lost_acknowledgments_leave_the_state_uncertain(make_rig: RigFactory) -> None:
+    rig = make_rig("controller_i", ecu_faults=FaultConfig(drop=1.0, ops=(int(Op.ACK),), direction="send"))
+    want = {"damping_front": 0.3, "damping_rear": 0.7}
+    with pytest.raises(BridgeError) as err:
+        rig.client.apply(want)
+    assert err.value.code == ErrorCode.TIMEOUT
+    assert err.value.uncertain  # the ECU did apply it: only its word is missing
+    assert rig.ecu.active == rig.codec.quantize(want)
+
+
+def test_a_lost_acknowledgment_is_recovered_by_repeating_the_commit(make_rig: RigFactory) -> None:
+    rig = make_rig("controller_ii", ecu_faults=FaultConfig(drop=0.5, ops=(int(Op.ACK),), direction="send", seed=3))
+    for k in range(10):
+        res = rig.client.apply(ramp(k))
+        assert res.values == rig.ecu.active == rig.codec.quantize(ramp(k))
+    assert rig.client.stats.retransmissions > 0
+    assert rig.ecu.commits == 10  # a repeated COMMIT is acknowledged again, never applied twice
+
+
+def test_stale_acknowledgments_of_an_earlier_transaction_are_never_taken(make_rig: RigFactory) -> None:
+    """Replay every reply of a successful apply while the ECU is silent: the same values again must fail."""
+    rig = make_rig("controller_i", ecu_faults=FaultConfig())
+    sniffer = rig.sniffer()
+    want = {"damping_front": 0.25, "damping_rear": 0.75}
+    first = rig.client.apply(want)
+    replies: list[can.Message] = []
+    while (msg := sniffer.recv(timeout=0.5)) is not None:
+        if msg.arbitration_id == rig.client.ids.response_id:
+            replies.append(msg)
+    assert [encode_op(m) for m in replies] == ["BEGIN_OK", "STAGED", "STAGED", "ACK", "VALUE", "VALUE"]
+    rig.ecu_bus.set_silent(True)  # type: ignore[attr-defined]
+    stop = threading.Event()
+
+    def replay() -> None:  # answer every request with the whole earlier conversation (same CRC, old seq)
+        while not stop.is_set():
+            msg = sniffer.recv(timeout=0.05)
+            if msg is not None and msg.arbitration_id == rig.client.ids.request_id:
+                for r in replies:
+                    sniffer.send(r)
+
+    t = threading.Thread(target=replay, daemon=True)
+    t.start()
+    try:
+        with pytest.raises(BridgeError) as err:
+            rig.client.apply(want)
+    finally:
+        stop.set()
+        t.join()
+    assert err.value.code == ErrorCode.TIMEOUT
+    assert rig.client.stats.stale_frames >= len(replies)
+    assert rig.client.seq != first.seq
+
+
+def encode_op(msg: can.Message) -> str:
+    return Op(msg.data[1]).name
+
+
+def test_duplicated_delayed_and_reordered_replies(make_rig: RigFactory) -> None:
+    faults = FaultConfig(duplicate=0.5, delay=0.2, delay_s=0.005, reorder=0.2, seed=5)
+    rig = make_rig("controller_ii", bridge_faults=faults)
+    for k in range(5):
+        res = rig.client.apply(ramp(k))
+        assert res.values == rig.ecu.active == rig.codec.quantize(ramp(k))
+    assert rig.client.stats.stale_frames + rig.client.stats.unexpected_frames > 0
+
+
+def test_an_ecu_that_acknowledges_without_applying_is_caught_by_the_read_back(make_rig: RigFactory) -> None:
+    rig = make_rig("controller_i")
+    engine = rig.ecu.engine
+    honest = engine.handle
+
+    def lying(data: bytes) -> list[bytes]:
+        req = decode_request(data) if len(data) == 8 else None
+        if isinstance(req, Commit):  # echo a perfect ACK, apply nothing
+            return [encode(Ack(req.seq, req.count, req.crc))]
+        return honest(data)
+
+    engine.handle = lying  # type: ignore[method-assign]
+    with pytest.raises(BridgeError, match="read-back of damping_front") as err:
+        rig.client.apply({"damping_front": 0.2, "damping_rear": 0.5})
+    assert err.value.code == ErrorCode.CRC_MISMATCH
+    assert err.value.uncertain
+    assert rig.ecu.active == {"damping_front": 0.5, "damping_rear": 0.5}
+
+
+def test_sequence_numbers_resynchronize_with_the_ecu(make_rig: RigFactory) -> None:
+    rig = make_rig("controller_i", seq=9)
+    rig.client.apply({"damping_front": 0.2, "damping_rear": 0.2})  # transaction 10
+    late = CalibrationClient(rig.bridge_bus, rig.codec, config=FAST, seq=9)  # a restarted bridge reusing 10
+    res = late.apply({"damping_front": 0.3, "damping_rear": 0.3})
+    assert res.attempts == 2 and res.seq == 11
+    assert late.stats.nack_reasons == {"SEQUENCE": 1}
+
+
+class BrokenBus(can.BusABC):
+    """An adapter that was unplugged: every send fails."""
+
+    def __init__(self) -> None:
+        super().__init__(channel="broken")
+        self.channel_info = "broken"
+
+    def send(self, msg: can.Message, timeout: float | None = None) -> None:
+        raise can.CanOperationError("Network is down [Error Code 100]")
+
+    def _recv_internal(self, timeout: float | None) -> tuple[can.Message | None, bool]:
+        return None, False
+
+
+def test_bus_failures_surface_as_bus_errors() -> None:
+    bus = BrokenBus()
+    client = CalibrationClient(bus, CalibrationCodec(load("controller_i")), config=FAST)
+    with pytest.raises(BusError, match="Network is down") as err:
+        client.apply({"damping_front": 0.2, "damping_rear": 0.2})
+    assert err.value.code == ErrorCode.BUS
+    bus.shutdown()
+
+
+def test_error_codes_match_the_service_definition() -> None:
+    from bac_msgs.srv import ApplyCalibration
+
+    for code in ErrorCode:
+        assert getattr(ApplyCalibration.Response, f"ERROR_{code.name}") == int(code)
+
+
+def test_frames_carry_the_current_sequence_number(make_rig: RigFactory) -> None:
+    rig = make_rig("controller_i", seq=41)
+    sniffer = rig.sniffer()
+    rig.client.apply({"damping_front": 0.2, "damping_rear": 0.2})
+    seqs = set()
+    while (msg := sniffer.recv(timeout=0.2)) is not None:
+        seqs.add(msg.data[2])
+    assert seqs == {42}
+    assert decode_request(encode(Commit(42, 2, 0))).seq == 42
