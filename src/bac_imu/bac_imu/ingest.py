@@ -237,9 +237,12 @@ class StreamHealth:
     first_stamp_ns: int | None = None
     last_stamp_ns: int | None = None
     nominal_rate_hz: float = 0.0  # the rate the filter was designed for (configured or measured at start)
+    output_rate_hz: float = 0.0
     rate_hz: float = 0.0  # measured over the recent window (median step)
     jitter_ms: float = 0.0  # std of the recent stamp steps, ms
     max_step_ms: float = 0.0  # largest recent step (gaps excluded), ms
+    arrival_jitter_ms: float = math.nan  # std of the recent receive-time steps, ms (NaN: no receive times)
+    latency_ms: float = math.nan  # median of recent (receive time - stamp), ms (NaN: no receive times)
     gaps: int = 0
     gap_total_s: float = 0.0
     longest_gap_s: float = 0.0
@@ -265,6 +268,10 @@ class StreamHealth:
         return (self.last_stamp_ns - self.first_stamp_ns) / NS
 
     @property
+    def upsampling(self) -> bool:
+        return self.nominal_rate_hz > 0 and self.output_rate_hz > 1.05 * self.nominal_rate_hz
+
+    @property
     def faults(self) -> int:
         return self.gaps + self.nonfinite + self.saturated + self.duplicates + self.out_of_order + self.clock_jumps
 
@@ -278,6 +285,13 @@ class StreamHealth:
             f"rate {self.rate_hz:.2f} Hz (nominal {self.nominal_rate_hz:.2f} Hz)",
             f"jitter {self.jitter_ms:.3f} ms (largest step {self.max_step_ms:.2f} ms)",
         ]
+        if math.isfinite(self.arrival_jitter_ms):
+            parts.append(f"arrival jitter {self.arrival_jitter_ms:.3f} ms, latency {self.latency_ms:.3f} ms")
+        if self.upsampling:
+            parts.append(
+                f"upsampled {self.nominal_rate_hz:.1f} -> {self.output_rate_hz:.1f} Hz: interpolation attenuates "
+                "the content near the input Nyquist frequency (set output_rate_hz <= the IMU rate)"
+            )
         if self.gaps:
             parts.append(f"{self.gaps} gap(s), {self.gap_total_s:.3f} s in total, longest {self.longest_gap_s:.3f} s")
         else:
@@ -330,6 +344,8 @@ class ImuIngestor:
         # sanity state
         self._max_stamp: int | None = None  # largest stamp accepted so far
         self._last_recv: int | None = None
+        self._recv: deque[IntArray] = deque()  # recent (receive time, stamp) pairs
+        self._recv_len = 0
         self._mark_pending = False  # a bad sample or a gap since the last good sample
         self._last_stamp: int | None = None  # last accepted stamp after startup
         # startup
@@ -406,6 +422,10 @@ class ImuIngestor:
             start = stop
         if r is not None:
             self._last_recv = int(r[-1])
+            self._recv.append(np.column_stack([r, t]))
+            self._recv_len += n
+            while self._recv_len - self._recv[0].shape[0] > self.config.health_window:
+                self._recv_len -= self._recv.popleft().shape[0]
         return IngestOutput.concatenate([o for o in outputs if len(o)])
 
     def flush(self) -> IngestOutput:
@@ -420,6 +440,13 @@ class ImuIngestor:
         h.events = list(self._events)
         h.started = self.started
         h.nominal_rate_hz = self._nominal_rate
+        h.output_rate_hz = self.config.output_rate_hz
+        if self._recv:
+            w = self.config.health_window
+            pairs = np.concatenate(list(self._recv))[-w - 1 :]
+            if pairs.shape[0] > 2:
+                h.arrival_jitter_ms = float(np.std(np.diff(pairs[:, 0]))) / 1e6
+            h.latency_ms = float(np.median(pairs[:, 0] - pairs[:, 1])) / 1e6
         if self._steps_len:
             steps = np.concatenate(list(self._steps))[-self.config.health_window :]
             med = float(np.median(steps))
@@ -782,6 +809,9 @@ def diagnose(
     if expected > 0 and now.rate_hz > 0 and abs(now.rate_hz - expected) > 0.1 * expected:
         problems.append(f"rate {now.rate_hz:.1f} Hz, expected {expected:.1f} Hz")
         level = max(level, WARN)
+    if now.started and now.upsampling:
+        problems.append(f"output {now.output_rate_hz:.0f} Hz above the IMU's {now.nominal_rate_hz:.1f} Hz")
+        level = max(level, WARN)
     if now.samples_in == 0:
         level, message = STALE, "waiting for IMU data"
     elif silent_s > stale_after_s:
@@ -801,6 +831,9 @@ def diagnose(
         ("nominal_rate_hz", f"{now.nominal_rate_hz:.3f}"),
         ("jitter_ms", f"{now.jitter_ms:.4f}"),
         ("max_step_ms", f"{now.max_step_ms:.3f}"),
+        ("arrival_jitter_ms", f"{now.arrival_jitter_ms:.4f}"),
+        ("latency_ms", f"{now.latency_ms:.3f}"),
+        ("output_rate_hz", f"{now.output_rate_hz:.3f}"),
         ("samples_in", str(now.samples_in)),
         ("samples_out", str(now.samples_out)),
         ("samples_out_without_data", str(now.samples_out_nan)),
