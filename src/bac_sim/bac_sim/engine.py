@@ -64,7 +64,7 @@ O_TY = slice(27, 31)  # tyre tension (> 0: the wheel left the road)
 O_A = slice(31, 35)  # body vertical acceleration at the corners
 N_OUT = 35
 N_S = O0 + N_OUT
-SEAT_DEFAULT = (0.05, -0.38, -0.30)  # m from the sprung centre of gravity: front passenger seat rail
+SEAT_DEFAULT = (-0.25, -0.38, -0.30)  # m from the sprung centre of gravity: front passenger seat rail
 
 
 @dataclass(frozen=True)
@@ -231,11 +231,15 @@ def simulate(
     window: KpiWindow | None = None,
     seat: tuple[float, float, float] = SEAT_DEFAULT,
     record: bool = False,
+    window_shift: FloatArray | None = None,
+    initial_offset: FloatArray | None = None,
 ) -> BatchResult:
     """Simulate ``controller.batch`` runs for ``duration`` seconds.
 
     ``drive`` gives each run's front-axle position and speed (its batch is B or 1, shared).
-    ``window`` selects the samples scored (all of them when None).
+    ``window`` selects the samples scored (all of them when None); ``window_shift`` (B,) moves each
+    run's window (m in distance mode, s in event mode): the residual error of cutting and aligning.
+    ``initial_offset`` (14,) is added to the static equilibrium the runs start from.
     """
     B = controller.batch
     Bd = drive.batch
@@ -255,24 +259,31 @@ def simulate(
     if window is None:
         w_start = np.zeros(B)
         w_end = np.full(B, np.inf)
-        dist_window: tuple[float, float] | None = None
+        dist_window: tuple[FloatArray, FloatArray] | None = None
     elif window.mode == "event":
         t_event = drive.time_at(window.event_m)
         w_start = np.broadcast_to(t_event - window.pre_s, (B,)).copy()
+        if window_shift is not None:
+            w_start += window_shift
         w_end = w_start + window.length_s
         if np.any(w_start < 0) or np.any(w_end > n_steps * dt):
             raise ScenarioError("the KPI window does not fit in the run; lengthen the run-in or run-out")
         dist_window = None
     else:
-        w_start = np.broadcast_to(drive.time_at(window.start_m), (B,)).copy()
-        w_end = np.broadcast_to(drive.time_at(window.end_m), (B,)).copy()
+        shift = np.zeros(Bd) if window_shift is None else np.asarray(window_shift, dtype=float)
+        if window_shift is not None and shift.shape != (Bd,):
+            raise ScenarioError("per-run window shifts need per-run drives")
+        w_start = np.broadcast_to(drive.time_at(window.start_m + shift), (B,)).copy()
+        w_end = np.broadcast_to(drive.time_at(window.end_m + shift), (B,)).copy()
         if np.any(w_end > n_steps * dt):
             raise ScenarioError("the KPI section does not fit in the run; lengthen the run")
-        dist_window = (window.start_m, window.end_m)
+        dist_window = (np.broadcast_to(window.start_m + shift, (B,)), np.broadcast_to(window.end_m + shift, (B,)))
 
     # initial state: static equilibrium on the road under the wheels
     r_first = road_under_wheels(road, s_first[None, :], p.wheelbase)[0]  # (4, Bd)
     x0 = model.initial_state(r_first)
+    if initial_offset is not None:
+        x0 = x0 + np.asarray(initial_offset, dtype=float).reshape(N_STATE, 1)
     S = np.zeros((CHUNK_STEPS + 1, N_S, B))
     S[0, XS] = x0 if Bd == B else np.repeat(x0, B, axis=1)
     S[0, O0 + O_ONE] = 1.0
@@ -391,7 +402,7 @@ def simulate(
         tk = t[:n]
         if dist_window is not None:
             sk = s_pos[:n]
-            mask = (sk >= dist_window[0]) & (sk < dist_window[1])
+            mask = (sk >= dist_window[0][None, :Bd]) & (sk < dist_window[1][None, :Bd])
             if Bd != B:
                 mask = np.broadcast_to(mask, (n, B))
         else:

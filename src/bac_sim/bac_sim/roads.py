@@ -312,8 +312,8 @@ def build_test_road(
     return Road("test_road", float(s[0]), ds, left, right, meta)
 
 
-BUMP_HEIGHT_M = 0.06
-BUMP_LENGTH_M = 0.60
+BUMP_HEIGHT_M = 0.07
+BUMP_LENGTH_M = 2.0
 
 
 def speed_bump_road(
@@ -326,8 +326,9 @@ def speed_bump_road(
 ) -> Road:
     """Smooth asphalt (ISO 8608 class A, lower half) with one full-width round-top bump at 0 m.
 
-    The bump is a raised cosine, ``height`` high and ``length`` long, the same on both tracks (a
-    typical speed bump: 50-100 mm high, 0.3-0.9 m long).
+    The bump is a raised cosine, ``height`` high and ``length`` long, the same on both tracks: a
+    round-top bump of 70 mm over 2 m, between a short speed bump (50-100 mm over 0.3-0.9 m) and a
+    road hump (75 mm over 3.7 m); at 30 km/h it both jolts the car and sets its body oscillating.
     """
     rng = np.random.default_rng(seed + 1)
     s = np.arange(-run_in, run_out + length + ds / 2, ds)
