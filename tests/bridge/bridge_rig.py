@@ -3,11 +3,12 @@
 from __future__ import annotations
 
 import itertools
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
 
 import can
+import pytest
 
 from bac_common.paramspace import CalibrationDefinition
 from bac_ecu_bridge.client import CalibrationClient, ClientConfig
@@ -85,3 +86,13 @@ def rig_factory() -> tuple[RigFactory, Callable[[], None]]:
                 closer()
 
     return make, close
+
+
+@pytest.fixture(name="make_rig")
+def make_rig_fixture() -> Iterator[RigFactory]:
+    """Rigs made in a test, closed at its end (import this fixture into the test module)."""
+    make, close = rig_factory()
+    try:
+        yield make
+    finally:
+        close()

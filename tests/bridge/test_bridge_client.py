@@ -8,7 +8,7 @@ from typing import Any
 
 import can
 import pytest
-from bridge_rig import FAST, RigFactory, load
+from bridge_rig import FAST, RigFactory, load, make_rig_fixture  # noqa: F401  (the make_rig fixture)
 
 from bac_common.errors import OutOfBoundsError, UnknownParameterError
 from bac_common.paramspace import CalibrationDefinition, RawParameter

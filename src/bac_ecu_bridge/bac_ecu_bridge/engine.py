@@ -86,7 +86,10 @@ class EcuEngine:
         *,
         initial: Mapping[str, float] | None = None,
         on_commit: Callable[[CommitEvent], None] | None = None,
+        refuse: Mapping[int, int] | None = None,
     ) -> None:
+        """``refuse`` maps request opcodes to a :class:`Reason`: the ECU refuses them with it, touching
+        nothing (a refusing ECU, for tests)."""
         self.codec = CalibrationCodec(definition)
         start = dict(definition.baseline_values())
         if initial is not None:
@@ -95,6 +98,7 @@ class EcuEngine:
         self.active: dict[int, int] = dict(self._baseline)
         self.driving = False
         self.on_commit = on_commit
+        self.refuse = {int(k): int(v) for k, v in (refuse or {}).items()}
         self.stats = EngineStats()
         self._staging_seq: int | None = None
         self._staging_count = 0
@@ -144,6 +148,8 @@ class EcuEngine:
         return self._history[-1] if self._history else DETAIL_NONE
 
     def _handle(self, req: Request) -> BeginOk | Staged | Ack | Value | StatusOk | Nack:
+        if int(req.op) in self.refuse:
+            return self._nack(req, Reason(self.refuse[int(req.op)]), getattr(req, "index", 0))
         if isinstance(req, Begin):
             return self._begin(req)
         if isinstance(req, Write):

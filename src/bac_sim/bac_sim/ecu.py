@@ -38,7 +38,7 @@ from bac_common.paramspace import CalibrationDefinition
 from bac_ecu_bridge.canbus import BusSettings, open_bus
 from bac_ecu_bridge.engine import CommitEvent, EcuEngine
 from bac_ecu_bridge.faults import FaultConfig, FaultyBus
-from bac_ecu_bridge.protocol import DEFAULT_REQUEST_ID, DEFAULT_RESPONSE_ID, CanIds
+from bac_ecu_bridge.protocol import DEFAULT_REQUEST_ID, DEFAULT_RESPONSE_ID, CanIds, Op, Reason
 
 LOG = logging.getLogger("bac_sim.ecu")
 
@@ -52,6 +52,7 @@ class SimulatedEcu:
     * ``reply_delay_s``: processing time before each answer (a slow ECU);
     * ``commit_delay_s``: extra time a commit takes (writing the calibration);
     * ``initial``: raw values in force at start instead of the baseline;
+    * ``refuse``: {request opcode: reason}: refuse those requests with that reason (a refusing ECU);
     * ``on_commit``: called with the new active values (by name) after each commit, on the ECU thread.
     """
 
@@ -68,10 +69,11 @@ class SimulatedEcu:
         self.commit_delay_s = float(opts.pop("commit_delay_s", 0.0))
         self._on_commit: Callable[[dict[str, float]], None] | None = opts.pop("on_commit", None)
         initial = opts.pop("initial", None)
+        refuse = opts.pop("refuse", None)
         if opts:
             raise TypeError(f"unknown SimulatedEcu options: {sorted(opts)}")
         self._lock = threading.Lock()
-        self._engine = EcuEngine(definition, initial=initial, on_commit=self._committed)
+        self._engine = EcuEngine(definition, initial=initial, on_commit=self._committed, refuse=refuse)
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
         self._commit_event: CommitEvent | None = None
@@ -173,6 +175,21 @@ class SimulatedEcu:
 
 
 # --- the standalone process ------------------------------------------------------------------------------
+def parse_refusals(items: Sequence[str]) -> dict[int, int]:
+    """``["commit=crc_mismatch", ...]`` -> {opcode: reason}."""
+    out: dict[int, int] = {}
+    for item in items:
+        op, _, reason = item.partition("=")
+        try:
+            out[int(Op[op.strip().upper()])] = int(Reason[reason.strip().upper()])
+        except KeyError:
+            raise ValueError(
+                f"--refuse {item!r}: expected OP=REASON with OP in {[o.name.lower() for o in Op if o < 0x40]} "
+                f"and REASON in {[r.name.lower() for r in Reason]}"
+            ) from None
+    return out
+
+
 def _parse_args(argv: Sequence[str] | None) -> argparse.Namespace:
     ap = argparse.ArgumentParser(
         prog="python -m bac_sim.ecu",
@@ -188,6 +205,13 @@ def _parse_args(argv: Sequence[str] | None) -> argparse.Namespace:
     ap.add_argument("--response-id", type=lambda s: int(s, 0), default=DEFAULT_RESPONSE_ID)
     ap.add_argument("--extended-id", action="store_true", help="29-bit CAN identifiers")
     ap.add_argument("--driving", action="store_true", help="start with the vehicle moving (commits refused)")
+    ap.add_argument(
+        "--refuse",
+        action="append",
+        default=[],
+        metavar="OP=REASON",
+        help="refuse a request with a reason, e.g. commit=crc_mismatch, write=out_of_range, begin=busy (repeatable)",
+    )
     ap.add_argument("--reply-delay", type=float, default=0.0, help="seconds before each answer")
     ap.add_argument("--log-level", default="INFO")
     return ap.parse_args(argv)
@@ -201,6 +225,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     try:
         definition = CalibrationDefinition.load(args.definition)
         faults = FaultConfig.parse(args.fault)
+        refuse = parse_refusals(args.refuse)
         bus: can.BusABC = open_bus(BusSettings(args.interface, args.channel, args.bitrate, port=args.port))
     except (BacError, ValueError) as exc:
         LOG.error("%s", exc)
@@ -214,6 +239,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         response_id=args.response_id,
         extended_id=args.extended_id,
         reply_delay_s=args.reply_delay,
+        refuse=refuse,
     )
     ecu.set_driving(args.driving)
     stop = threading.Event()
