@@ -9,6 +9,11 @@ Subcommands::
     apply    write a calibration (name=value ...) and wait for the acknowledgment
     restore  write the definition's safe baseline
 
+The exit status of ``apply`` / ``restore`` / ``read`` / ``status`` is 0 on
+success, else the ``ApplyCalibration`` error code (1 out of bounds, 2 unknown
+parameter, 3 ECU out of range, 4 busy, 5 CRC mismatch, 6 sequence, 7 timeout,
+8 bus, 9 invalid request).
+
 Examples::
 
     python -m bac_ecu_bridge dbc --definition controller_ii -o controller_ii.dbc
@@ -25,15 +30,13 @@ import sys
 from collections.abc import Sequence
 from pathlib import Path
 
-from bac_common.errors import BacError
+from bac_common.errors import BacError, OutOfBoundsError, UnknownParameterError
 from bac_common.paramspace import CalibrationDefinition
 from bac_ecu_bridge.canbus import BusSettings, TracedBus, open_bus
 from bac_ecu_bridge.client import CalibrationClient, ClientConfig
-from bac_ecu_bridge.dbc import dbc_text
-from bac_ecu_bridge.errors import BridgeError
+from bac_ecu_bridge.errors import BridgeError, ErrorCode
 from bac_ecu_bridge.paths import resolve_definition
 from bac_ecu_bridge.protocol import DEFAULT_REQUEST_ID, DEFAULT_RESPONSE_ID, CalibrationCodec, CanIds, resolve_request
-from bac_ecu_bridge.trace import decode_trace, load_database
 
 
 def _hex(s: str) -> int:
@@ -91,14 +94,25 @@ def main(argv: Sequence[str] | None = None) -> int:
     args = _parser().parse_args(argv)
     try:
         return _run(args)
+    except BridgeError as exc:
+        print(f"error {exc.code.name}: {exc}", file=sys.stderr)
+        return int(exc.code)
+    except OutOfBoundsError as exc:
+        print(f"error OUT_OF_BOUNDS: {exc}", file=sys.stderr)
+        return int(ErrorCode.OUT_OF_BOUNDS)
+    except UnknownParameterError as exc:
+        print(f"error UNKNOWN_PARAMETER: {exc}", file=sys.stderr)
+        return int(ErrorCode.UNKNOWN_PARAMETER)
     except (BacError, FileNotFoundError, ValueError) as exc:
         print(f"error: {exc}", file=sys.stderr)
-        return getattr(exc, "code", 1) or 1
+        return int(ErrorCode.INVALID_REQUEST)
 
 
 def _run(args: argparse.Namespace) -> int:
     ids = CanIds(args.request_id, args.response_id, args.extended_id)
     if args.cmd == "dbc":
+        from bac_ecu_bridge.dbc import dbc_text  # cantools only where a DBC is needed
+
         text = dbc_text(CalibrationDefinition.load(resolve_definition(args.definition)), ids)
         if args.output:
             args.output.write_text(text)
@@ -106,6 +120,8 @@ def _run(args: argparse.Namespace) -> int:
             sys.stdout.write(text)
         return 0
     if args.cmd == "decode":
+        from bac_ecu_bridge.trace import decode_trace, load_database
+
         if args.dbc:
             db = load_database(args.dbc)
         else:
