@@ -42,7 +42,7 @@ FAULTS = FaultConfig(drop=0.15, corrupt=0.15, duplicate=0.05, delay=0.05, delay_
 CONFIG = ClientConfig(step_timeout_s=0.003, step_retries=8, max_attempts=3, timeout_s=1.0)
 # a tight budget makes applies fail often, to check that failures are bounded in time and leave a sane state
 TIGHT = ClientConfig(step_timeout_s=0.003, step_retries=2, max_attempts=1, timeout_s=0.05)
-SLACK_S = 0.25  # scheduling slack on a loaded machine, on top of the bounded time
+SLACK_S = 0.5  # scheduling slack on a loaded machine, on top of the bounded time
 
 
 @dataclass

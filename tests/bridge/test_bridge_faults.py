@@ -117,7 +117,8 @@ def test_duplicate_delivers_twice(pair: tuple[can.BusABC, can.BusABC]) -> None:
 
 def test_delay_lets_later_frames_overtake(pair: tuple[can.BusABC, can.BusABC]) -> None:
     tx, rx = pair
-    faulty = wrap(tx, FaultConfig(delay=1.0, delay_s=0.05, seed=4, ids=(A,)))
+    # seed 4 draws a delay of 0.198 s: far longer than a stall of the machine between the two sends
+    faulty = wrap(tx, FaultConfig(delay=1.0, delay_s=0.5, seed=4, ids=(A,)))
     faulty.send(frame(1))
     faulty.send(frame(2, 0x200))  # not faulted: goes at once
     first = rx.recv(timeout=5)
@@ -128,7 +129,7 @@ def test_delay_lets_later_frames_overtake(pair: tuple[can.BusABC, can.BusABC]) -
 
 def test_reorder_releases_a_frame_after_the_next(pair: tuple[can.BusABC, can.BusABC]) -> None:
     tx, rx = pair
-    faulty = wrap(tx, FaultConfig(reorder=1.0, seed=5, ids=(A,)))
+    faulty = wrap(tx, FaultConfig(reorder=1.0, reorder_hold_s=5.0, seed=5, ids=(A,)))
     faulty.send(frame(1))
     faulty.send(frame(2, 0x200))
     faulty.send(frame(0, MARK))

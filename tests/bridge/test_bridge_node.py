@@ -299,7 +299,7 @@ def test_each_negative_reason_surfaces_as_a_service_error(
     assert ecu_commits(procs.log("ecu_crc")) == ecu_commits(procs.log("ecu_seq")) == []
     t0 = time.monotonic()
     ecu, resp = ecu_case("ecu_silent", ErrorCode.TIMEOUT, "no valid answer to BEGIN", "--fault", "silent")
-    assert resp.latency_s < 2 * 3 * 0.02 + 0.5 and time.monotonic() - t0 < 10
+    assert resp.latency_s < 2 * 3 * 0.02 + 1.0 and time.monotonic() - t0 < 15
     stop(ecu)
 
     # an adapter that is not there: the node runs, reports it, and answers every apply with ERROR_BUS

@@ -159,6 +159,7 @@ class EcuBridgeNode(BacNode):
         self._client: CalibrationClient | None = None
         self._bus_error = ""
         self._last_error = ""
+        self._last_apply_failed = False
         self._last_confirmed: ApplyResult | None = None
         self._last_confirmed_trial = 0
         self._ecu_status = "not polled yet"
@@ -293,12 +294,14 @@ class EcuBridgeNode(BacNode):
                     response.message += "; " + self._abort_locked()
                 response.latency_s = time.monotonic() - t0
                 self._last_error = response.message
+                self._last_apply_failed = True
                 self.get_logger().error(
                     f"trial {trial}: apply failed ({ErrorCode(exc.code).name}) after {exc.attempts} transaction(s), "
                     f"{response.latency_s * 1e3:.0f} ms: {response.message}"
                 )
                 return response
             self._confirmed(result, trial)
+            self._last_apply_failed = False
         response.success = True
         response.error_code = int(ErrorCode.NONE)
         response.applied = self._calibration(result.values, result.crc, trial)
@@ -428,7 +431,7 @@ class EcuBridgeNode(BacNode):
                 DiagnosticStatus.WARN,
                 "the ECU's active calibration differs from the last one confirmed (ECU reset or another tool?)",
             )
-        elif stats is not None and stats.applies_failed and self._last_error:
+        elif self._last_apply_failed:
             level, message = DiagnosticStatus.WARN, f"last apply failed: {self._last_error}"[:300]
         status.level = level
         status.message = message
