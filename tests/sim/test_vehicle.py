@@ -14,6 +14,13 @@ from bac_sim.roads import Road
 from bac_sim.vehicle import G, VehicleParams, build_linear_model
 
 
+@pytest.fixture
+def flat_road() -> Road:
+    """A perfectly flat road from -100 m to 2000 m."""
+    n = 21001
+    return Road("flat", -100.0, 0.1, np.zeros(n), np.zeros(n), {"kpi_start_m": 0.0, "kpi_end_m": 100.0})
+
+
 def test_static_deflection_under_gravity_is_mg_over_k() -> None:
     """Let the car drop from its unloaded geometry (springs and tyres at free length) and settle."""
     p = VehicleParams()

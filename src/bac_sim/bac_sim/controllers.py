@@ -119,7 +119,9 @@ class BatchController(Protocol):
 
         ``x`` state (14, B); ``v`` suspension extension velocity (4, B); ``travel`` suspension
         extension from static (4, B); ``acc`` body vertical acceleration at the corners (4, B);
-        ``phi_min``, ``dphi``: ``Phi_min(v)`` and ``Phi_max(v) - Phi_min(v)`` (4, B).
+        ``phi_min``, ``dphi``: the damper's force on the body (N, up) at command 0, ``-Phi_min(v)``,
+        and its change from command 0 to 1, ``-(Phi_max(v) - Phi_min(v))`` (4, B): the force at
+        command c is ``phi_min + c dphi``.
         """
         ...
 
@@ -258,9 +260,11 @@ class ControllerII:
         demand = self._gh * x[10:14]
         demand -= self._gain * zsky
         demand -= self._add * acc_f
-        # inverse damper map: damper force on the body is -(Phi_min + c dPhi)
-        num = -demand - phi_min
-        cmd = num * dphi / (dphi * dphi + 25.0)  # regularized num / dphi (dphi ~ 0 at rest)
+        # inverse damper map: the damper's force on the body is f_soft + c f_span
+        num = demand - phi_min
+        cmd = num * dphi / (dphi * dphi + 25.0)  # regularized num / f_span (f_span ~ 0 at rest)
+        # the ECU trusts the demand only when its filtered velocity agrees in sign with the damper's
+        cmd[v_f * v < 0.0] = 0.0
         np.maximum(cmd, self._floor, out=cmd)
         np.minimum(cmd, self._cap, out=cmd)
         # end-stop protection: firm when the travel from static exceeds the threshold

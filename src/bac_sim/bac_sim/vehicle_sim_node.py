@@ -1,0 +1,347 @@
+"""The ``vehicle_sim`` node: the simulated car, its sensors on the graph's topics and its ECU on CAN.
+
+* Owns a :class:`bac_sim.ecu.SimulatedEcu` on its CAN bus (``can.*`` parameters, read-only): the
+  ECU bridge writes calibrations to it exactly as to the car's ECU.
+* Subscribes ``bac/trial`` (latched). When a trial is ``STATE_READY_TO_DRIVE`` for a run
+  ``(campaign_id, trial_id, attempt)`` not driven yet, it drives one run: it snapshots the ECU's
+  active calibration (a calibration accepted later applies from the next run on), tells the ECU the
+  car is moving (commits are refused as busy), simulates the run and publishes it paced in sim time:
+  ``imu/data_raw`` (sensor_msgs/Imu, frame ``imu_link``, sensor-data QoS), ``vehicle/odom``
+  (nav_msgs/Odometry: ``pose.position.x`` = distance since the run started, ``twist.linear.x`` =
+  speed) and ``/clock``.
+* Publishes ``/clock`` continuously (``idle_realtime_factor`` between runs) so that the graph runs on
+  sim time (``use_sim_time``); runs are published at most ``realtime_factor`` times faster than real
+  time (1 = real time), in small slices so that a best-effort subscriber with a deep history loses
+  nothing.
+"""
+
+from __future__ import annotations
+
+import math
+import queue
+import sys
+import threading
+import time
+from concurrent.futures import Future, ThreadPoolExecutor
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+from nav_msgs.msg import Odometry
+from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy
+from rosgraph_msgs.msg import Clock
+from sensor_msgs.msg import Imu
+
+from bac_common.contracts import TOPIC_CLOCK, TOPIC_IMU_RAW, TOPIC_ODOM, TOPIC_TRIAL
+from bac_common.paramspace import CalibrationDefinition
+from bac_common.rosnode import QOS_LATCHED, QOS_STREAM, BacNode, run_node
+from bac_msgs.msg import Trial
+from bac_sim.driver import DriverModel
+from bac_sim.run import ImuSpec, RunRecording, simulate_run
+from bac_sim.scenarios import get_scenario
+
+# the IMU stream: best effort like every IMU driver (sensor-data QoS), a deep writer history so that
+# bursts faster than real time are not dropped on the publishing side
+QOS_IMU_OUT = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=5000, reliability=ReliabilityPolicy.BEST_EFFORT)
+QOS_CLOCK = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=10, reliability=ReliabilityPolicy.RELIABLE)
+
+
+@dataclass
+class _Job:
+    key: tuple[str, int, int]
+    calibration: dict[str, float]
+    seed: int
+
+
+@dataclass
+class _Playback:
+    job: _Job
+    rec: RunRecording
+    t0: float  # sim time of the run's first sample
+    wall0: float
+    i_imu: int = 0
+    i_odom: int = 0
+
+    def __post_init__(self) -> None:
+        self.t_imu = self.t0 + self.rec.t
+        self.t_odom = self.t0 + self.rec.odom_t
+
+
+def _stamp(msg_stamp: Any, t: float) -> None:
+    sec = math.floor(t)
+    msg_stamp.sec = int(sec)
+    msg_stamp.nanosec = min(round((t - sec) * 1e9), 999_999_999)
+
+
+class VehicleSimNode(BacNode):
+    """The simulated vehicle (see the module doc)."""
+
+    def __init__(self, **kwargs: Any) -> None:
+        super().__init__("vehicle_sim", **kwargs)
+        self.scenario_name = self.declare_str(
+            "scenario",
+            "road",
+            "bump (speed bump, 30 km/h), road (1.5 km test road, 60 km/h) or a road file path",
+            read_only=True,
+        )
+        definition_file = self.declare_str(
+            "definition_file",
+            "controller_i",
+            "calibration definition of the ECU's controller (YAML path, or a name in ros_ws/config/calibrations/)",
+            read_only=True,
+        )
+        speed_kmh = self.declare_float(
+            "speed_kmh", 0.0, "target speed, km/h; 0 = the scenario's", 0.0, 250.0, read_only=True
+        )
+        self.imu_rate = self.declare_float("imu_rate_hz", 400.0, "IMU output rate, Hz", 50.0, 2000.0, read_only=True)
+        self.odom_rate = self.declare_float("odom_rate_hz", 100.0, "odometry rate, Hz", 50.0, 1000.0, read_only=True)
+        self.seed = self.declare_int("seed", 0, "seed of the run-to-run noise (run i uses seed + i)", 0, 2**31 - 1)
+        self.rtf = self.declare_float(
+            "realtime_factor",
+            2.0,
+            "runs are published at most this much faster than real time (1 = real time)",
+            0.05,
+            200.0,
+        )
+        self.idle_rtf = self.declare_float(
+            "idle_realtime_factor", 1.0, "speed of /clock between runs relative to the wall clock", 0.0, 200.0
+        )
+        self.clock_period = self.declare_float(
+            "clock_period_s", 0.005, "wall period of the publishing loop, s", 0.001, 0.1
+        )
+        self.start_time = self.declare_float("start_time_s", 1.0, "sim time at start, s", 0.0, 1e9, read_only=True)
+        self.run_in = self.declare_float("run_in_s", 6.0, "driving before the scored window, s", 1.0, 120.0)
+        self.run_out = self.declare_float("run_out_s", 4.0, "driving after the scored window, s", 0.5, 120.0)
+        self.frame_id = self.declare_str("frame_id", "imu_link", "frame of imu/data_raw", read_only=True)
+        self.odom_frame = self.declare_str("odom_frame_id", "odom", "frame of vehicle/odom", read_only=True)
+        self.driver = DriverModel(
+            speed_error_std=self.declare_float(
+                "driver.speed_error_kmh", 0.3, "cruise set-point error, km/h (1 sigma)", 0.0, 20.0
+            )
+            / 3.6,
+            speed_fluctuation_std=self.declare_float(
+                "driver.speed_fluctuation_kmh", 0.15, "slow speed fluctuation, km/h (1 sigma)", 0.0, 20.0
+            )
+            / 3.6,
+            start_offset_std=self.declare_float(
+                "driver.start_offset_m", 5.0, "scatter of the start point, m", 0.0, 500.0
+            ),
+            bad_run_probability=self.declare_float(
+                "driver.bad_run_probability",
+                0.0,
+                "chance that a run is driven too slow (the agent must repeat it)",
+                0.0,
+                1.0,
+            ),
+            bad_speed_factor=self.declare_float(
+                "driver.bad_speed_factor", 0.85, "speed of a bad run / target", 0.1, 2.0
+            ),
+        )
+        lever = self.declare_float_list(
+            "imu.lever_arm_m", [-0.25, -0.38, -0.30], "IMU position from the centre of gravity, m"
+        )
+        mount = self.declare_float_list(
+            "imu.mount_rpy_deg", [0.8, -1.2, 0.5], "IMU mounting rotation (roll, pitch, yaw), deg"
+        )
+        a_bias = self.declare_float_list("imu.accel_bias", [0.03, -0.02, 0.05], "accelerometer bias, m/s^2")
+        g_bias = self.declare_float_list("imu.gyro_bias", [0.002, -0.001, 0.0015], "gyro bias, rad/s")
+        for name, vec in (
+            ("imu.lever_arm_m", lever),
+            ("imu.mount_rpy_deg", mount),
+            ("imu.accel_bias", a_bias),
+            ("imu.gyro_bias", g_bias),
+        ):
+            if len(vec) != 3 or not all(math.isfinite(v) for v in vec):
+                raise ValueError(f"node 'vehicle_sim': parameter {name} must hold three finite numbers")
+        self.imu = ImuSpec(
+            rate_hz=self.imu_rate,
+            lever_arm=(lever[0], lever[1], lever[2]),
+            mount_rpy_deg=(mount[0], mount[1], mount[2]),
+            accel_bias=(a_bias[0], a_bias[1], a_bias[2]),
+            gyro_bias=(g_bias[0], g_bias[1], g_bias[2]),
+            accel_noise_density=self.declare_float(
+                "imu.accel_noise_density", 60e-6 * 9.80665, "m/s^2/sqrt(Hz)", 0.0, 1.0
+            ),
+            gyro_noise_density=self.declare_float(
+                "imu.gyro_noise_density", math.radians(0.007), "rad/s/sqrt(Hz)", 0.0, 1.0
+            ),
+            accel_lsb=self.declare_float(
+                "imu.accel_lsb", 16 * 9.80665 / 65536, "accelerometer resolution, m/s^2", 0.0, 1.0
+            ),
+            gyro_lsb=self.declare_float(
+                "imu.gyro_lsb", math.radians(1000.0) / 65536, "gyro resolution, rad/s", 0.0, 1.0
+            ),
+        )
+        from bac_ecu_bridge.canbus import BusSettings, open_bus
+        from bac_ecu_bridge.paths import resolve_definition
+        from bac_sim.ecu import SimulatedEcu
+
+        self.definition = CalibrationDefinition.load(resolve_definition(definition_file))
+        self.scenario = get_scenario(self.scenario_name, speed_kmh or None)
+        settings = BusSettings(
+            interface=self.declare_str(
+                "can.interface", "virtual", "python-can interface (virtual in one process)", read_only=True
+            ),
+            channel=self.declare_str("can.channel", "bac", "python-can channel", read_only=True),
+            bitrate=self.declare_int("can.bitrate", 500_000, "bit rate, bit/s", 10_000, 1_000_000, read_only=True),
+            port=self.declare_int("can.port", 0, "udp_multicast UDP port (0 = default)", 0, 65535, read_only=True),
+        )
+        self.bus = open_bus(settings)
+        self.ecu = SimulatedEcu(self.bus, self.definition)
+        self.ecu.start()
+
+        self.pub_imu = self.create_publisher(Imu, TOPIC_IMU_RAW, QOS_IMU_OUT)
+        self.pub_odom = self.create_publisher(Odometry, TOPIC_ODOM, QOS_STREAM)
+        self.pub_clock = self.create_publisher(Clock, TOPIC_CLOCK, QOS_CLOCK)
+        self.create_subscription(Trial, TOPIC_TRIAL, self._on_trial, QOS_LATCHED)
+        self._driven: set[tuple[str, int, int]] = set()
+        self._jobs: queue.Queue[_Job] = queue.Queue()
+        self._runs = 0
+        self.runs_published = 0
+        self._sim = ThreadPoolExecutor(max_workers=1, thread_name_prefix="vehicle_sim_run")
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._loop, name="vehicle_sim_clock", daemon=True)
+        self._thread.start()
+        self.get_logger().info(
+            f"vehicle_sim ready: scenario {self.scenario.name} at {self.scenario.speed * 3.6:.0f} km/h, controller "
+            f"{self.definition.name}, IMU {self.imu_rate:g} Hz, ECU on {settings.describe()}, "
+            f"runs at <= {self.rtf:g}x real time"
+        )
+
+    # --- trials ---------------------------------------------------------------------------------
+    def _on_trial(self, msg: Trial) -> None:
+        if msg.state != Trial.STATE_READY_TO_DRIVE:
+            return
+        key = (str(msg.campaign_id), int(msg.trial_id), int(msg.attempt))
+        if key in self._driven:
+            return
+        self._driven.add(key)
+        self._jobs.put(_Job(key, {}, self.seed + len(self._driven) - 1))
+        self.get_logger().info(f"trial {key[1]} attempt {key[2]} of '{key[0]}' is ready to drive")
+
+    def _simulate(self, job: _Job) -> RunRecording:
+        return simulate_run(
+            job.calibration,
+            self.scenario,
+            seed=job.seed,
+            definition=self.definition,
+            imu=self.imu,
+            driver=self.driver,
+            run_in_s=self.run_in,
+            run_out_s=self.run_out,
+            odom_rate_hz=self.odom_rate,
+        )
+
+    # --- the clock and the playback ----------------------------------------------------------------
+    def _loop(self) -> None:
+        sim_t = self.start_time
+        last_wall = time.monotonic()
+        pending: tuple[_Job, Future[RunRecording]] | None = None
+        play: _Playback | None = None
+        clock = Clock()
+        while not self._stop.is_set():
+            now = time.monotonic()
+            try:
+                if play is None and pending is None and not self._jobs.empty():
+                    job = self._jobs.get_nowait()
+                    job.calibration = self.ecu.active  # what is in force when the run starts
+                    self.ecu.set_driving(True)
+                    pending = (job, self._sim.submit(self._simulate, job))
+                if pending is not None and pending[1].done():
+                    job, fut = pending
+                    pending = None
+                    try:
+                        rec = fut.result()
+                    except Exception as exc:  # a run that cannot be simulated: log it, stop driving
+                        self.ecu.set_driving(False)
+                        self.get_logger().error(f"run {job.key} could not be simulated: {exc}")
+                    else:
+                        play = _Playback(job, rec, sim_t, now)
+                        cal = ", ".join(f"{k}={v:g}" for k, v in job.calibration.items())
+                        self.get_logger().info(
+                            f"driving trial {job.key[1]} attempt {job.key[2]}: {rec.duration:.1f} s, "
+                            f"{rec.t.size} IMU samples, mean speed {3.6 * float(np.mean(rec.speed)):.1f} km/h"
+                            f"{' (a bad run: too slow)' if rec.bad_run else ''}, true J {rec.j_true:.4f}; "
+                            f"calibration {cal}"
+                        )
+                if play is not None:
+                    # advance by the wall time elapsed, but never by more than two loop periods: after a
+                    # stall (a loaded machine) the run goes on at the same pace instead of in a burst
+                    step = min(now - last_wall, 2 * self.clock_period) * self.rtf
+                    target = sim_t + step
+                    done = self._publish_until(play, target)
+                    sim_t = min(target, play.t0 + play.rec.duration)
+                    if done:
+                        self.ecu.set_driving(False)
+                        self.runs_published += 1
+                        self.get_logger().info(
+                            f"run of trial {play.job.key[1]} attempt {play.job.key[2]} published "
+                            f"({play.i_imu} IMU, {play.i_odom} odometry messages)"
+                        )
+                        play = None
+                else:
+                    sim_t += (now - last_wall) * self.idle_rtf
+                _stamp(clock.clock, sim_t)
+                self.pub_clock.publish(clock)
+            except Exception as exc:  # never let the clock thread die silently
+                if self._stop.is_set():
+                    break
+                self.get_logger().error(f"vehicle_sim loop: {exc}")
+            last_wall = now
+            self._stop.wait(self.clock_period)
+
+    def _publish_until(self, play: _Playback, target: float) -> bool:
+        rec = play.rec
+        t_imu, t_odom = play.t_imu, play.t_odom
+        while True:
+            ni = t_imu[play.i_imu] if play.i_imu < t_imu.size else math.inf
+            no = t_odom[play.i_odom] if play.i_odom < t_odom.size else math.inf
+            nxt = min(ni, no)
+            if nxt == math.inf:
+                return True
+            if nxt > target:
+                return False
+            if ni <= no:
+                i = play.i_imu
+                m = Imu()
+                _stamp(m.header.stamp, ni)
+                m.header.frame_id = self.frame_id
+                m.orientation_covariance[0] = -1.0  # no orientation estimate
+                a, w = rec.accel[i], rec.gyro[i]
+                m.linear_acceleration.x, m.linear_acceleration.y, m.linear_acceleration.z = (
+                    float(a[0]),
+                    float(a[1]),
+                    float(a[2]),
+                )
+                m.angular_velocity.x, m.angular_velocity.y, m.angular_velocity.z = float(w[0]), float(w[1]), float(w[2])
+                self.pub_imu.publish(m)
+                play.i_imu += 1
+            else:
+                i = play.i_odom
+                o = Odometry()
+                _stamp(o.header.stamp, no)
+                o.header.frame_id = self.odom_frame
+                o.child_frame_id = "base_link"
+                o.pose.pose.position.x = float(rec.distance[i])
+                o.pose.pose.orientation.w = 1.0
+                o.twist.twist.linear.x = float(rec.speed[i])
+                self.pub_odom.publish(o)
+                play.i_odom += 1
+
+    def destroy_node(self) -> None:
+        self._stop.set()
+        self._thread.join(timeout=2.0)
+        self._sim.shutdown(wait=False, cancel_futures=True)
+        try:
+            self.ecu.stop()
+        finally:
+            self.bus.shutdown()
+        super().destroy_node()
+
+
+def main(args: list[str] | None = None) -> int:
+    return run_node(VehicleSimNode, args)
+
+
+if __name__ == "__main__":
+    sys.exit(main())
