@@ -10,7 +10,7 @@ setup(
         ("share/ament_index/resource_index/packages", ["resource/" + package_name]),
         ("share/" + package_name, ["package.xml"]),
     ],
-    package_data={package_name: ["py.typed"]},
+    package_data={package_name: ["py.typed", "data/*.json"]},
     install_requires=["setuptools"],
     zip_safe=True,
     maintainer="bac developers",
