@@ -279,3 +279,14 @@ def test_frames_carry_the_current_sequence_number(make_rig: RigFactory) -> None:
         seqs.add(msg.data[2])
     assert seqs == {42}
     assert decode_request(encode(Commit(42, 2, 0))).seq == 42
+
+
+def test_resynchronization_lands_on_a_free_number_even_when_the_next_one_is_taken(make_rig: RigFactory) -> None:
+    rig = make_rig("controller_i")
+    for seq in (40, 41, 42, 39):  # transactions whose numbers the ECU remembers; the most recent is 39
+        CalibrationClient(rig.bridge_bus, rig.codec, config=FAST, seq=seq - 1).apply(
+            {"damping_front": 0.2, "damping_rear": seq / 100}
+        )
+    late = CalibrationClient(rig.bridge_bus, rig.codec, config=FAST, seq=40)  # would begin 41: taken
+    res = late.apply({"damping_front": 0.3, "damping_rear": 0.3})
+    assert res.attempts == 2 and res.seq == 43

@@ -116,7 +116,7 @@ def test_stale_or_duplicated_frames_never_reopen_or_disturb_a_transaction() -> N
     assert isinstance(transaction(e, 10, {0: 1, 1: 2, 2: 3}), Ack)
     # a stale BEGIN of the committed transaction is refused and does not open anything
     resp = ask(e, Begin(10, 3))
-    assert isinstance(resp, Nack) and resp.reason == Reason.SEQUENCE and resp.detail == 10
+    assert isinstance(resp, Nack) and resp.reason == Reason.SEQUENCE and resp.detail == 11  # 11 is free
     # new transaction 11; a duplicated BEGIN 11 is answered again without losing the staged values
     assert ask(e, Begin(11, 3)) == BeginOk(11, 3)
     ask(e, Write(11, 0, 7))
@@ -175,3 +175,12 @@ def test_reset_is_a_power_cycle() -> None:
 def test_sequence_numbers_wrap(seq: int) -> None:
     e = EcuEngine(DEF)
     assert isinstance(transaction(e, seq, {2: 4}), Ack)
+
+
+def test_a_refused_begin_names_a_free_sequence_number() -> None:
+    e = EcuEngine(DEF)
+    for seq in (5, 6, 7, 4):  # the most recent is 4, but 5, 6 and 7 are taken
+        assert isinstance(transaction(e, seq, {0: seq}), Ack)
+    resp = ask(e, Begin(6, 1))
+    assert isinstance(resp, Nack) and resp.reason == Reason.SEQUENCE and resp.detail == 8
+    assert ask(e, Begin(8, 1)) == BeginOk(8, 1)

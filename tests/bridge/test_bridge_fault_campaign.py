@@ -26,7 +26,7 @@ from bac_common.paramspace import CalibrationDefinition, RawParameter
 from bac_ecu_bridge.client import CalibrationClient, ClientConfig
 from bac_ecu_bridge.errors import BridgeError, ErrorCode, FrameError
 from bac_ecu_bridge.faults import FaultConfig, FaultyBus
-from bac_ecu_bridge.protocol import Ack, Response, decode_response
+from bac_ecu_bridge.protocol import Ack, Op, Response, decode_response
 
 DEFINITION = CalibrationDefinition(
     "campaign",
@@ -193,8 +193,11 @@ def lax(rig: Rig) -> CalibrationClient:
 
 
 def test_the_harness_catches_a_client_without_the_checks() -> None:
-    # more late and repeated frames than above, so that stale acknowledgments meet the naive client often
-    faults = FaultConfig(drop=0.15, corrupt=0.15, duplicate=0.2, delay=0.3, delay_s=0.02, reorder=0.1)
+    # commits get lost and acknowledgments arrive late and twice: a naive client takes an earlier
+    # transaction's ACK for its own lost commit
+    faults = FaultConfig(
+        drop=0.3, duplicate=0.5, delay=0.5, delay_s=0.03, ops=(int(Op.COMMIT), int(Op.ACK)), direction="both"
+    )
     tally, _ = run_campaign(200, client_factory=lax, pairs=2, faults=faults)
     assert tally.false_acks > 0
     # and the real client under the same faults stays clean

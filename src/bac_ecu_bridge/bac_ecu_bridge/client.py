@@ -337,7 +337,8 @@ class CalibrationClient:
                         f"definition '{self.codec.definition.name}' does not match this ECU",
                         ErrorCode.UNKNOWN_PARAMETER,
                     )
-                resync = resp.detail if resp.reason == Reason.SEQUENCE and resp.detail <= 0xFF else None
+                # a refused BEGIN names a sequence number the ECU accepts: the next transaction uses it
+                resync = (resp.detail - 1) % 256 if resp.reason == Reason.SEQUENCE and resp.detail <= 0xFF else None
                 raise _RetryableError(
                     self._nack_error(
                         resp, f"the ECU refused to begin a transaction: {reason_text(resp.reason)}", _code(resp)

@@ -233,8 +233,9 @@ def build_database(definition: CalibrationDefinition, ids: CanIds | None = None)
             "NackDetail",
             48,
             16,
-            "OUT_OF_RANGE: low 16 bits of the refused raw value; SEQUENCE: the ECU's current sequence "
-            "number; COUNT_MISMATCH: parameters staged or held; 0xFFFF: none",
+            "OUT_OF_RANGE: low 16 bits of the refused raw value; SEQUENCE: to a BEGIN, a sequence number "
+            "the ECU accepts, else its open transaction's; COUNT_MISMATCH: parameters staged or held; "
+            "0xFFFF: none",
             mux=[Op.NACK],
             mux_signal="Op",
             receiver=BRIDGE_NODE,

@@ -10,7 +10,8 @@ Rules:
 
 * BEGIN(seq, count) opens a transaction; refused with BUSY while driving, with
   SEQUENCE when ``seq`` was used by one of the last :data:`SEQ_HISTORY`
-  transactions (a stale or duplicated BEGIN never reopens an old transaction),
+  transactions (a stale or duplicated BEGIN never reopens an old transaction;
+  the NACK's detail is then a sequence number the ECU accepts),
   and answered again (idempotent) when it repeats the open transaction's BEGIN.
 * WRITE(seq, index, raw) stages a value of the open transaction; SEQUENCE for
   another transaction, UNKNOWN_PARAMETER / OUT_OF_RANGE for a bad index / raw
@@ -36,6 +37,7 @@ from bac_common.paramspace import CalibrationDefinition
 from bac_ecu_bridge.errors import FrameError
 from bac_ecu_bridge.protocol import (
     DETAIL_NONE,
+    SEQ_MODULO,
     Ack,
     Begin,
     BeginOk,
@@ -147,6 +149,15 @@ class EcuEngine:
     def _recent_seq(self) -> int:
         return self._history[-1] if self._history else DETAIL_NONE
 
+    def _free_seq(self) -> int:
+        """The first sequence number after the most recent one that no remembered transaction used."""
+        start = self._history[-1] if self._history else 0
+        for step in range(1, SEQ_MODULO + 1):
+            seq = (start + step) % SEQ_MODULO
+            if seq not in self._history:
+                return seq
+        return DETAIL_NONE  # unreachable: the history holds fewer than 256 numbers
+
     def _handle(self, req: Request) -> BeginOk | Staged | Ack | Value | StatusOk | Nack:
         if int(req.op) in self.refuse:
             return self._nack(req, Reason(self.refuse[int(req.op)]), getattr(req, "index", 0))
@@ -171,7 +182,8 @@ class EcuEngine:
                 return self._nack(req, Reason.SEQUENCE, detail=req.seq)
             return BeginOk(req.seq, req.count)
         if req.seq in self._history:
-            return self._nack(req, Reason.SEQUENCE, detail=self._recent_seq())
+            # the detail names a sequence number this ECU accepts next, so a bridge can resynchronize
+            return self._nack(req, Reason.SEQUENCE, detail=self._free_seq())
         if not 1 <= req.count <= len(self.codec.params):
             return self._nack(req, Reason.COUNT_MISMATCH, detail=len(self.codec.params))
         self._staging_seq = req.seq
