@@ -220,59 +220,88 @@ class ControllerII:
         self._a_cmd = _lowpass_alpha(P["p03"], dt)[None, :]
         self._a_add = _lowpass_alpha(P["p13"], dt)[None, :]
         self._a_act = float(1.0 - np.exp(-2 * np.pi * ACTUATOR_BANDWIDTH_HZ * dt))
-        self._db = P["p04"][None, :]
+        self._db = np.repeat(P["p04"][None, :], N_CORNERS, axis=0)
+        self._neg_db = -self._db
         self._gh = P["p08"][None, :]
-        self._pw = P["p07"]
-        self._rw = P["p10"]
         self._add = P["p12"][None, :]
         self._endstop = P["p20"][None, :]
         self._lat = P["p19"]  # x lateral acceleration: 0 on a straight road
+        # modal skyhook: corner velocity = [1, -x_i, y_i] . (weights * [heave, pitch, roll] velocities)
+        self._modal = np.column_stack([np.ones(N_CORNERS), self._cx[:, 0], self._cy[:, 0]])  # (4, 3)
+        self._weights = np.vstack([np.ones(b), P["p07"], P["p10"]])  # (3, B)
         w0 = np.asarray(x0[7:10], dtype=float)
+        floor0 = np.repeat(self._floor.mean(axis=0, keepdims=True), N_CORNERS, axis=0)
         self._state = {
             "w_prev": np.array(w0, copy=True),
             "hp": np.zeros((3, b)),
+            "w3": np.zeros((3, b)),
+            "zsky": np.zeros((N_CORNERS, b)),
+            "tmp": np.zeros((N_CORNERS, b)),
+            "tmp2": np.zeros((N_CORNERS, b)),
+            "flag": np.zeros((N_CORNERS, b), dtype=bool),
             "v_f": np.zeros((N_CORNERS, b)),
             "acc_f": np.zeros((N_CORNERS, b)),
-            "cmd_f": np.repeat(self._floor.mean(axis=0, keepdims=True), N_CORNERS, axis=0),
-            "c_act": np.repeat(self._floor.mean(axis=0, keepdims=True), N_CORNERS, axis=0),
+            "cmd": np.zeros((N_CORNERS, b)),
+            "cmd_f": floor0.copy(),
+            "c_act": floor0.copy(),
         }
 
     def command(
         self, x: FloatArray, v: FloatArray, travel: FloatArray, acc: FloatArray, phi_min: FloatArray, dphi: FloatArray
     ) -> FloatArray:
         st = self._state
+        hp, tmp, tmp2, flag, cmd = st["hp"], st["tmp"], st["tmp2"], st["flag"], st["cmd"]
         w = x[7:10]  # heave velocity, pitch rate, roll rate
-        hp = st["hp"]
         # leaky integration of the accelerometers == first-order high-pass of the body velocities
         hp += w
         hp -= st["w_prev"]
         hp *= self._a_hp
         st["w_prev"][...] = w
-        # modal skyhook velocity at each corner
-        zsky = hp[0][None, :] + self._cx * (self._pw * hp[1])[None, :] + self._cy * (self._rw * hp[2])[None, :]
-        zsky -= np.clip(zsky, -self._db, self._db)  # deadband
+        # modal skyhook velocity at each corner, then the deadband (soft threshold)
+        np.multiply(self._weights, hp, out=st["w3"])
+        zsky = st["zsky"]
+        np.matmul(self._modal, st["w3"], out=zsky)
+        np.clip(zsky, self._neg_db, self._db, out=tmp)
+        zsky -= tmp
         # filtered suspension velocity and body acceleration (ECU signal conditioning)
         v_f = st["v_f"]
-        v_f += self._a_v * (v - v_f)
+        np.subtract(v, v_f, out=tmp)
+        tmp *= self._a_v
+        v_f += tmp
         acc_f = st["acc_f"]
-        acc_f += self._a_add * (acc - acc_f)
-        # demanded force on the body (up): skyhook + groundhook + ADD
-        demand = self._gh * x[10:14]
-        demand -= self._gain * zsky
-        demand -= self._add * acc_f
+        np.subtract(acc, acc_f, out=tmp)
+        tmp *= self._a_add
+        acc_f += tmp
+        # demanded force on the body (up): groundhook - skyhook - ADD, minus the soft damper's force
+        np.multiply(self._gh, x[10:14], out=cmd)
+        np.multiply(self._gain, zsky, out=tmp)
+        cmd -= tmp
+        np.multiply(self._add, acc_f, out=tmp)
+        cmd -= tmp
+        cmd -= phi_min
         # inverse damper map: the damper's force on the body is f_soft + c f_span
-        num = demand - phi_min
-        cmd = num * dphi / (dphi * dphi + 25.0)  # regularized num / f_span (f_span ~ 0 at rest)
+        cmd *= dphi
+        np.multiply(dphi, dphi, out=tmp)
+        tmp += 25.0  # regularized division (f_span ~ 0 at rest)
+        cmd /= tmp
         # the ECU trusts the demand only when its filtered velocity agrees in sign with the damper's
-        cmd[v_f * v < 0.0] = 0.0
+        np.multiply(v_f, v, out=tmp)
+        np.greater_equal(tmp, 0.0, out=flag)
+        cmd *= flag
         np.maximum(cmd, self._floor, out=cmd)
         np.minimum(cmd, self._cap, out=cmd)
         # end-stop protection: firm when the travel from static exceeds the threshold
-        cmd[np.abs(travel) > self._endstop] = 1.0
+        np.abs(travel, out=tmp2)
+        np.greater(tmp2, self._endstop, out=flag)
+        np.maximum(cmd, flag, out=cmd)
         cmd_f = st["cmd_f"]
-        cmd_f += self._a_cmd * (cmd - cmd_f)
+        np.subtract(cmd, cmd_f, out=tmp)
+        tmp *= self._a_cmd
+        cmd_f += tmp
         c_act = st["c_act"]
-        c_act += self._a_act * (cmd_f - c_act)
+        np.subtract(cmd_f, c_act, out=tmp)
+        tmp *= self._a_act
+        c_act += tmp
         return c_act
 
 

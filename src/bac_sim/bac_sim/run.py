@@ -165,6 +165,10 @@ def simulate_run(
     run_m = run_in_s * sc.speed + window_m + run_out_s * sc.speed
     drive_s = run_m / (sc.speed * 0.75) + 1.0  # enough for a slow (bad) run
     drive, bad = driver.draw(sc.speed, start_nominal, drive_s, 1, rng)
+    # a start scattered before the beginning of the road starts where the road does (a shorter run-in)
+    earliest = sc.road.s0 + model.params.wheelbase + 0.1
+    if drive.s[0, 0] < earliest:
+        drive.s[:] += earliest - drive.s[0, 0]
     s_end = start_nominal + run_m
     duration = float(drive.time_at(s_end)[0])
     sc.road.check_covers(float(drive.s[0, 0]) - model.params.wheelbase, s_end, f"a run of scenario '{sc.name}'")
