@@ -87,6 +87,7 @@ def _run(
     lead_s: float,
     imu_phase_s: float,
     odom_hz: float,
+    t0_ns: int,
 ) -> tuple[ImuSeries, OdomSeries]:
     rng = np.random.default_rng(seed)
     t_fine = np.arange(-lead_s, duration_s, 1 / FINE_HZ)
@@ -98,10 +99,10 @@ def _run(
     t_imu = np.arange(-lead_s + imu_phase_s, duration_s - 0.01, 1 / fs)
     az_i = np.interp(t_imu, t_fine, az) + noise * rng.standard_normal(t_imu.size)
     q_i = np.interp(t_imu, t_fine, q) + 0.1 * noise * rng.standard_normal(t_imu.size)
-    imu = ImuSeries(T_START + np.round(t_imu * NS).astype(np.int64), az_i, q_i)
+    imu = ImuSeries(t0_ns + np.round(t_imu * NS).astype(np.int64), az_i, q_i)
     t_odom = np.arange(0.0, duration_s, 1 / odom_hz)
     dist = speed_mps * t_odom
-    odom = OdomSeries(T_START + np.round(t_odom * NS).astype(np.int64), dist, np.full(t_odom.size, speed_mps))
+    odom = OdomSeries(t0_ns + np.round(t_odom * NS).astype(np.int64), dist, np.full(t_odom.size, speed_mps))
     return imu, odom
 
 
@@ -116,8 +117,9 @@ def bump_run(
     duration_s: float = 7.0,
     imu_phase_s: float = 0.0,
     lead_s: float = 0.5,
+    t0_ns: int = T_START,
 ) -> SynthRun:
-    """A run over a speed bump at road position ``bump_at_m``."""
+    """A run over a speed bump at road position ``bump_at_m``; the trial became ready at ``t0_ns``."""
     imu, odom = _run(
         lambda x: bump_profile(x, bump_at_m),
         duration_s,
@@ -130,9 +132,10 @@ def bump_run(
         lead_s,
         imu_phase_s,
         50.0,
+        t0_ns,
     )
-    event_ns = T_START + round((bump_at_m - offset_m) / speed_mps * NS)
-    return SynthRun(imu, odom, T_START, offset_m, speed_mps, event_ns)
+    event_ns = t0_ns + round((bump_at_m - offset_m) / speed_mps * NS)
+    return SynthRun(imu, odom, t0_ns, offset_m, speed_mps, event_ns)
 
 
 def road_run(
@@ -147,6 +150,7 @@ def road_run(
     imu_phase_s: float = 0.0,
     lead_s: float = 0.5,
     roughness: float = 3e-5,
+    t0_ns: int = T_START,
 ) -> SynthRun:
     """A run over ``length_m`` of a random road (the same road for the same ``road_seed``)."""
     imu, odom = _run(
@@ -161,5 +165,6 @@ def road_run(
         lead_s,
         imu_phase_s,
         50.0,
+        t0_ns,
     )
-    return SynthRun(imu, odom, T_START, offset_m, speed_mps, 0)
+    return SynthRun(imu, odom, t0_ns, offset_m, speed_mps, 0)

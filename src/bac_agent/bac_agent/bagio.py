@@ -33,6 +33,7 @@ from rosbags.typesys.store import Typestore
 
 from bac_agent.recording import bac_typestore
 from bac_common.errors import BacError
+from bac_imu import cdr
 
 FloatArray = npt.NDArray[np.float64]
 IntArray = npt.NDArray[np.int64]
@@ -43,8 +44,8 @@ TRIAL_TYPE = "bac_msgs/msg/Trial"
 PREFERRED_IMU_TOPICS = ("/imu/data_raw", "/imu/vehicle")
 PREFERRED_ODOM_TOPICS = ("/vehicle/odom",)
 STATE_READY_TO_DRIVE = 3  # bac_msgs/Trial.STATE_READY_TO_DRIVE
-IMU_DOUBLES = 37  # orientation 4, covariance 9, angular velocity 3, covariance 9, linear acceleration 3, covariance 9
-ODOM_DOUBLES = 85  # pose 7 + covariance 36, twist 6 + covariance 36
+IMU_DOUBLES = cdr.IMU_DOUBLES
+ODOM_DOUBLES = cdr.ODOM_DOUBLES
 
 
 class BagError(BacError, OSError):
@@ -177,63 +178,15 @@ def bag_topics(path: str | Path) -> dict[str, tuple[str, int]]:
         return bag.topics()
 
 
-# --- vectorized CDR --------------------------------------------------------------------------------
-
-
-def _align(n: int, a: int) -> int:
-    return (n + a - 1) // a * a
-
-
-def _cdr_batches(
-    raws: list[bytes], nstrings: int
-) -> Iterator[tuple[npt.NDArray[np.int64], int, npt.NDArray[np.uint8]]]:
-    """Group little-endian CDR messages by layout: (indices, offset of the first double, byte matrix).
-
-    The layout of a message made of a Header (stamp, frame_id), ``nstrings - 1`` more strings and then
-    doubles only depends on the string lengths.
-    """
-    lengths = np.fromiter((len(r) for r in raws), dtype=np.int64, count=len(raws))
-    for length in np.unique(lengths):
-        idx = np.flatnonzero(lengths == length)
-        mat = np.frombuffer(b"".join(raws[i] for i in idx), dtype=np.uint8).reshape(idx.size, int(length))
-        # string lengths (uint32) at payload offsets 8 and align4(12 + L1)
-        keys = [mat[:, 12:16].copy().view("<u4")[:, 0].astype(np.int64)]
-        if nstrings == 2:
-            pos2 = np.array([_align(12 + int(k), 4) for k in keys[0]], dtype=np.int64)
-            l2 = np.zeros(idx.size, np.int64)
-            for p in np.unique(pos2):
-                sel = pos2 == p
-                l2[sel] = mat[sel, 4 + p : 8 + p].copy().view("<u4")[:, 0]
-            keys.append(l2)
-        combo = np.stack(keys, axis=1)
-        for key in np.unique(combo, axis=0):
-            sel = np.all(combo == key, axis=1)
-            p = 12 + int(key[0])
-            if nstrings == 2:
-                p = _align(p, 4) + 4 + int(key[1])
-            yield idx[sel], 4 + _align(p, 8), mat[sel]
+# --- vectorized CDR (bac_imu.cdr) ----------------------------------------------------------------------
 
 
 def _fast_cdr(raws: list[bytes], n_doubles: int, nstrings: int) -> tuple[IntArray, FloatArray] | None:
-    """(stamps ns, doubles (n, n_doubles)) of little-endian CDR messages, or None if they are not."""
-    if not raws or any(r[:2] != b"\x00\x01" for r in raws[:1]) or any(r[1] != 1 for r in raws):
-        return None
-    n = len(raws)
-    stamps = np.zeros(n, np.int64)
-    doubles = np.zeros((n, n_doubles))
-    for idx, off, mat in _cdr_batches(raws, nstrings):
-        if off + 8 * n_doubles != mat.shape[1]:
-            return None  # not the layout we think: let rosbags decode it
-        sec = mat[:, 4:8].copy().view("<i4")[:, 0].astype(np.int64)
-        nsec = mat[:, 8:12].copy().view("<u4")[:, 0].astype(np.int64)
-        stamps[idx] = sec * 1_000_000_000 + nsec
-        doubles[idx] = mat[:, off:].copy().view("<f8")
-    return stamps, doubles
+    return cdr.decode(raws, n_doubles, nstrings)
 
 
 def _frame(raw: bytes) -> str:
-    n = int.from_bytes(raw[12:16], "little")
-    return raw[16 : 16 + max(n - 1, 0)].decode(errors="replace")
+    return cdr.frame_id(raw)
 
 
 def _stamp(header: Any) -> int:
@@ -255,7 +208,7 @@ def read_imu(path: str | Path, topic: str | None = None) -> ImuArrays:
         fast = _fast_cdr(raws, IMU_DOUBLES, 1) if conns[0].msgtype == IMU_TYPE and _is_cdr(bag, conns[0]) else None
         if fast is not None:
             stamps, d = fast
-            accel, gyro = d[:, 25:28], d[:, 13:16]
+            accel, gyro = d[:, cdr.IMU_ACCEL], d[:, cdr.IMU_GYRO]
             for i in (0, len(raws) - 1):  # spot check against rosbags' own decoder
                 m = bag.deserialize(raws[i], conns[i])
                 got = (accel[i, 0], accel[i, 2], gyro[i, 1], stamps[i])
@@ -299,14 +252,14 @@ def read_odom(path: str | Path, topic: str | None = None) -> OdomArrays:
             stamps, d = fast
             for i in (0, len(raws) - 1):
                 m = bag.deserialize(raws[i], conns[i])
-                got = (d[i, 0], d[i, 43], stamps[i])
+                got = (d[i, cdr.ODOM_X], d[i, cdr.ODOM_VX], stamps[i])
                 want = (m.pose.pose.position.x, m.twist.twist.linear.x, _stamp(m.header))
                 if not all(_same(a, b) for a, b in zip(got, want, strict=True)):
                     fast = None
                     break
         if fast is not None:
             stamps, d = fast
-            return OdomArrays(t, _frame(raws[0]), stamps, recv_ns, d[:, 0].copy(), d[:, 43].copy())
+            return OdomArrays(t, _frame(raws[0]), stamps, recv_ns, d[:, cdr.ODOM_X].copy(), d[:, cdr.ODOM_VX].copy())
         stamps = np.zeros(len(raws), np.int64)
         dist = np.zeros(len(raws))
         speed = np.zeros(len(raws))

@@ -854,6 +854,8 @@ def diagnose(
         ("gyro_bias_rad_s", ", ".join(f"{v:.5f}" for v in now.gyro_bias)),
         ("bias_source", now.bias_source),
         ("started", str(now.started).lower()),
+        ("first_stamp_ns", str(now.first_stamp_ns if now.first_stamp_ns is not None else "")),
+        ("last_stamp_ns", str(now.last_stamp_ns if now.last_stamp_ns is not None else "")),
     ]
     if now.events:
         e = now.events[-1]

@@ -1,0 +1,97 @@
+"""``kpi_scorer``: one ``bac/run_score`` for each ``bac/run_segment``, same (campaign, trial, attempt).
+
+J and its parts come from :func:`bac_agent.kpi.score` (paper eq. 1 by default;
+ISO 2631-1 Wk RMS or VDV by ``kpi``; per-term weights). An invalid segment
+gives an invalid score carrying the segment's reason. A segment already scored
+(the same triple again) is not scored twice. The KPI parameters are read-only:
+a campaign's J must mean one thing.
+"""
+
+from __future__ import annotations
+
+import sys
+from collections import OrderedDict
+from typing import Any
+
+import numpy as np
+
+from bac_agent.kpi import KpiConfig, Score, score
+from bac_agent.segmenter_node import from_msg
+from bac_common.contracts import TOPIC_RUN_SCORE, TOPIC_RUN_SEGMENT
+from bac_common.rosnode import QOS_EVENTS, BacNode, run_node
+from bac_imu.node_params import ParamSpec, declare_config
+from bac_msgs.msg import RunScore, RunSegment
+
+KPI_PARAMS = {
+    "kpi": ParamSpec(
+        "the vertical term: rms (paper eq. 1), iso_wk_rms (ISO 2631-1 Wk-weighted RMS) or vdv",
+        choices=("rms", "iso_wk_rms", "vdv"),
+    ),
+    "weight_accel_z": ParamSpec("weight of the vertical term, w_az", 0.0, 1e6),
+    "weight_pitch_rate": ParamSpec("weight of RMS(pitch rate), w_q", 0.0, 1e6),
+    "detrend": ParamSpec("remove each signal's mean over the window first (eq. 1 does not)"),
+    "psd_segment_s": ParamSpec("Welch segment length, s", 0.05, 600.0),
+    "psd_max_hz": ParamSpec("spectra kept up to this frequency, Hz", 0.1, 10_000.0),
+}
+REMEMBERED = 10_000  # scored runs remembered to refuse duplicates
+
+
+class KpiScorerNode(BacNode):
+    def __init__(self, **kwargs: Any) -> None:
+        super().__init__("kpi_scorer", **kwargs)
+        self.config: KpiConfig = declare_config(self, KpiConfig, KPI_PARAMS)
+        self.scored: OrderedDict[tuple[str, int, int], float] = OrderedDict()
+        self.pub = self.create_publisher(RunScore, TOPIC_RUN_SCORE, QOS_EVENTS)
+        self.create_subscription(RunSegment, TOPIC_RUN_SEGMENT, self._on_segment, QOS_EVENTS)
+        c = self.config
+        self.get_logger().info(f"J = {c.weight_accel_z:g} * {c.kpi}(a_z) + {c.weight_pitch_rate:g} * RMS(pitch rate)")
+
+    def _on_segment(self, msg: RunSegment) -> None:
+        key = (str(msg.campaign_id), int(msg.trial_id), int(msg.attempt))
+        if key in self.scored:
+            self.get_logger().warning(f"segment of run {key} received again: already scored (J = {self.scored[key]})")
+            return
+        s = score(from_msg(msg), self.config)
+        self.pub.publish(to_msg(s))
+        self.scored[key] = s.j
+        while len(self.scored) > REMEMBERED:
+            self.scored.popitem(last=False)
+        if s.valid:
+            self.get_logger().info(
+                f"run {key}: J = {s.j:.6f} (RMS a_z {s.rms_accel_z:.4f} m/s^2, "
+                f"RMS pitch rate {s.rms_pitch_rate:.5f} rad/s)"
+            )
+        else:
+            self.get_logger().warning(f"run {key}: no J: {s.reason}")
+
+
+def to_msg(s: Score) -> RunScore:
+    m = RunScore()
+    m.header.stamp.sec = s.window_start_ns // 1_000_000_000
+    m.header.stamp.nanosec = s.window_start_ns % 1_000_000_000
+    m.header.frame_id = "base_link"
+    m.campaign_id = s.run.campaign_id
+    m.trial_id = s.run.trial_id
+    m.attempt = s.run.attempt
+    m.j = float(s.j)
+    m.rms_accel_z = float(s.rms_accel_z)
+    m.rms_pitch_rate = float(s.rms_pitch_rate)
+    m.weighted_rms_accel_z = float(s.weighted_rms_accel_z)
+    m.vdv_accel_z = float(s.vdv_accel_z)
+    m.kpi = s.kpi
+    m.weight_accel_z = float(s.weight_accel_z)
+    m.weight_pitch_rate = float(s.weight_pitch_rate)
+    m.psd_frequency_hz = np.asarray(s.psd_frequency_hz, dtype=np.float64)
+    m.psd_accel_z = np.asarray(s.psd_accel_z, dtype=np.float64)
+    m.psd_pitch_rate = np.asarray(s.psd_pitch_rate, dtype=np.float64)
+    m.valid = bool(s.valid)
+    m.reason = s.reason
+    return m
+
+
+def main(args: list[str] | None = None) -> int:
+    return run_node(KpiScorerNode, args)
+
+
+if __name__ == "__main__":
+    sys.exit(main())

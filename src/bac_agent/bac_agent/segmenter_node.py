@@ -1,0 +1,393 @@
+"""``run_segmenter``: buffers each run and emits exactly one ``bac/run_segment`` for it.
+
+A run starts when ``bac/trial`` (latched) enters READY_TO_DRIVE for a new
+(campaign_id, trial_id, attempt); from its stamp on, ``imu/vehicle`` and
+``vehicle/odom`` are buffered (plus ``pre_buffer_s`` kept all the time, for
+samples stamped after the trial's stamp that arrived before it); both are
+taken in batches from their DDS readers (:mod:`bac_imu.topic_drain`), so a
+simulator running many times faster than real time is followed. Every
+``check_period_s`` the pure core (:func:`bac_agent.segmentation.run_status`)
+says whether the window is complete; then :func:`~bac_agent.segmentation.cut_run`
+cuts and aligns it and one RunSegment is published, valid or invalid with
+its reason. A run also ends, invalid, when it takes longer than
+``run_timeout_s`` (ROS time since the trial's stamp), when no IMU sample
+arrives for ``no_data_timeout_s`` (wall), when another run starts, or when the
+trial leaves READY_TO_DRIVE first.
+
+The reference is the first valid run of each campaign, kept in memory and in
+``reference_file`` (``{campaign_id}`` is replaced) or, by default, in
+``<campaign_dir>/reference.npz`` when the launcher gives a campaign folder, so
+a restarted segmenter and the offline rescoring align against the same run;
+``template_file`` names a stored reference used instead.
+"""
+
+from __future__ import annotations
+
+import sys
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
+from nav_msgs.msg import Odometry
+from rclpy.clock import Clock
+from rclpy.clock_type import ClockType
+from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy
+from rclpy.serialization import deserialize_message
+from sensor_msgs.msg import Imu
+
+from bac_agent.segmentation import (
+    ImuSeries,
+    OdomSeries,
+    Reference,
+    ReferenceStore,
+    RunId,
+    Segment,
+    SegmentationError,
+    SegmentConfig,
+    cut_run,
+    invalid_segment,
+    run_status,
+)
+from bac_common.contracts import TOPIC_DIAGNOSTICS, TOPIC_IMU_VEHICLE, TOPIC_ODOM, TOPIC_RUN_SEGMENT, TOPIC_TRIAL
+from bac_common.errors import BacError
+from bac_common.rosnode import QOS_EVENTS, QOS_LATCHED, QOS_STREAM, BacNode, run_node
+from bac_imu import cdr
+from bac_imu.node_params import ParamSpec, declare_config
+from bac_imu.topic_drain import TopicDrain
+from bac_msgs.msg import RunSegment, Trial
+
+SEGMENT_PARAMS = {
+    "mode": ParamSpec(
+        "event (speed bump: impact-triggered window) or distance (road section by odometry)",
+        choices=("event", "distance"),
+    ),
+    "target_speed_mps": ParamSpec("speed the runs must be driven at, m/s", 0.1, 100.0),
+    "speed_tolerance": ParamSpec("accepted relative deviation of the mean speed from the target", 1e-4, 0.99),
+    "imu_rate_hz": ParamSpec("rate of imu/vehicle, Hz; 0 = measured from its stamps", 0.0, 10_000.0),
+    "align_signal": ParamSpec(
+        "signal(s) cross-correlated with the reference", choices=("accel_z", "pitch_rate", "both")
+    ),
+    "min_alignment": ParamSpec("minimum normalized cross-correlation with the reference", -1.0, 1.0),
+    "min_coverage": ParamSpec("minimum fraction of the window with valid IMU samples (1 = all)", 1e-3, 1.0),
+    "trigger_threshold_mps2": ParamSpec("event mode: |a_z| that marks the impact, m/s^2", 1e-3, 1000.0),
+    "trigger_after_m": ParamSpec("event mode: ignore impacts before this odometry distance, m", 0.0, 1e6),
+    "pre_trigger_s": ParamSpec("event mode: the window starts this long before the impact, s", 0.0, 600.0),
+    "window_s": ParamSpec("event mode: window length, s", 1e-3, 600.0),
+    "max_lag_s": ParamSpec("event mode: alignment search range, +- s", 0.0, 10.0),
+    "distance_start_m": ParamSpec("distance mode: section start, odometry m", 0.0, 1e6),
+    "distance_end_m": ParamSpec("distance mode: section end, odometry m", 0.0, 1e6),
+    "distance_step_m": ParamSpec("distance mode: grid step, m; 0 = target speed / IMU rate", 0.0, 100.0),
+    "max_shift_m": ParamSpec("distance mode: alignment search range, +- m (covers the start offset)", 0.0, 1000.0),
+    "distance_origin": ParamSpec(
+        "odom: pose.x is the distance since the run started; run_start: subtract its value at the run start",
+        choices=("odom", "run_start"),
+    ),
+}
+
+
+class _Stream:
+    """Samples of one topic: batches appended, consolidated into arrays on demand."""
+
+    def __init__(self) -> None:
+        self.parts: list[tuple[np.ndarray, np.ndarray, np.ndarray]] = []
+        self.arr: tuple[np.ndarray, np.ndarray, np.ndarray] = (np.zeros(0, np.int64), np.zeros(0), np.zeros(0))
+
+    def add(self, t: np.ndarray, a: np.ndarray, b: np.ndarray) -> None:
+        if t.size:
+            self.parts.append((t, a, b))
+
+    def arrays(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        if self.parts:
+            self.arr = (
+                np.concatenate([self.arr[0], *(p[0] for p in self.parts)]),
+                np.concatenate([self.arr[1], *(p[1] for p in self.parts)]),
+                np.concatenate([self.arr[2], *(p[2] for p in self.parts)]),
+            )
+            self.parts = []
+        return self.arr
+
+    def drop_before(self, t_ns: int) -> None:
+        t, a, b = self.arrays()
+        keep = t >= t_ns
+        if not np.all(keep):
+            self.arr = (t[keep], a[keep], b[keep])
+
+    def last(self) -> int | None:
+        t = self.arrays()[0]
+        return int(t[-1]) if t.size else None
+
+
+class RunSegmenterNode(BacNode):
+    def __init__(self, **kwargs: Any) -> None:
+        super().__init__("run_segmenter", **kwargs)
+        self.config: SegmentConfig = declare_config(self, SegmentConfig, SEGMENT_PARAMS)
+        self.run_timeout_s = self.declare_float(
+            "run_timeout_s",
+            300.0,
+            "a run not complete this long after READY_TO_DRIVE (ROS time) is invalid, s",
+            0.1,
+            1e6,
+        )
+        self.no_data_timeout_s = self.declare_float(
+            "no_data_timeout_s", 30.0, "a run without any IMU sample for this long (wall) is invalid, s", 0.1, 1e6
+        )
+        self.pre_buffer_s = self.declare_float(
+            "pre_buffer_s", 5.0, "IMU/odometry kept from before the trial message arrived, s", 0.0, 600.0
+        )
+        period = self.declare_float("check_period_s", 0.1, "how often a buffered run is checked, wall s", 0.005, 10.0)
+        diag = self.declare_float("diagnostics_period_s", 1.0, "period of /diagnostics, wall s", 0.05, 60.0)
+        campaign_dir = self.declare_str("campaign_dir", "", "campaign folder (given by the launcher)", read_only=True)
+        ref_file = self.declare_str(
+            "reference_file",
+            "",
+            "where the campaign's reference run is kept ({campaign_id} is replaced); "
+            "default <campaign_dir>/reference.npz when campaign_dir is set, else memory only",
+            read_only=True,
+        )
+        template = self.declare_str(
+            "template_file",
+            "",
+            "a stored reference run used for every campaign instead of the first valid run",
+            read_only=True,
+        )
+        odom_best_effort = self.declare_bool(
+            "odom_best_effort", False, "subscribe vehicle/odom best effort (a car's odometry driver)", read_only=True
+        )
+        if not ref_file and campaign_dir:
+            ref_file = str(Path(campaign_dir) / "reference.npz")
+        tmpl = Reference.load(template) if template else None
+        self.references = ReferenceStore(ref_file, tmpl)
+        self.imu = _Stream()
+        self.odom = _Stream()
+        self.run: RunId | None = None
+        self.run_start_ns = 0
+        self.run_wall_start = 0.0
+        self.last_imu_wall = 0.0
+        self.emitted: set[tuple[str, int, int]] = set()
+        self.waiting_for = ""
+        self.last_result = ""
+        self.pub = self.create_publisher(RunSegment, TOPIC_RUN_SEGMENT, QOS_EVENTS)
+        self.pub_diag = self.create_publisher(DiagnosticArray, TOPIC_DIAGNOSTICS, 10)
+        odom_qos = (
+            QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=2000, reliability=ReliabilityPolicy.BEST_EFFORT)
+            if odom_best_effort
+            else QOS_STREAM
+        )
+        # high-rate streams: drained in batches by the check timer (bac_imu.topic_drain)
+        self.imu_drain = TopicDrain(self, Imu, TOPIC_IMU_VEHICLE, QOS_STREAM)
+        self.odom_drain = TopicDrain(self, Odometry, TOPIC_ODOM, odom_qos)
+        self.create_subscription(Trial, TOPIC_TRIAL, self._on_trial, QOS_LATCHED)
+        steady = Clock(clock_type=ClockType.STEADY_TIME)
+        self.create_timer(period, self._check, clock=steady)
+        self.create_timer(diag, self._diagnostics, clock=steady)
+        where = self.references.path or "memory"
+        self.get_logger().info(
+            f"{self.config.mode} mode at {self.config.target_speed_mps * 3.6:.1f} km/h; reference runs kept in {where}"
+            + (f"; template {template}" if template else "")
+        )
+
+    # --- inputs -------------------------------------------------------------------------------------
+    def _drain(self) -> None:
+        raws = self.imu_drain.take()
+        if raws:
+            d = cdr.imu(raws)
+            if d is None:
+                msgs = [deserialize_message(r, Imu) for r in raws]
+                t = np.array([m.header.stamp.sec * 1_000_000_000 + m.header.stamp.nanosec for m in msgs], np.int64)
+                az = np.array([m.linear_acceleration.z for m in msgs])
+                q = np.array([m.angular_velocity.y for m in msgs])
+            else:
+                t, az, q = d[0], d[1][:, 2].copy(), d[2][:, 1].copy()
+            self.imu.add(t, az, q)
+            self.last_imu_wall = time.monotonic()
+        raws = self.odom_drain.take()
+        if raws:
+            o = cdr.odometry(raws)
+            if o is None:
+                msgs = [deserialize_message(r, Odometry) for r in raws]
+                o = (
+                    np.array([m.header.stamp.sec * 1_000_000_000 + m.header.stamp.nanosec for m in msgs], np.int64),
+                    np.array([m.pose.pose.position.x for m in msgs]),
+                    np.array([m.twist.twist.linear.x for m in msgs]),
+                )
+            self.odom.add(*o)
+
+    def _on_trial(self, msg: Trial) -> None:
+        key = (str(msg.campaign_id), int(msg.trial_id), int(msg.attempt))
+        current = None if self.run is None else (self.run.campaign_id, self.run.trial_id, self.run.attempt)
+        if msg.state == Trial.STATE_READY_TO_DRIVE:
+            if key == current or key in self.emitted:
+                return
+            if self.run is not None:
+                self._finish_invalid(f"superseded: trial {key[1]} attempt {key[2]} became ready before this run ended")
+            self.run = RunId(*key)
+            self.run_start_ns = msg.stamp.sec * 1_000_000_000 + msg.stamp.nanosec
+            self.run_wall_start = time.monotonic()
+            self.last_imu_wall = max(self.last_imu_wall, self.run_wall_start)
+            self.get_logger().info(f"run {self.run} started: buffering ({self.config.mode} mode)")
+            self._diagnostics()
+        elif key == current:
+            self._finish_invalid(f"cancelled: the trial entered state {msg.state} before the run was complete")
+
+    # --- the run ------------------------------------------------------------------------------------
+    def _series(self) -> tuple[ImuSeries, OdomSeries]:
+        return ImuSeries(*self.imu.arrays()), OdomSeries(*self.odom.arrays())
+
+    def _check(self) -> None:
+        self._drain()
+        now_ns = self.get_clock().now().nanoseconds
+        if self.run is None:
+            # keep only the recent past while idle
+            newest = self.imu.last()
+            if newest is not None:
+                cutoff = newest - round(self.pre_buffer_s * 1e9)
+                self.imu.drop_before(cutoff)
+                self.odom.drop_before(cutoff)
+            return
+        imu, odom = self._series()
+        try:
+            ref = self.references.get(self.run.campaign_id)
+            status = run_status(imu, odom, self.config, self.run_start_ns, ref)
+            self.waiting_for = status.waiting_for
+            if status.complete:
+                self._emit(cut_run(imu, odom, self.config, self.run_start_ns, ref, self.run))
+                return
+        except BacError as exc:  # an unusable reference: every run would fail the same way
+            self.get_logger().error(f"run {self.run}: {exc}")
+            self._finish_invalid(f"cannot align: {exc}")
+            return
+        elapsed = (now_ns - self.run_start_ns) / 1e9
+        if elapsed > self.run_timeout_s:
+            seg = cut_run(imu, odom, self.config, self.run_start_ns, None, self.run)
+            self._finish_invalid(f"run timeout after {elapsed:.1f} s: {seg.reason or status.waiting_for}")
+        elif time.monotonic() - self.last_imu_wall > self.no_data_timeout_s:
+            self._finish_invalid(f"no IMU data (imu/vehicle) for {self.no_data_timeout_s:g} s during the run")
+
+    def _finish_invalid(self, reason: str) -> None:
+        assert self.run is not None
+        self._emit(invalid_segment(self.config, self.run, self.run_start_ns, reason))
+
+    def _emit(self, seg: Segment) -> None:
+        run = seg.run
+        self.pub.publish(to_msg(seg))
+        self.emitted.add((run.campaign_id, run.trial_id, run.attempt))
+        if seg.valid:
+            self.get_logger().info(
+                f"run {run}: segment valid, lag {seg.lag_s * 1e3:.1f} ms, alignment {seg.alignment_score:.3f}, "
+                f"mean speed {seg.mean_speed_mps * 3.6:.1f} km/h"
+            )
+            try:
+                ref = self.references.offer(seg, self.config)
+            except (OSError, SegmentationError) as exc:
+                self.get_logger().error(f"could not keep run {run} as the reference: {exc}")
+                ref = None
+            if ref is not None:
+                where = self.references.file_for(run.campaign_id) or "memory"
+                self.get_logger().info(f"run {run} is the reference of campaign '{run.campaign_id}' ({where})")
+        else:
+            self.get_logger().warning(f"run {run}: segment invalid: {seg.reason}")
+        self.last_result = f"run {run}: " + ("valid" if seg.valid else f"invalid: {seg.reason}")
+        self.run = None
+        self.waiting_for = ""
+        newest = self.imu.last()
+        if newest is not None:
+            cutoff = newest - round(self.pre_buffer_s * 1e9)
+            self.imu.drop_before(cutoff)
+            self.odom.drop_before(cutoff)
+        self._diagnostics()
+
+    def _diagnostics(self) -> None:
+        """The segmenter's state: idle or buffering which run, what it waits for, what it holds."""
+        t_imu, _, _ = self.imu.arrays()
+        t_odom, _, _ = self.odom.arrays()
+        st = DiagnosticStatus()
+        st.name = f"{self.get_name()}: runs"
+        st.hardware_id = ""
+        if self.run is None:
+            st.level = DiagnosticStatus.OK
+            st.message = "idle: waiting for a trial ready to drive"
+        else:
+            waited = time.monotonic() - self.run_wall_start
+            st.level = DiagnosticStatus.OK if t_imu.size else DiagnosticStatus.WARN
+            st.message = f"buffering run {self.run} for {waited:.0f} s" + (
+                f": waiting for {self.waiting_for}" if self.waiting_for else ""
+            )
+        values = {
+            "state": "idle" if self.run is None else "buffering",
+            "run": "" if self.run is None else str(self.run),
+            "waiting_for": self.waiting_for,
+            "imu_samples": str(t_imu.size),
+            "imu_last_stamp_ns": str(int(t_imu[-1])) if t_imu.size else "",
+            "odom_samples": str(t_odom.size),
+            "odom_last_stamp_ns": str(int(t_odom[-1])) if t_odom.size else "",
+            "runs_emitted": str(len(self.emitted)),
+            "last_result": self.last_result,
+            "mode": self.config.mode,
+        }
+        st.values = [KeyValue(key=k, value=v) for k, v in values.items()]
+        arr = DiagnosticArray()
+        arr.header.stamp = self.get_clock().now().to_msg()
+        arr.status = [st]
+        self.pub_diag.publish(arr)
+
+    def destroy_node(self) -> None:
+        self.imu_drain.destroy()
+        self.odom_drain.destroy()
+        super().destroy_node()
+
+
+def to_msg(seg: Segment) -> RunSegment:
+    m = RunSegment()
+    m.header.stamp.sec = seg.window_start_ns // 1_000_000_000
+    m.header.stamp.nanosec = seg.window_start_ns % 1_000_000_000
+    m.header.frame_id = "base_link"
+    m.campaign_id = seg.run.campaign_id
+    m.trial_id = seg.run.trial_id
+    m.attempt = seg.run.attempt
+    m.mode = seg.mode
+    m.window_start_s = seg.window_start_ns / 1e9
+    m.window_length_s = float(seg.window_length_s)
+    m.distance_start_m = float(seg.distance_start_m)
+    m.distance_step_m = float(seg.distance_step_m)
+    m.sample_rate_hz = float(seg.sample_rate_hz)
+    m.lag_s = float(seg.lag_s)
+    m.alignment_score = float(seg.alignment_score)
+    m.mean_speed_mps = float(seg.mean_speed_mps)
+    m.target_speed_mps = float(seg.target_speed_mps)
+    m.coverage = float(seg.coverage)
+    m.accel_z = np.asarray(seg.accel_z, dtype=np.float64)
+    m.pitch_rate = np.asarray(seg.pitch_rate, dtype=np.float64)
+    m.valid = bool(seg.valid)
+    m.reason = seg.reason
+    return m
+
+
+def from_msg(m: RunSegment) -> Segment:
+    return Segment(
+        run=RunId(str(m.campaign_id), int(m.trial_id), int(m.attempt)),
+        mode=int(m.mode),
+        window_start_ns=m.header.stamp.sec * 1_000_000_000 + m.header.stamp.nanosec,
+        window_length_s=float(m.window_length_s),
+        distance_start_m=float(m.distance_start_m),
+        distance_step_m=float(m.distance_step_m),
+        sample_rate_hz=float(m.sample_rate_hz),
+        lag_s=float(m.lag_s),
+        alignment_score=float(m.alignment_score),
+        mean_speed_mps=float(m.mean_speed_mps),
+        target_speed_mps=float(m.target_speed_mps),
+        coverage=float(m.coverage),
+        accel_z=np.array(m.accel_z, dtype=np.float64),
+        pitch_rate=np.array(m.pitch_rate, dtype=np.float64),
+        valid=bool(m.valid),
+        reason=str(m.reason),
+    )
+
+
+def main(args: list[str] | None = None) -> int:
+    return run_node(RunSegmenterNode, args)
+
+
+if __name__ == "__main__":
+    sys.exit(main())
