@@ -195,6 +195,7 @@ class VehicleSimNode(BacNode):
         self.pub_clock = self.create_publisher(Clock, TOPIC_CLOCK, QOS_CLOCK)
         self.create_subscription(Trial, TOPIC_TRIAL, self._on_trial, QOS_LATCHED)
         self._driven: set[tuple[str, int, int]] = set()
+        self._latest: tuple[tuple[str, int, int], int] | None = None  # last trial seen and its state
         self._jobs: queue.Queue[_Job] = queue.Queue()
         self._runs = 0
         self.runs_published = 0
@@ -210,9 +211,10 @@ class VehicleSimNode(BacNode):
 
     # --- trials ---------------------------------------------------------------------------------
     def _on_trial(self, msg: Trial) -> None:
+        key = (str(msg.campaign_id), int(msg.trial_id), int(msg.attempt))
+        self._latest = (key, int(msg.state))
         if msg.state != Trial.STATE_READY_TO_DRIVE:
             return
-        key = (str(msg.campaign_id), int(msg.trial_id), int(msg.attempt))
         if key in self._driven:
             return
         self._driven.add(key)
@@ -244,6 +246,12 @@ class VehicleSimNode(BacNode):
             try:
                 if play is None and pending is None and not self._jobs.empty():
                     job = self._jobs.get_nowait()
+                    if self._latest is not None and self._latest != (job.key, Trial.STATE_READY_TO_DRIVE):
+                        # the agent moved on while another run was being driven: nobody waits for this one
+                        self.get_logger().warning(
+                            f"trial {job.key[1]} attempt {job.key[2]} is no longer ready to drive: not driven"
+                        )
+                        continue
                     job.calibration = self.ecu.active  # what is in force when the run starts
                     self.ecu.set_driving(True)
                     pending = (job, self._sim.submit(self._simulate, job))
