@@ -24,8 +24,8 @@ def test_important_and_unimportant_parameters_split(sweep) -> None:  # type: ign
     for name in ("p08", "p11", "p14"):
         assert loss[name] > 0.10, name
     significant = sweep.significant(0.05)
-    assert 3 <= len(significant) <= 12
-    assert sum(v < 0.02 for v in loss.values()) >= 6
+    assert 5 <= len(significant) <= 16
+    assert sum(v < 0.02 for v in loss.values()) >= 5  # the reduction has parameters to drop
     # the sweep starts from a good point: no single change gains more than 2 %
     assert sweep.j.min() > 0.98 * sweep.j0
 
