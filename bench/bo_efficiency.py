@@ -133,30 +133,36 @@ def available_problems() -> list[str]:
 
 
 # --- optimizers: each returns the true J of its recommendation after every run -----------------
-def run_bac(p: Problem, seed: int, noise_rng: np.random.Generator) -> list[float]:
-    from bac_agent.bo import Engine
+BAC_CONFIG: dict[
+    str, object
+] = {}  # EngineConfig overrides (--bac-config), e.g. {"n_initial": 8, "gp": {"ls_loc": 0.5}}
+
+
+def run_bac(p: Problem, seed: int, noise_rng: np.random.Generator) -> list[list[float]]:
+    from bac_agent.bo import Engine, EngineConfig
 
     names = [f"x{i}" for i in range(p.dim)]
-    eng = Engine([(n, lo, hi) for n, (lo, hi) in zip(names, p.bounds, strict=True)], budget=p.budget, seed=seed)
+    cfg = EngineConfig.from_dict({**BAC_CONFIG, "budget": p.budget, "seed": seed})  # "gp": partial GPConfig
+    eng = Engine([(n, lo, hi) for n, (lo, hi) in zip(names, p.bounds, strict=True)], cfg)
     out = []
     for _ in range(p.budget):
         q = eng.ask()
         t = np.array([[q[n] for n in names]])
         eng.tell(q, float(p.noisy_j(t, noise_rng)[0]))
         r = eng.recommend()
-        out.append(float(p.true_j(np.array([[r.params[n] for n in names]]))[0]))
+        out.append([r.params[n] for n in names])
     return out
 
 
-def run_random(p: Problem, seed: int, noise_rng: np.random.Generator) -> list[float]:
+def run_random(p: Problem, seed: int, noise_rng: np.random.Generator) -> list[list[float]]:
     rng = np.random.default_rng(seed)
     T = p.bounds[:, 0] + rng.random((p.budget, p.dim)) * (p.bounds[:, 1] - p.bounds[:, 0])
     y = np.array([p.noisy_j(T[i : i + 1], noise_rng)[0] for i in range(p.budget)])
     idx = [int(np.argmin(y[: k + 1])) for k in range(p.budget)]
-    return [float(p.true_j(T[i : i + 1])[0]) for i in idx]
+    return [T[i].tolist() for i in idx]
 
 
-def run_botorch(p: Problem, seed: int, noise_rng: np.random.Generator) -> list[float]:
+def run_botorch(p: Problem, seed: int, noise_rng: np.random.Generator) -> list[list[float]]:
     import torch
     from botorch.acquisition.logei import qLogNoisyExpectedImprovement
     from botorch.fit import fit_gpytorch_mll
@@ -175,10 +181,10 @@ def run_botorch(p: Problem, seed: int, noise_rng: np.random.Generator) -> list[f
     X = lo + U * (hi - lo)
     ys: list[float] = []
     xs_list: list[torch.Tensor] = []
-    out: list[float] = []
+    out: list[list[float]] = []
     unit = torch.stack([torch.zeros(d), torch.ones(d)]).to(torch.double)
 
-    def recommend(Xs: torch.Tensor, Ys: torch.Tensor) -> float:
+    def recommend(Xs: torch.Tensor, Ys: torch.Tensor) -> list[float]:
         if Xs.shape[0] < 2:
             i = int(torch.argmin(Ys))
         else:
@@ -190,7 +196,7 @@ def run_botorch(p: Problem, seed: int, noise_rng: np.random.Generator) -> list[f
                 fit_gpytorch_mll(ExactMarginalLogLikelihood(model.likelihood, model))
             with torch.no_grad():
                 i = int(torch.argmax(model.posterior(Xs).mean.squeeze(-1)))
-        return float(p.true_j(Xs[i : i + 1].numpy())[0])
+        return [float(v) for v in Xs[i].tolist()]
 
     for k in range(p.budget):
         if k < n_init:
@@ -213,7 +219,7 @@ def run_botorch(p: Problem, seed: int, noise_rng: np.random.Generator) -> list[f
     return out
 
 
-def run_optuna(p: Problem, seed: int, noise_rng: np.random.Generator) -> list[float]:
+def run_optuna(p: Problem, seed: int, noise_rng: np.random.Generator) -> list[list[float]]:
     import optuna
 
     optuna.logging.set_verbosity(optuna.logging.ERROR)
@@ -230,11 +236,11 @@ def run_optuna(p: Problem, seed: int, noise_rng: np.random.Generator) -> list[fl
         t = np.array([[trial.params[f"x{i}"] for i in range(p.dim)]])
         study.tell(trial, float(p.noisy_j(t, noise_rng)[0]))
         bp = study.best_trial.params
-        out.append(float(p.true_j(np.array([[bp[f"x{i}"] for i in range(p.dim)]]))[0]))
+        out.append([bp[f"x{i}"] for i in range(p.dim)])
     return out
 
 
-def run_bayes_opt(p: Problem, seed: int, noise_rng: np.random.Generator) -> list[float]:
+def run_bayes_opt(p: Problem, seed: int, noise_rng: np.random.Generator) -> list[list[float]]:
     from bayes_opt import BayesianOptimization
 
     pb = {f"x{i}": (float(lo), float(hi)) for i, (lo, hi) in enumerate(p.bounds)}
@@ -251,11 +257,11 @@ def run_bayes_opt(p: Problem, seed: int, noise_rng: np.random.Generator) -> list
         t = np.array([[q[f"x{i}"] for i in range(p.dim)]])
         opt.register(params=q, target=-float(p.noisy_j(t, noise_rng)[0]))
         bp = opt.max["params"]
-        out.append(float(p.true_j(np.array([[bp[f"x{i}"] for i in range(p.dim)]]))[0]))
+        out.append([bp[f"x{i}"] for i in range(p.dim)])
     return out
 
 
-OPTIMIZERS: dict[str, Callable[[Problem, int, np.random.Generator], list[float]]] = {
+OPTIMIZERS: dict[str, Callable[[Problem, int, np.random.Generator], list[list[float]]]] = {
     "bac": run_bac,
     "botorch": run_botorch,
     "optuna_gp": run_optuna,
@@ -264,8 +270,9 @@ OPTIMIZERS: dict[str, Callable[[Problem, int, np.random.Generator], list[float]]
 }
 
 
-def _task(args: tuple[str, str, int, float]) -> tuple[str, str, int, list[float], float]:
-    prob_name, opt_name, seed, noise_share = args
+def _task(args: tuple[str, str, int, float, str, int]) -> tuple[str, str, int, list[float], float]:
+    prob_name, opt_name, seed, noise_share, bac_config, budget = args
+    BAC_CONFIG.update(json.loads(bac_config or "{}"))
     os.environ.setdefault("OMP_NUM_THREADS", "1")
     try:
         import torch
@@ -274,10 +281,17 @@ def _task(args: tuple[str, str, int, float]) -> tuple[str, str, int, list[float]
     except ImportError:
         pass
     p = make_problem(prob_name, noise_share)
+    if budget:
+        p.budget = budget
     noise_rng = np.random.default_rng([seed, 12345])  # the same noise stream for every optimizer
     t0 = time.perf_counter()
-    js = OPTIMIZERS[opt_name](p, seed, noise_rng)
-    return prob_name, opt_name, seed, js, time.perf_counter() - t0
+    recs = OPTIMIZERS[opt_name](p, seed, noise_rng)
+    dt = time.perf_counter() - t0
+    # the true J of every recommendation, in one batch (one simulation batch for the bac_sim problems)
+    thetas = np.clip(np.array(recs, dtype=float), p.bounds[:, 0], p.bounds[:, 1])
+    uniq, inv = np.unique(thetas, axis=0, return_inverse=True)
+    js = p.true_j(uniq)[inv.ravel()]
+    return prob_name, opt_name, seed, [float(j) for j in js], dt
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -286,6 +300,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--problems", default="", help="comma list (default: every available problem)")
     ap.add_argument("--optimizers", default=",".join(OPTIMIZERS))
     ap.add_argument("--noise-share", type=float, default=0.05, help="noise sd / (J_med - J*) on standard functions")
+    ap.add_argument("--bac-config", default="", help='JSON overrides of EngineConfig, e.g. {"gp": {"ls_loc": 0.5}}')
+    ap.add_argument("--budget", type=int, default=0, help="override every problem's budget")
     ap.add_argument("--workers", type=int, default=os.cpu_count() or 1)
     ap.add_argument("--out", default="bench/out/bo_efficiency.json", help="raw results (JSON) and a PNG beside it")
     a = ap.parse_args(argv)
@@ -294,7 +310,12 @@ def main(argv: list[str] | None = None) -> int:
     for o in optimizers:
         if o not in OPTIMIZERS:
             ap.error(f"unknown optimizer {o!r}; known: {', '.join(OPTIMIZERS)}")
-    tasks = [(pn, on, s, a.noise_share) for pn in problems for on in optimizers for s in range(a.seeds)]
+    tasks = [
+        (pn, on, s, a.noise_share, a.bac_config, a.budget)
+        for pn in problems
+        for on in optimizers
+        for s in range(a.seeds)
+    ]
     t0 = time.perf_counter()
     results: dict[str, dict[str, list[tuple[int, list[float], float]]]] = {}
     with ProcessPoolExecutor(max_workers=a.workers) as ex:
@@ -312,6 +333,7 @@ def main(argv: list[str] | None = None) -> int:
     )
     for pn in problems:
         p = make_problem(pn, a.noise_share)
+        p.budget = a.budget or p.budget
         print(f"\n## {pn}  d={p.dim}  budget={p.budget}  J*={p.j_star:.4g}  J_med={p.j_med:.4g}")
         print(f"{'optimizer':<11} {'runs_to_opt':>11} {'found':>6} {'gap@10':>8} {'gap@20':>8} {'s/run':>7}")
         summary[pn] = {}

@@ -144,8 +144,15 @@ def test_json_round_trip_continues_identically() -> None:
     assert clone.config == eng.config
     eng.tell(pending, quad(pending))
     clone.tell(pending, quad(pending))
-    assert clone.ask() == eng.ask()
-    assert clone.recommend() == eng.recommend()
+    # the same point (up to BLAS rounding, which may depend on memory alignment)
+    for _ in range(3):
+        a, b = clone.ask(), eng.ask()
+        assert a.keys() == b.keys() and all(a[k] == pytest.approx(b[k], abs=1e-6) for k in a)
+        clone.tell(a, quad(a))
+        eng.tell(b, quad(b))
+    ra, rb = clone.recommend(), eng.recommend()
+    assert all(ra.params[k] == pytest.approx(rb.params[k], abs=1e-6) for k in ra.params)
+    assert ra.predicted_j == pytest.approx(rb.predicted_j, rel=1e-6)
     with pytest.raises(EngineError, match="version"):
         Engine.from_json('{"version": 99}')
     with pytest.raises(EngineError, match="JSON"):

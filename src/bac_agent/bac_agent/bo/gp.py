@@ -25,9 +25,10 @@ from typing import Any
 import numpy as np
 import scipy.linalg as sla
 from numpy.typing import NDArray
+from scipy.linalg import lapack
 from scipy.optimize import minimize
 
-from bac_agent.bo.kernel import matern52_dr2_factor, matern52_from_r2, sq_dist
+from bac_agent.bo.kernel import SQRT5, matern52_dr2_factor, matern52_from_r2, sq_dist
 from bac_common.errors import BacError
 
 FloatArray = NDArray[np.float64]
@@ -53,7 +54,8 @@ class GPConfig:
     noise_scale: float = 1.5
     noise_floor: float = 1e-6  # smallest noise variance (standardized units)
     noise_ceiling: float = 2.0
-    restarts: int = 2  # random starts besides the prior mode and the previous fit
+    draws: int = 8  # draws from the prior, screened by their objective
+    restarts: int = 1  # best draws optimized, besides the prior mode and the previous fit
     maxiter: int = 200
 
 
@@ -101,6 +103,13 @@ class GP:
         scale = np.concatenate([np.full(d, c.ls_scale), [c.os_scale, c.noise_scale]])
         return loc, scale
 
+    def _prior_cached(self, d: int) -> tuple[FloatArray, FloatArray]:
+        key = (d, self.config)
+        if getattr(self, "_prior_key", None) != key:
+            self._prior_key = key
+            self._prior_val = self._prior(d)
+        return self._prior_val
+
     def _bounds(self, d: int) -> list[tuple[float, float]]:
         c = self.config
         ls = (math.log(c.ls_bounds[0]), math.log(c.ls_bounds[1]))
@@ -125,36 +134,47 @@ class GP:
 
     # --- the objective: negative log posterior and its gradient ------------------------------
     def neg_log_posterior(self, v: FloatArray, D2: FloatArray | None = None) -> tuple[float, FloatArray]:
-        """-(log marginal likelihood + log prior) of log-hyperparameters ``v`` and its gradient."""
+        """-(log marginal likelihood + log prior) of log-hyperparameters ``v`` and its gradient.
+
+        ``D2`` is the (n*n, d) matrix of squared coordinate differences of the inputs
+        (computed once per fit).
+        """
         X, z = self.X, self._z
         n, d = X.shape
-        ls = np.exp(v[:d])
+        if D2 is None:
+            D2 = self._d2()
+        ls2 = np.exp(2.0 * v[:d])
         s2 = math.exp(v[d])
         sn2 = math.exp(v[d + 1])
-        if D2 is None:
-            D2 = (X[:, None, :] - X[None, :, :]) ** 2
-        r2 = D2 @ (1.0 / ls**2)
-        Kf = matern52_from_r2(r2, s2)
-        K = Kf + (sn2 + 1e-10 * s2) * np.eye(n)
-        try:
-            L = np.linalg.cholesky(K)
-        except np.linalg.LinAlgError:
+        r2 = (D2 @ (1.0 / ls2)).reshape(n, n)
+        r = np.sqrt(r2)
+        e = np.exp(-SQRT5 * r)
+        poly = 1.0 + SQRT5 * r
+        Kf = s2 * (poly + (5.0 / 3.0) * r2) * e
+        K = Kf.copy()
+        K.flat[:: n + 1] += sn2 + 1e-10 * s2
+        L, info = lapack.dpotrf(K, lower=1, clean=1)
+        if info != 0:
             return 1e10, np.zeros_like(v)
-        alpha = sla.cho_solve((L, True), z, check_finite=False)
-        Kinv = sla.cho_solve((L, True), np.eye(n), check_finite=False)
+        alpha, _ = lapack.dpotrs(L, z, lower=1)
+        Kinv, _ = lapack.dpotri(L, lower=1)
+        Kinv = np.tril(Kinv) + np.tril(Kinv, -1).T
         mll = -0.5 * float(z @ alpha) - float(np.sum(np.log(np.diag(L)))) - 0.5 * n * LOG_2PI
         W = np.outer(alpha, alpha) - Kinv
-        F = matern52_dr2_factor(r2, s2)
-        M = W * F
-        # d mll / d log l_k = 0.5 * sum_ij M_ij (x_ik - x_jk)^2 / l_k^2
-        g_ls = 0.5 * np.tensordot(M, D2, axes=([0, 1], [0, 1])) / ls**2
+        # F = -2 dk/d(r^2) = s2 (5/3)(1 + sqrt5 r) exp(-sqrt5 r); d mll/d log l_k = 0.5 sum_ij W F D2_k / l_k^2
+        M = W * ((s2 * 5.0 / 3.0) * poly * e)
+        g_ls = 0.5 * (M.ravel() @ D2) / ls2
         g_os = 0.5 * float(np.sum(W * Kf))
         g_sn = 0.5 * sn2 * float(np.trace(W))
         grad = np.concatenate([g_ls, [g_os, g_sn]])
-        loc, scale = self._prior(d)
+        loc, scale = self._prior_cached(d)
         lp = -0.5 * float(np.sum(((v - loc) / scale) ** 2))
         glp = -(v - loc) / scale**2
         return -(mll + lp), -(grad + glp)
+
+    def _d2(self) -> FloatArray:
+        X = self.X
+        return ((X[:, None, :] - X[None, :, :]) ** 2).reshape(-1, X.shape[1])
 
     def log_marginal_likelihood(self, hyper: Hyper) -> float:
         """Log marginal likelihood of the standardized data under ``hyper`` (no prior)."""
@@ -176,9 +196,12 @@ class GP:
         starts = [np.clip(loc, lo, hi)]
         if self.hyper is not None and self.hyper.lengthscales.shape[0] == d:
             starts.append(np.clip(self.hyper.to_vector(), lo, hi))
-        for _ in range(self.config.restarts):
-            starts.append(np.clip(loc + scale * rng.standard_normal(d + 2) * 0.7, lo, hi))
-        D2 = (self.X[:, None, :] - self.X[None, :, :]) ** 2
+        draws = [np.clip(loc + scale * rng.standard_normal(d + 2) * 0.7, lo, hi) for _ in range(self.config.draws)]
+        D2 = self._d2()
+        if draws:
+            # screen the prior draws by their objective; optimize only from the best ones
+            vals = [self.neg_log_posterior(v, D2)[0] for v in draws]
+            starts += [draws[i] for i in np.argsort(vals)[: self.config.restarts]]
         best_v, best_f = starts[0], math.inf
         for v0 in starts:
             try:
@@ -189,7 +212,7 @@ class GP:
                     jac=True,
                     method="L-BFGS-B",
                     bounds=bounds,
-                    options={"maxiter": self.config.maxiter},
+                    options={"maxiter": self.config.maxiter, "ftol": 1e-7, "gtol": 1e-4},
                 )
             except (np.linalg.LinAlgError, ValueError, FloatingPointError):
                 continue

@@ -1,0 +1,115 @@
+"""Latency of one ask() with 100 observations in 20 dimensions, hyperparameter fit included (issue 5).
+
+Each repetition builds a fresh engine, tells it 100 noisy observations of a
+20-dimensional test function (Controller II's size) and times one ``ask()``,
+which fits the GP hyperparameters from scratch (no warm start) and maximizes log
+EI. The baseline measured in the same run is one GP fit + prediction of the same
+data by scikit-learn's GaussianProcessRegressor (Matérn-5/2 ARD + noise, 2
+restarts), for scale. With ``--botorch`` (needs ``scripts/setup.sh --bench``) it
+also times BoTorch's SingleTaskGP fit + qLogNEI optimize_acqf on the same data.
+
+LAST line: ``ask_s_n100_d20 <median seconds>``. Goal: <= 0.2 s on this machine.
+
+    .venv/bin/python bench/agent_latency.py [--reps 7] [--botorch]
+"""
+
+from __future__ import annotations
+
+import argparse
+import statistics
+import sys
+import time
+import warnings
+
+import numpy as np
+
+N, D = 100, 20
+
+
+def data(seed: int) -> tuple[np.ndarray, np.ndarray]:
+    rng = np.random.default_rng(seed)
+    X = rng.random((N, D))
+    y = np.sum((X - 0.3) ** 2 * np.linspace(0.2, 2.0, D), axis=1) + np.sin(5 * X[:, 0]) + 0.05 * rng.standard_normal(N)
+    return X, y
+
+
+def time_bac(seed: int) -> float:
+    from bac_agent.bo import Engine
+
+    X, y = data(seed)
+    eng = Engine([(f"p{i:02d}", 0.0, 1.0) for i in range(D)], budget=200, n_initial=10, seed=seed)
+    names = eng.names
+    for x, v in zip(X, y, strict=True):
+        eng.tell(dict(zip(names, x.tolist(), strict=True)), float(v))
+    t0 = time.perf_counter()
+    p = eng.ask()
+    dt = time.perf_counter() - t0
+    assert all(0.0 <= p[n] <= 1.0 for n in names)
+    return dt
+
+
+def time_sklearn(seed: int) -> float:
+    from sklearn.gaussian_process import GaussianProcessRegressor
+    from sklearn.gaussian_process.kernels import ConstantKernel, Matern, WhiteKernel
+
+    X, y = data(seed)
+    k = ConstantKernel() * Matern(length_scale=np.ones(D), nu=2.5) + WhiteKernel(1e-2)
+    t0 = time.perf_counter()
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        gp = GaussianProcessRegressor(k, normalize_y=True, n_restarts_optimizer=2, random_state=seed).fit(X, y)
+    gp.predict(np.random.default_rng(seed).random((1024, D)), return_std=True)
+    return time.perf_counter() - t0
+
+
+def time_botorch(seed: int) -> float:
+    import torch
+    from botorch.acquisition.logei import qLogNoisyExpectedImprovement
+    from botorch.fit import fit_gpytorch_mll
+    from botorch.models import SingleTaskGP
+    from botorch.models.transforms import Standardize
+    from botorch.optim import optimize_acqf
+    from gpytorch.mlls import ExactMarginalLogLikelihood
+
+    X, y = data(seed)
+    Xt = torch.tensor(X)
+    Yt = -torch.tensor(y).unsqueeze(-1)
+    t0 = time.perf_counter()
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        model = SingleTaskGP(Xt, Yt, outcome_transform=Standardize(1))
+        fit_gpytorch_mll(ExactMarginalLogLikelihood(model.likelihood, model))
+        acq = qLogNoisyExpectedImprovement(model, X_baseline=Xt)
+        bounds = torch.stack([torch.zeros(D), torch.ones(D)]).to(torch.double)
+        optimize_acqf(acq, bounds=bounds, q=1, num_restarts=10, raw_samples=512)
+    return time.perf_counter() - t0
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--reps", type=int, default=7)
+    ap.add_argument("--botorch", action="store_true", help="also time BoTorch (benchmark dependencies)")
+    a = ap.parse_args(argv)
+    time_bac(100)  # warm-up: imports, BLAS threads
+    ours = [time_bac(s) for s in range(a.reps)]
+    base = [time_sklearn(s) for s in range(a.reps)]
+    m_ours, m_base = statistics.median(ours), statistics.median(base)
+    print(f"# {a.reps} repetitions, n={N} observations, d={D} dimensions, medians")
+    print(
+        f"bac ask (fit from scratch + log-EI maximization): {m_ours:.3f} s  (min {min(ours):.3f}, max {max(ours):.3f})"
+    )
+    print(f"sklearn GPR fit (2 restarts) + predict 1024:      {m_base:.3f} s")
+    print(f"ratio bac / sklearn: {m_ours / m_base:.2f}")
+    if a.botorch:
+        time_botorch(100)
+        bt = [time_botorch(s) for s in range(a.reps)]
+        m_bt = statistics.median(bt)
+        print(
+            f"botorch fit + qLogNEI optimize_acqf:             {m_bt:.3f} s  (ratio bac / botorch {m_ours / m_bt:.2f})"
+        )
+    print(f"ask_s_n100_d20 {m_ours:.4f}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
