@@ -55,7 +55,7 @@ NS = 1_000_000_000
 MODE_EVENT = 0  # bac_msgs/RunSegment.MODE_EVENT
 MODE_DISTANCE = 1  # bac_msgs/RunSegment.MODE_DISTANCE
 MODES = {"event": MODE_EVENT, "distance": MODE_DISTANCE}
-ALIGN_SIGNALS = ("accel_z", "pitch_rate", "both")
+ALIGN_SIGNALS = ("accel_z", "pitch_rate", "both", "none")
 DISTANCE_ORIGINS = ("odom", "run_start")
 ODOM_RESET_M = 1.0  # a drop of the odometry distance larger than this is a reset (a new run)
 SPLINE_MARGIN = 16  # samples around a re-sampled window (the cubic prefilter's support, to 1e-9)
@@ -138,11 +138,11 @@ class SegmentConfig:
     target_speed_mps: float = 30.0 / 3.6  # the speed the run must be driven at, m/s
     speed_tolerance: float = 0.05  # accepted relative deviation of the mean speed from the target
     imu_rate_hz: float = 0.0  # rate of imu/vehicle, Hz; 0 = measured from its stamps
-    align_signal: str = "both"  # signal(s) cross-correlated with the reference: accel_z, pitch_rate, both
-    min_alignment: float = 0.6  # minimum normalized cross-correlation with the reference
+    align_signal: str = "both"  # cross-correlated with the reference: accel_z, pitch_rate, both, none (no refinement)
+    min_alignment: float = 0.5  # minimum normalized cross-correlation with the reference
     min_coverage: float = 1.0  # minimum fraction of the window with valid IMU samples (1 = every sample)
     # event mode
-    trigger_threshold_mps2: float = 2.0  # |a_z| that marks the impact, m/s^2
+    trigger_threshold_mps2: float = 1.0  # |a_z| that marks the impact, m/s^2
     trigger_after_m: float = 0.0  # ignore impacts before this odometry distance, m
     pre_trigger_s: float = 0.3  # the window starts this long before the impact, s
     window_s: float = 2.5  # window length, s
@@ -521,9 +521,9 @@ def _alignment_curves(config: SegmentConfig, pairs: list[tuple[FloatArray, Float
 
 def _final_score(config: SegmentConfig, az: FloatArray, q: FloatArray, ref: Reference) -> float:
     scores = []
-    if config.align_signal in ("accel_z", "both"):
+    if config.align_signal in ("accel_z", "both", "none"):
         scores.append(_corr(az, ref.accel_z))
-    if config.align_signal in ("pitch_rate", "both"):
+    if config.align_signal in ("pitch_rate", "both", "none"):
         scores.append(_corr(q, ref.pitch_rate))
     return float(np.mean(scores))
 
@@ -634,7 +634,13 @@ def _cut_event(
     if trig.size == 0:
         return _Plan(missing=f"the impact (|a_z| >= {config.trigger_threshold_mps2:g} m/s^2)")
     i_trig = int(trig[0])
-    i0 = i_trig - pre
+    # sub-sample crossing of the threshold (linear between the samples around it)
+    frac = 0.0
+    if i_trig > 0:
+        a0, a1 = abs(float(np.nan_to_num(g.az[i_trig - 1]))), abs(float(g.az[i_trig]))
+        if a1 > a0:
+            frac = min(max((config.trigger_threshold_mps2 - a0) / (a1 - a0), 0.0), 1.0) - 1.0
+    i0 = i_trig + frac - pre  # fractional grid position of the nominal window start
     if i0 - lag_max < 0:
         return _Plan(
             reasons=[
@@ -642,7 +648,7 @@ def _cut_event(
                 f"the window needs {config.pre_trigger_s + config.max_lag_s:.2f} s of data before it"
             ]
         )
-    need = i0 + n + lag_max + SPLINE_MARGIN + 2
+    need = math.ceil(i0) + n + lag_max + SPLINE_MARGIN + 2
     if g.n < need:
         return _Plan(missing=f"IMU data up to t = {g.time_ns(need) / NS:.3f} s (end of the window)")
     t_end_needed = g.t0_ns + (i0 + n + lag_max) * float(g.step_ns)
@@ -653,7 +659,8 @@ def _cut_event(
     score = 1.0
     if ref is not None:
         ref.check(config, fs, 0.0)
-        span = np.arange(i0 - lag_max, i0 + n + lag_max, dtype=np.float64)
+    if ref is not None and config.align_signal != "none":
+        span = i0 - lag_max + np.arange(n + 2 * lag_max, dtype=np.float64)
         curve = _alignment_curves(
             config,
             [(_linear(g.az, span), ref.accel_z), (_linear(g.q, span), ref.pitch_rate)],
@@ -747,6 +754,7 @@ def _cut_distance(
     score = 1.0
     if ref is not None:
         ref.check(config, fs_eq, ds)
+    if ref is not None and config.align_signal != "none":
         s_coarse = s0 + (np.arange(n + 2 * m, dtype=np.float64) - m) * ds
         p_coarse = (_distance_to_time(ot, od, s_coarse) - g.t0_ns) / g.step_ns
         curve = _alignment_curves(

@@ -67,7 +67,9 @@ SEGMENT_PARAMS = {
     "speed_tolerance": ParamSpec("accepted relative deviation of the mean speed from the target", 1e-4, 0.99),
     "imu_rate_hz": ParamSpec("rate of imu/vehicle, Hz; 0 = measured from its stamps", 0.0, 10_000.0),
     "align_signal": ParamSpec(
-        "signal(s) cross-correlated with the reference", choices=("accel_z", "pitch_rate", "both")
+        "signal(s) cross-correlated with the reference to refine the cut; none: the impact trigger (event) or the "
+        "odometry (distance) alone",
+        choices=("accel_z", "pitch_rate", "both", "none"),
     ),
     "min_alignment": ParamSpec("minimum normalized cross-correlation with the reference", -1.0, 1.0),
     "min_coverage": ParamSpec("minimum fraction of the window with valid IMU samples (1 = all)", 1e-3, 1.0),
