@@ -9,10 +9,10 @@ Integration scheme (one step ``k -> k+1`` of length ``dt``):
   evaluated once per step from the state extrapolated to the middle of the step
   (``1.5 x[k+1] - 0.5 x[k]``, second order), and held over the step.
 
-The state of a batch lives in ``(22, B)`` arrays (14 states + 8 force inputs, one column per run);
-one step is one matrix product ``(26|30, 22) @ (22, B)`` that yields the next state and every
-linear signal the forces and the controller need, plus a few elementwise operations on ``(4, B)``
-arrays. Road inputs, their contribution to the step and the outputs are computed in chunks of
+A step's inputs ``[u (8); x (14); 1]`` (force inputs, state, a constant), one column per run, sit in
+a chunk buffer; one step is one matrix product ``(35, 23) @ (23, B)`` (``(35, 31)`` with per-run road
+inputs) that writes the next state and every linear signal the forces and the controller need
+straight into the next slot, plus about fifteen elementwise operations on ``(4, B)`` arrays. Road inputs, their contribution to the step and the outputs are computed in chunks of
 steps with large vectorized operations. With the default step of 2 ms (25 steps per wheel-hop
 period) the KPI agrees with a fine adaptive reference within a fraction of a percent (see
 ``tests/sim/test_engine.py``).
