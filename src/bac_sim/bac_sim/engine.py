@@ -12,10 +12,10 @@ Integration scheme (one step ``k -> k+1`` of length ``dt``):
 A step's inputs ``[u (8); x (14); 1]`` (force inputs, state, a constant), one column per run, sit in
 a chunk buffer; one step is one matrix product ``(35, 23) @ (23, B)`` (``(35, 31)`` with per-run road
 inputs) that writes the next state and every linear signal the forces and the controller need
-straight into the next slot, plus about fifteen elementwise operations on ``(4, B)`` arrays. Road inputs, their contribution to the step and the outputs are computed in chunks of
-steps with large vectorized operations. With the default step of 2 ms (25 steps per wheel-hop
-period) the KPI agrees with a fine adaptive reference within a fraction of a percent (see
-``tests/sim/test_engine.py``).
+straight into the next slot, plus about fifteen elementwise operations on ``(4, B)`` arrays. Road
+inputs and the outputs are computed in chunks of steps with large vectorized operations. With a
+step of 2.5 ms on the road (30 steps per wheel-hop period) and 1 ms at the bump, the KPI agrees
+with fine references within 0.15 % (see ``tests/sim/test_engine.py``).
 """
 
 from __future__ import annotations

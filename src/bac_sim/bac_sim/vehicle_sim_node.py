@@ -138,13 +138,15 @@ class VehicleSimNode(BacNode):
             ),
         )
         lever = self.declare_float_list(
-            "imu.lever_arm_m", [-0.25, -0.38, -0.30], "IMU position from the centre of gravity, m"
+            "imu.lever_arm_m", [-0.25, -0.38, -0.30], "IMU position from the centre of gravity, m", read_only=True
         )
         mount = self.declare_float_list(
-            "imu.mount_rpy_deg", [0.8, -1.2, 0.5], "IMU mounting rotation (roll, pitch, yaw), deg"
+            "imu.mount_rpy_deg", [0.8, -1.2, 0.5], "IMU mounting rotation (roll, pitch, yaw), deg", read_only=True
         )
-        a_bias = self.declare_float_list("imu.accel_bias", [0.03, -0.02, 0.05], "accelerometer bias, m/s^2")
-        g_bias = self.declare_float_list("imu.gyro_bias", [0.002, -0.001, 0.0015], "gyro bias, rad/s")
+        a_bias = self.declare_float_list(
+            "imu.accel_bias", [0.03, -0.02, 0.05], "accelerometer bias, m/s^2", read_only=True
+        )
+        g_bias = self.declare_float_list("imu.gyro_bias", [0.002, -0.001, 0.0015], "gyro bias, rad/s", read_only=True)
         for name, vec in (
             ("imu.lever_arm_m", lever),
             ("imu.mount_rpy_deg", mount),
@@ -160,16 +162,16 @@ class VehicleSimNode(BacNode):
             accel_bias=(a_bias[0], a_bias[1], a_bias[2]),
             gyro_bias=(g_bias[0], g_bias[1], g_bias[2]),
             accel_noise_density=self.declare_float(
-                "imu.accel_noise_density", 60e-6 * 9.80665, "m/s^2/sqrt(Hz)", 0.0, 1.0
+                "imu.accel_noise_density", 60e-6 * 9.80665, "m/s^2/sqrt(Hz)", 0.0, 1.0, read_only=True
             ),
             gyro_noise_density=self.declare_float(
-                "imu.gyro_noise_density", math.radians(0.007), "rad/s/sqrt(Hz)", 0.0, 1.0
+                "imu.gyro_noise_density", math.radians(0.007), "rad/s/sqrt(Hz)", 0.0, 1.0, read_only=True
             ),
             accel_lsb=self.declare_float(
-                "imu.accel_lsb", 16 * 9.80665 / 65536, "accelerometer resolution, m/s^2", 0.0, 1.0
+                "imu.accel_lsb", 16 * 9.80665 / 65536, "accelerometer resolution, m/s^2", 0.0, 1.0, read_only=True
             ),
             gyro_lsb=self.declare_float(
-                "imu.gyro_lsb", math.radians(1000.0) / 65536, "gyro resolution, rad/s", 0.0, 1.0
+                "imu.gyro_lsb", math.radians(1000.0) / 65536, "gyro resolution, rad/s", 0.0, 1.0, read_only=True
             ),
         )
         from bac_ecu_bridge.canbus import BusSettings, open_bus
@@ -190,6 +192,7 @@ class VehicleSimNode(BacNode):
         self.ecu = SimulatedEcu(self.bus, self.definition)
         self.ecu.start()
 
+        self.add_post_set_parameters_callback(self._parameters_changed)
         self.pub_imu = self.create_publisher(Imu, TOPIC_IMU_RAW, QOS_IMU_OUT)
         self.pub_odom = self.create_publisher(Odometry, TOPIC_ODOM, QOS_STREAM)
         self.pub_clock = self.create_publisher(Clock, TOPIC_CLOCK, QOS_CLOCK)
@@ -207,6 +210,25 @@ class VehicleSimNode(BacNode):
             f"vehicle_sim ready: scenario {self.scenario.name} at {self.scenario.speed * 3.6:.0f} km/h, controller "
             f"{self.definition.name}, IMU {self.imu_rate:g} Hz, ECU on {settings.describe()}, "
             f"runs at <= {self.rtf:g}x real time"
+        )
+
+    def _parameters_changed(self, params: list[Any]) -> None:
+        """Pacing, seed, run margins and the driver can change between runs (the next run uses them)."""
+        values = {p.name: p.value for p in params}
+        self.rtf = float(values.get("realtime_factor", self.rtf))
+        self.idle_rtf = float(values.get("idle_realtime_factor", self.idle_rtf))
+        self.clock_period = float(values.get("clock_period_s", self.clock_period))
+        self.seed = int(values.get("seed", self.seed))
+        self.run_in = float(values.get("run_in_s", self.run_in))
+        self.run_out = float(values.get("run_out_s", self.run_out))
+        d = self.driver
+        self.driver = DriverModel(
+            speed_error_std=float(values.get("driver.speed_error_kmh", d.speed_error_std * 3.6)) / 3.6,
+            speed_fluctuation_std=float(values.get("driver.speed_fluctuation_kmh", d.speed_fluctuation_std * 3.6))
+            / 3.6,
+            start_offset_std=float(values.get("driver.start_offset_m", d.start_offset_std)),
+            bad_run_probability=float(values.get("driver.bad_run_probability", d.bad_run_probability)),
+            bad_speed_factor=float(values.get("driver.bad_speed_factor", d.bad_speed_factor)),
         )
 
     # --- trials ---------------------------------------------------------------------------------
