@@ -10,7 +10,7 @@ included:
 
 It is applied in the frequency domain with the analog response itself
 (:func:`wk_response`), so the gain is exact at every sampling rate: a
-bilinear IIR at 200 Hz would miss the standard's table by ~1 % at 12.5 Hz
+bilinear IIR at 200 Hz misses the standard's table by 0.65 % at 12.5 Hz
 because of frequency warping. The signal is zero-padded by
 ``PAD_S`` seconds so that the circular convolution equals the linear one
 (the filter starts from rest at the first sample, like a causal filter).
