@@ -304,23 +304,41 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--budget", type=int, default=0, help="override every problem's budget")
     ap.add_argument("--workers", type=int, default=os.cpu_count() or 1)
     ap.add_argument("--out", default="bench/out/bo_efficiency.json", help="raw results (JSON) and a PNG beside it")
+    ap.add_argument(
+        "--from-json",
+        default="",
+        help="comma list of earlier --out files: summarize them together (e.g. problems run separately), run nothing",
+    )
     a = ap.parse_args(argv)
-    problems = [s for s in a.problems.split(",") if s] or available_problems()
-    optimizers = [s for s in a.optimizers.split(",") if s]
-    for o in optimizers:
-        if o not in OPTIMIZERS:
-            ap.error(f"unknown optimizer {o!r}; known: {', '.join(OPTIMIZERS)}")
-    tasks = [
-        (pn, on, s, a.noise_share, a.bac_config, a.budget)
-        for pn in problems
-        for on in optimizers
-        for s in range(a.seeds)
-    ]
-    t0 = time.perf_counter()
     results: dict[str, dict[str, list[tuple[int, list[float], float]]]] = {}
-    with ProcessPoolExecutor(max_workers=a.workers) as ex:
-        for pn, on, s, js, dt in ex.map(_task, tasks):
-            results.setdefault(pn, {}).setdefault(on, []).append((s, js, dt))
+    t0 = time.perf_counter()
+    if a.from_json:
+        for f in a.from_json.split(","):
+            data = json.loads(Path(f).read_text())
+            a.seeds, a.noise_share = data["seeds"], data["noise_share"]
+            for pn, d in data["curves"].items():
+                for on, curves in d.items():
+                    times = data.get("times", {}).get(pn, {}).get(on, [math.nan] * len(curves))
+                    results.setdefault(pn, {})[on] = [
+                        (i, c, t) for i, (c, t) in enumerate(zip(curves, times, strict=True))
+                    ]
+        problems = list(results)
+        optimizers = [o for o in OPTIMIZERS if all(o in results[pn] for pn in problems)]
+    else:
+        problems = [s for s in a.problems.split(",") if s] or available_problems()
+        optimizers = [s for s in a.optimizers.split(",") if s]
+        for o in optimizers:
+            if o not in OPTIMIZERS:
+                ap.error(f"unknown optimizer {o!r}; known: {', '.join(OPTIMIZERS)}")
+        tasks = [
+            (pn, on, s, a.noise_share, a.bac_config, a.budget)
+            for pn in problems
+            for on in optimizers
+            for s in range(a.seeds)
+        ]
+        with ProcessPoolExecutor(max_workers=a.workers) as ex:
+            for pn, on, s, js, dt in ex.map(_task, tasks):
+                results.setdefault(pn, {}).setdefault(on, []).append((s, js, dt))
     wall = time.perf_counter() - t0
 
     out_path = Path(a.out)
@@ -333,7 +351,7 @@ def main(argv: list[str] | None = None) -> int:
     )
     for pn in problems:
         p = make_problem(pn, a.noise_share)
-        p.budget = a.budget or p.budget
+        p.budget = len(results[pn][optimizers[0]][0][1])
         print(f"\n## {pn}  d={p.dim}  budget={p.budget}  J*={p.j_star:.4g}  J_med={p.j_med:.4g}")
         print(f"{'optimizer':<11} {'runs_to_opt':>11} {'found':>6} {'gap@10':>8} {'gap@20':>8} {'s/run':>7}")
         summary[pn] = {}
@@ -362,6 +380,7 @@ def main(argv: list[str] | None = None) -> int:
                 "curves": {
                     pn: {on: [js for _, js, _ in sorted(v)] for on, v in d.items()} for pn, d in results.items()
                 },
+                "times": {pn: {on: [t for *_, t in sorted(v)] for on, v in d.items()} for pn, d in results.items()},
             }
         )
     )

@@ -65,7 +65,7 @@ class EngineConfig:
     n_candidates: int = 1024  # space-filling candidates for the acquisition maximizer
     n_local: int = 256  # candidates around the best points
     acq_restarts: int = 4  # L-BFGS-B starts from the best candidates
-    recommend_beta: float = 0.0  # recommendation minimizes mean + beta * std (0 = the paper's argmin of the mean)
+    recommend_beta: float = 1.0  # recommendation minimizes mean + beta * std (0 = the paper's argmin of the mean)
     gp: GPConfig = field(default_factory=GPConfig)
 
     def __post_init__(self) -> None:
@@ -311,11 +311,10 @@ class Engine:
     def hyper(self) -> Hyper | None:
         return self._gp.hyper
 
-    def recommend(self) -> Recommendation:
-        """argmin over the domain of the posterior mean (+ recommend_beta · std), with its prediction."""
+    def _minimize_bound(self, beta: float) -> FloatArray:
+        """Unit-cube argmin of posterior mean + beta * std (multi-start L-BFGS-B), quantized."""
         gp = self._model()
         d = self.space.dim
-        beta = self.config.recommend_beta
         rng = np.random.default_rng(self.config.seed + 7919 * len(self.observations))
         cand = np.vstack([candidates(self.config.n_candidates, d, rng), gp.X])
         mu, var = gp.predict_std_units(cand)
@@ -329,14 +328,21 @@ class Engine:
 
         res = minimize(f, starts.ravel(), jac=True, method="L-BFGS-B", bounds=[(0.0, 1.0)] * (k * d))
         pts = np.vstack([np.clip(res.x.reshape(k, d), 0.0, 1.0), starts])
-        xs = self.space.from_unit(pts)
-        m, s = gp.predict(self.space.to_unit(xs))
-        i = int(np.argmin(m + beta * s))
+        U = self.space.to_unit(self.space.from_unit(pts))
+        m, v = gp.predict_std_units(U)
+        return np.asarray(U[int(np.argmin(m + beta * np.sqrt(v)))], dtype=float)
+
+    def recommend(self) -> Recommendation:
+        """argmin over the domain of the posterior mean (+ recommend_beta · std), with its prediction."""
+        gp = self._model()
+        u = self._minimize_bound(self.config.recommend_beta)
+        x = self.space.from_unit(u)
+        m, s = gp.predict(self.space.to_unit(x)[None, :])
         best = self.best_observed()
         return Recommendation(
-            params=self.space.to_params(xs[i]),
-            predicted_j=float(m[i]),
-            predicted_std=float(s[i]),
+            params=self.space.to_params(x),
+            predicted_j=float(m[0]),
+            predicted_std=float(s[0]),
             n_observations=len(self.observations),
             best_observed_params=dict(best.params) if best else None,
             best_observed_j=best.value if best else math.nan,

@@ -44,7 +44,8 @@ class GPError(BacError, ValueError):
 class GPConfig:
     """Priors and bounds of the hyperparameters (log space, on standardized outputs)."""
 
-    ls_loc: float = 0.0  # log-lengthscale prior mean is ls_loc + 0.5 log d
+    ls_loc: float = 0.0  # log-lengthscale prior mean is ls_loc + ls_dim_scale * log d
+    ls_dim_scale: float = 0.5
     ls_scale: float = 1.0
     ls_bounds: tuple[float, float] = (0.01, 50.0)
     os_loc: float = 0.0  # log outputscale prior
@@ -99,7 +100,7 @@ class GP:
     # --- priors ------------------------------------------------------------------
     def _prior(self, d: int) -> tuple[FloatArray, FloatArray]:
         c = self.config
-        loc = np.concatenate([np.full(d, c.ls_loc + 0.5 * math.log(d)), [c.os_loc, c.noise_loc]])
+        loc = np.concatenate([np.full(d, c.ls_loc + c.ls_dim_scale * math.log(d)), [c.os_loc, c.noise_loc]])
         scale = np.concatenate([np.full(d, c.ls_scale), [c.os_scale, c.noise_scale]])
         return loc, scale
 
