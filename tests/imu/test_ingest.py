@@ -241,7 +241,9 @@ def test_forward_jump_with_receive_clock_is_a_clock_jump_not_a_gap() -> None:
     out, h = ingest_all(t, acc, gyr, IngestConfig(output_rate_hz=200.0), recv_ns=recv)
     assert h.clock_jumps == 1 and h.gaps == 0
     out2, h2 = ingest_all(t, acc, gyr, IngestConfig(output_rate_hz=200.0))  # no receive times: a long gap
-    assert h2.clock_jumps == 0 and h2.gaps == 1 and h2.restarts == 1
+    assert h2.clock_jumps == 0 and h2.gaps == 0 and h2.restarts == 1  # a stream that stopped and resumed
+    assert any(e.kind == "restart" and "resumed after 30.005 s" in e.detail for e in h2.events)
+    assert diagnose(h2).level == WARN
     assert len(out) == len(out2) == n
 
 

@@ -6,8 +6,9 @@ irregular stamps, possibly broken) into the stream the measurement chain uses:
 1. **Sanity** of every sample: duplicated and out-of-order stamps are dropped,
    NaN/inf and saturated samples are marked bad, a gap longer than
    ``gap_threshold_s`` is a hole, a jump of the stamps by more than
-   ``clock_jump_s`` (backwards, or forwards while the receive clock did not
-   move as much) is a clock jump and restarts the output grid.
+   ``clock_jump_s`` backwards, or forwards while the receive clock did not
+   move as much, is a clock jump; a longer silence is a stream restart
+   (the stream stopped and resumed). Both restart the output grid.
 2. **Mounting**: the rotation ``R`` from the sensor frame to the vehicle frame
    (x forward, y left, z up) comes from the configured roll/pitch/yaw, or
    roll and pitch are estimated from gravity over the first standstill window
@@ -216,7 +217,7 @@ class IngestOutput:
 class StreamEvent:
     """A fault of the raw stream, for the health report."""
 
-    kind: str  # "gap", "nonfinite", "saturation", "duplicate", "out_of_order", "clock_jump", "restart"
+    kind: str  # "gap", "nonfinite", "saturation", "duplicate", "out_of_order", "clock_jump", "restart", "no_standstill"
     start_ns: int  # stamp where it starts
     end_ns: int  # stamp where it ends (== start_ns for a single sample)
     detail: str
@@ -273,7 +274,15 @@ class StreamHealth:
 
     @property
     def faults(self) -> int:
-        return self.gaps + self.nonfinite + self.saturated + self.duplicates + self.out_of_order + self.clock_jumps
+        return (
+            self.gaps
+            + self.nonfinite
+            + self.saturated
+            + self.duplicates
+            + self.out_of_order
+            + self.clock_jumps
+            + self.restarts
+        )
 
     def copy(self) -> StreamHealth:
         return replace(self, events=list(self.events))
@@ -487,12 +496,12 @@ class ImuIngestor:
         jump_s = (stamp - prev) / NS
         h = self._health
         if jump_s > 0 and (recv_step is None or recv_step >= (stamp - prev) / 2):
-            # the data stopped for that long (or nobody can tell): a long gap, the grid restarts
+            # the stream stopped that long and resumed (a simulator between runs, a driver restarted):
+            # STALE while it lasted; not a gap inside a stream, the output grid restarts
             h.restarts += 1
-            h.gaps += 1
-            h.gap_total_s += jump_s
-            h.longest_gap_s = max(h.longest_gap_s, jump_s)
-            self._event("gap", prev, stamp, f"no data for {jump_s:.3f} s: output grid restarted")
+            self._event(
+                "restart", prev, stamp, f"stream resumed after {jump_s:.3f} s without data: output grid restarted"
+            )
         else:
             h.clock_jumps += 1
             self._event("clock_jump", prev, stamp, f"stamps jumped by {jump_s:+.3f} s: output grid restarted")
@@ -800,6 +809,7 @@ def diagnose(
         "duplicated stamp": now.duplicates - b.duplicates,
         "out-of-order stamp": now.out_of_order - b.out_of_order,
         "clock jump": now.clock_jumps - b.clock_jumps,
+        "stream restart": now.restarts - b.restarts,
     }
     problems = [f"{n} {k}{'s' if n > 1 else ''}" for k, n in new.items() if n > 0]
     level = OK
