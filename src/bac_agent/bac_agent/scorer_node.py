@@ -10,12 +10,15 @@ a campaign's J must mean one thing.
 from __future__ import annotations
 
 import sys
+import traceback
 from collections import OrderedDict
+from dataclasses import replace
 from typing import Any
 
 import numpy as np
 
 from bac_agent.kpi import KpiConfig, Score, score
+from bac_agent.segmentation import RunId, SegmentConfig, invalid_segment
 from bac_agent.segmenter_node import from_msg
 from bac_common.contracts import TOPIC_RUN_SCORE, TOPIC_RUN_SEGMENT
 from bac_common.rosnode import QOS_EVENTS, BacNode, run_node
@@ -40,6 +43,7 @@ class KpiScorerNode(BacNode):
     def __init__(self, **kwargs: Any) -> None:
         super().__init__("kpi_scorer", **kwargs)
         self.config: KpiConfig = declare_config(self, KpiConfig, KPI_PARAMS)
+        self.segment_config = SegmentConfig()
         self.scored: OrderedDict[tuple[str, int, int], float] = OrderedDict()
         self.pub = self.create_publisher(RunScore, TOPIC_RUN_SCORE, QOS_EVENTS)
         self.create_subscription(RunSegment, TOPIC_RUN_SEGMENT, self._on_segment, QOS_EVENTS)
@@ -51,7 +55,13 @@ class KpiScorerNode(BacNode):
         if key in self.scored:
             self.get_logger().warning(f"segment of run {key} received again: already scored (J = {self.scored[key]})")
             return
-        s = score(from_msg(msg), self.config)
+        try:
+            s = score(from_msg(msg), self.config)
+        except Exception as exc:  # a bug must cost one run, not the campaign
+            self.get_logger().error(f"run {key}: scoring failed:\n{traceback.format_exc()}")
+            stamp = msg.header.stamp.sec * 1_000_000_000 + msg.header.stamp.nanosec
+            s = score(invalid_segment(self.segment_config, RunId(*key), stamp, "-"), self.config)
+            s = replace(s, reason=f"internal error in the scoring ({type(exc).__name__}: {exc}); see the log")
         self.pub.publish(to_msg(s))
         self.scored[key] = s.j
         while len(self.scored) > REMEMBERED:

@@ -25,6 +25,7 @@ from __future__ import annotations
 
 import sys
 import time
+import traceback
 from pathlib import Path
 from typing import Any
 
@@ -259,6 +260,10 @@ class RunSegmenterNode(BacNode):
         except BacError as exc:  # an unusable reference: every run would fail the same way
             self.get_logger().error(f"run {self.run}: {exc}")
             self._finish_invalid(f"cannot align: {exc}")
+            return
+        except Exception as exc:  # a bug must cost one run, not the campaign
+            self.get_logger().error(f"run {self.run}: segmentation failed:\n{traceback.format_exc()}")
+            self._finish_invalid(f"internal error in the segmentation ({type(exc).__name__}: {exc}); see the log")
             return
         elapsed = (now_ns - self.run_start_ns) / 1e9
         if elapsed > self.run_timeout_s:

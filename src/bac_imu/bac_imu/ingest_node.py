@@ -25,6 +25,7 @@ from __future__ import annotations
 
 import sys
 import time
+import traceback
 from typing import Any
 
 import numpy as np
@@ -147,7 +148,13 @@ class ImuIngestNode(BacNode):
         # one receive time per batch (ROS time: sim time under use_sim_time); enough to tell a clock
         # jump (data kept flowing) from a gap (the batches before and after it are apart)
         recv = np.full(stamps.shape, self.get_clock().now().nanoseconds, np.int64) if self.use_receive_time else None
-        out = self.ingestor.push(stamps, acc, gyr, recv)
+        try:
+            out = self.ingestor.push(stamps, acc, gyr, recv)
+        except Exception:  # a bug must not end the stream: start over, say so
+            self.get_logger().error(f"ingestion failed, the stream starts over:\n{traceback.format_exc()}")
+            self.ingestor = ImuIngestor(self.config)
+            self._prev_health = None
+            return
         self._publish(out)
         faults = self.ingestor.health().faults
         if faults != self._last_faults and time.monotonic() - self._last_diag > 0.1:
