@@ -8,7 +8,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from synth import NS, bump_run, road_run
+from measure_synth import NS, bump_run, road_run
 
 from bac_agent.segmentation import (
     MODE_DISTANCE,

@@ -18,7 +18,7 @@ from typing import Any
 
 import numpy as np
 import pytest
-from synth import NS, bump_run, road_run
+from measure_synth import NS, bump_run, road_run
 
 from bac_agent.kpi import KpiConfig, score
 from bac_agent.segmentation import ImuSeries, OdomSeries, SegmentConfig, cut_run
