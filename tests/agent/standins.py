@@ -4,7 +4,7 @@
     python standins.py chain  --ros-args -p invalid_runs:=1:1 -p log_file:=/tmp/c.jsonl
 
 * ``bridge`` serves ecu_bridge/apply_calibration: success with the values echoed, except
-  for the trial ids in ``fail_trials`` (comma list), answered with ERROR_ECU_BUSY.
+  for the trial ids in ``fail_trials`` (comma list), answered with ERROR_ECU_OUT_OF_RANGE.
 * ``chain`` plays the driver, the segmenter and the scorer: on each READY_TO_DRIVE it
   publishes, after ``delay_s`` (wall), a RunScore with the same (campaign, trial, attempt)
   and J = 1 + (x0 - 0.3)^2 + (x1 - 0.6)^2 of the calibration in the Trial message,
@@ -49,8 +49,8 @@ class FakeBridge(BacNode):
         cal = req.calibration
         ok = cal.trial_id not in self.fail
         res.success = ok
-        res.error_code = 0 if ok else ApplyCalibration.Response.ERROR_ECU_BUSY
-        res.message = "" if ok else "ECU busy (stand-in refuses this trial)"
+        res.error_code = 0 if ok else ApplyCalibration.Response.ERROR_ECU_OUT_OF_RANGE
+        res.message = "" if ok else "ECU refuses a value as out of its range (stand-in refuses this trial)"
         res.attempts = 1
         res.latency_s = 0.01
         if ok:

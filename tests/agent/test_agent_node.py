@@ -106,7 +106,7 @@ def test_invalid_run_repeated_and_failed_apply_never_scored(procs: Any, tmp_path
     assert not [c for c in chain if c["trial_id"] == 2]
     assert not [e for e in ev if e["event"] in ("trial_scored", "run_ready") and e["trial_id"] == 2]
     f2 = next(e for e in ev if e["event"] == "trial_failed" and e["trial_id"] == 2)
-    assert "ECU apply failed (error 4)" in f2["reason"]
+    assert "ECU apply failed (error 3)" in f2["reason"]
     # trial 3: two invalid runs = max_attempts: failed
     assert any(e["event"] == "trial_failed" and e["trial_id"] == 3 for e in ev)
     assert [e["trial_id"] for e in ev if e["event"] == "trial_scored"] == [1, 4]

@@ -59,9 +59,9 @@ class Driver:
         self.confirmed[a.trial_id] = a.params
         self.feed(self.c.on_apply_result(a.trial_id, a.apply_try, True, applied=a.params))
 
-    def fail_apply(self, code: int = 4) -> None:
+    def fail_apply(self, code: int = 3, message: str = "value out of range") -> None:
         a = self.applies[-1]
-        self.feed(self.c.on_apply_result(a.trial_id, a.apply_try, False, code, "ECU busy"))
+        self.feed(self.c.on_apply_result(a.trial_id, a.apply_try, False, code, message))
 
     def score(self, valid: bool = True, j: float | None = None, reason: str = "") -> None:
         r = self.runs[-1]
@@ -146,7 +146,7 @@ def test_failed_apply_is_retried_then_never_driven(tmp_path: Path) -> None:
     assert len(d.applies) == 2 and d.applies[-1].apply_try == 2 and not d.runs
     d.fail_apply()
     assert not d.runs  # never READY_TO_DRIVE on an unconfirmed calibration
-    assert len(eng.failures) == 1 and "ECU apply failed (error 4)" in eng.failures[0].reason
+    assert len(eng.failures) == 1 and "ECU apply failed (error 3)" in eng.failures[0].reason
     # a score for the failed trial is refused
     d.feed(camp.on_score("c1", 1, 1, True, 0.5))
     assert not eng.observations
@@ -154,6 +154,30 @@ def test_failed_apply_is_retried_then_never_driven(tmp_path: Path) -> None:
     assert d.applies[-1].trial_id == 2
     d.feed(camp.on_apply_timeout(2, 1, "service ecu_bridge/apply_calibration not available"))
     assert d.applies[-1].trial_id == 2 and d.applies[-1].apply_try == 2
+
+
+def test_busy_ecu_is_asked_again_later_without_failing(tmp_path: Path) -> None:
+    now = [100.0]
+    eng = Engine(SPACE, budget=3, seed=1)
+    cfg = CampaignConfig("c1", budget=3, apply_retries=0, busy_retry_s=2.0, busy_timeout_s=30.0)
+    camp = Campaign(eng, Journal(tmp_path), cfg, clock=lambda: now[0])
+    d = Driver(camp)
+    d.feed(camp.start())
+    for _ in range(5):  # the vehicle is still rolling out of the last run: busy for 20 s
+        d.fail_apply(4, "busy: vehicle moving")
+        now[0] += 4.0
+    assert len(d.applies) == 6 and all(a.delay_s == 2.0 for a in d.applies[1:])
+    assert d.published[-1].state == State.APPLYING and "Stop the vehicle" in d.published[-1].instruction
+    assert not eng.failures and not d.runs
+    d.ok_apply()  # standstill: accepted
+    assert d.runs[-1].trial_id == 1
+    d.score()
+    # busy for longer than busy_timeout_s: that is a failed try (apply_retries = 0: the trial fails)
+    for _ in range(9):
+        d.fail_apply(4, "busy: vehicle moving")
+        now[0] += 4.0
+    assert len(eng.failures) == 1 and "error 4" in eng.failures[0].reason
+    assert not any(r.trial_id == 2 for r in d.runs)
 
 
 def test_run_timeout_counts_as_invalid(tmp_path: Path) -> None:

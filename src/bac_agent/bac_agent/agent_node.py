@@ -133,6 +133,12 @@ class BoAgentNode(BacNode):
         max_failures = self.declare_int(
             "max_consecutive_failures", 3, "failed trials in a row that end the campaign", 1, 1000
         )
+        busy_retry = self.declare_float(
+            "busy_retry_s", 2.0, "wait before asking a busy ECU (vehicle moving) again, s", 0.05, 600.0
+        )
+        busy_timeout = self.declare_float(
+            "busy_timeout_s", 120.0, "ROS time an ECU may stay busy before the apply counts as failed, s", 0.0, 1e6
+        )
         resume = self.declare_bool(
             "resume", True, "continue the campaign in campaign_dir's journal (false: refuse an existing one)", True
         )
@@ -164,6 +170,8 @@ class BoAgentNode(BacNode):
             run_timeout_s=run_timeout,
             confirmation_run=confirmation,
             max_consecutive_failures=max_failures,
+            busy_retry_s=busy_retry,
+            busy_timeout_s=busy_timeout,
             extra={"n_initial": n_initial, "grid_size": grid_size, "definition_file": str(definition_file)},
         )
         self.campaign = Campaign(
@@ -205,7 +213,7 @@ class BoAgentNode(BacNode):
             elif isinstance(a, Apply):
                 self._apply = a
                 self._apply_future = None
-                self._apply_started = time.monotonic()
+                self._apply_started = time.monotonic() + a.delay_s  # not called before then
                 self._apply_deadline = self._apply_started + self.service_wait_s
                 self._run = None
             elif isinstance(a, AwaitRun):
@@ -266,6 +274,8 @@ class BoAgentNode(BacNode):
             return
         now = time.monotonic()
         if self._apply_future is None:
+            if now < self._apply_started:
+                return  # waiting before asking again (the ECU was busy)
             if self.client.service_is_ready():
                 req = ApplyCalibration.Request()
                 req.calibration = Calibration(

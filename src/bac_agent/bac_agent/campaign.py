@@ -39,6 +39,7 @@ from bac_agent.journal import SCHEMA_VERSION, Journal, JournalError, write_json_
 from bac_common.errors import BacError
 
 RECOMMENDATION_NAME = "recommendation.json"
+ERROR_ECU_BUSY = 4  # bac_msgs/srv/ApplyCalibration ERROR_ECU_BUSY: the ECU refuses while the vehicle moves
 
 
 class CampaignError(BacError):
@@ -97,6 +98,8 @@ class CampaignConfig:
     run_timeout_s: float = 120.0  # ROS time from READY_TO_DRIVE to a score
     confirmation_run: bool = False
     max_consecutive_failures: int = 3
+    busy_retry_s: float = 2.0  # an ECU that answers "busy" (vehicle moving) is asked again after this long
+    busy_timeout_s: float = 120.0  # ... until it has been busy this long (ROS time): then a failed try
     extra: Mapping[str, Any] = field(default_factory=dict)  # journaled with the start (n_initial, grid_size, ...)
 
     def __post_init__(self) -> None:
@@ -140,6 +143,7 @@ class Apply:
     apply_try: int
     params: dict[str, float]
     timeout_s: float
+    delay_s: float = 0.0  # wait this long (wall) before calling the bridge
 
 
 @dataclass(frozen=True)
@@ -173,7 +177,9 @@ class _Trial:
     predicted_std: float = math.nan
     attempt: int = 0  # last attempt number used (the next run is attempt + 1)
     rejections: int = 0
-    apply_try: int = 0
+    apply_try: int = 0  # apply requests sent (each answer is matched to its request)
+    failed_applies: int = 0  # failed tries (an ECU busy within busy_timeout_s is not one)
+    busy_since: float = math.nan
     confirmed: bool = False
     phase: State = State.PROPOSED
     last_reason: str = ""
@@ -282,6 +288,8 @@ class Campaign:
                     "run_timeout_s": self.cfg.run_timeout_s,
                     "confirmation_run": self.cfg.confirmation_run,
                     "max_consecutive_failures": self.cfg.max_consecutive_failures,
+                    "busy_retry_s": self.cfg.busy_retry_s,
+                    "busy_timeout_s": self.cfg.busy_timeout_s,
                     **dict(self.cfg.extra),
                 },
                 definition=self.definition,
@@ -416,17 +424,17 @@ class Campaign:
             *self._apply(t),
         ]
 
-    def _apply(self, t: _Trial) -> list[Action]:
+    def _apply(self, t: _Trial, delay_s: float = 0.0, instruction: str = "") -> list[Action]:
         t.apply_try += 1
         t.confirmed = False
         t.phase = State.APPLYING
-        self._j("apply_requested", trial_id=t.trial_id, apply_try=t.apply_try, params=t.params)
+        self._j("apply_requested", trial_id=t.trial_id, apply_try=t.apply_try, params=t.params, delay_s=delay_s)
         return [
             self._status(
                 State.APPLYING,
-                f"Do not drive: writing trial {t.trial_id}'s calibration to the ECU (try {t.apply_try}).",
+                instruction or f"Do not drive: writing trial {t.trial_id}'s calibration to the ECU.",
             ),
-            Apply(t.trial_id, t.apply_try, dict(t.params), self.cfg.apply_timeout_s),
+            Apply(t.trial_id, t.apply_try, dict(t.params), self.cfg.apply_timeout_s, delay_s),
         ]
 
     def on_apply_result(
@@ -460,7 +468,21 @@ class Campaign:
         )
         if success:
             t.confirmed = True
+            t.busy_since = math.nan
             return self._ready(t)
+        if error_code == ERROR_ECU_BUSY:
+            now = self.clock()
+            if math.isnan(t.busy_since):
+                t.busy_since = now
+            if now - t.busy_since < self.cfg.busy_timeout_s:
+                return [
+                    Log("info", f"trial {t.trial_id}: the ECU is busy (vehicle moving); asking again"),
+                    *self._apply(
+                        t,
+                        self.cfg.busy_retry_s,
+                        "Stop the vehicle: the ECU takes a new calibration only at standstill.",
+                    ),
+                ]
         return self._apply_failed(t, reason)
 
     def on_apply_timeout(self, trial_id: int, apply_try: int, reason: str) -> list[Action]:
@@ -472,9 +494,11 @@ class Campaign:
         return self._apply_failed(t, reason)
 
     def _apply_failed(self, t: _Trial, reason: str) -> list[Action]:
-        if t.apply_try <= self.cfg.apply_retries:
+        t.failed_applies += 1
+        t.busy_since = math.nan
+        if t.failed_applies <= self.cfg.apply_retries:
             return [Log("warn", f"trial {t.trial_id}: {reason}; retrying the apply"), *self._apply(t)]
-        return self._fail(t, f"{reason} (after {t.apply_try} tries)")
+        return self._fail(t, f"{reason} (after {t.failed_applies} failed tries)")
 
     def _ready(self, t: _Trial) -> list[Action]:
         t.attempt += 1
