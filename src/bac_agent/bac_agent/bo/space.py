@@ -157,7 +157,8 @@ class SearchSpace:
         if np.any(q):
             lo, hi = self.lower[q], self.upper[q]
             steps = np.round((x[..., q] - lo) / res[q])
-            x[..., q] = np.minimum(lo + steps * res[q], hi)
+            # rounded to 12 decimals: 0.3465, not 0.34650000000000003, in logs and journals
+            x[..., q] = np.minimum(np.round(lo + steps * res[q], 12), hi)
         return np.clip(x, self.lower, self.upper)
 
     def to_params(self, x: FloatArray) -> dict[str, float]:
