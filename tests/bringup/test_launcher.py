@@ -13,7 +13,7 @@ from typing import Any
 import pytest
 import yaml
 
-from bac_bringup.profile import ProfileError, format_param_value, load_profile
+from bac_bringup.profile import ProfileError, load_profile
 
 from conftest import ROOT, wait_for
 
@@ -81,6 +81,26 @@ def test_parameters_environment_and_finish(ros_env: dict[str, str], tmp_path: Pa
         assert a["pid"] != o["pid"] != os.getpid()
     # alpha was shut down cleanly when omega ended the graph
     assert report(tmp_path, "alpha", "clean") is not None
+
+
+@pytest.mark.parametrize("mode", [[], ["--single-process"]], ids=["processes", "single-process"])
+def test_command_line_overrides_win_over_parameter_files(
+    ros_env: dict[str, str], tmp_path: Path, mode: list[str]
+) -> None:
+    params = tmp_path / "params.yaml"
+    params.write_text(
+        yaml.safe_dump({"alpha": {"ros__parameters": {"tag": "from file"}}, "omega": {"ros__parameters": {"tag": "x"}}})
+    )
+    nodes = [reporter("alpha", tmp_path), {**reporter("omega", tmp_path, finish_after_s=1.5), "ends_graph": True}]
+    nodes[0]["params"].pop("tag", None)
+    prof = make_profile(tmp_path, nodes, params_files=[str(params)])
+    p = launch(ros_env, str(prof), *mode, "-p", "omega.tag:=from command line")
+    out, _ = p.communicate(timeout=90)
+    assert p.returncode == 0, out.decode(errors="replace")
+    a, o = report(tmp_path, "alpha"), report(tmp_path, "omega")
+    assert a is not None and o is not None
+    assert a["tag"] == "from file"
+    assert o["tag"] == "from command line"
 
 
 @pytest.mark.parametrize("mode", [[], ["--single-process"]], ids=["processes", "single-process"])
@@ -155,10 +175,3 @@ def test_bad_profiles_are_refused(tmp_path: Path) -> None:
     bad.write_text("nodes: [{name: x}]\n")
     with pytest.raises(ProfileError, match="entry"):
         load_profile(bad)
-
-
-@pytest.mark.parametrize(
-    ("value", "text"), [("hello world", "hello world"), ("42", "'42'"), (42, "42"), (True, "true"), ([1, 2], "[1, 2]")]
-)
-def test_param_values_keep_their_type_on_the_command_line(value: Any, text: str) -> None:
-    assert format_param_value(value) == text

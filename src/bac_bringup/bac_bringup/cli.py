@@ -27,7 +27,7 @@ SUBCOMMANDS: dict[str, tuple[str, str, str]] = {
     "demo": ("bac_bringup.demo", "main", "the main job: a whole calibration campaign on the simulated vehicle"),
     "netns": ("bac_bringup.netns", "main", "run a command inside a private network namespace"),
     "rescore": ("bac_agent.rescore", "main", "re-cut and re-score a campaign's bags (or any IMU bag) offline"),
-    "replay": ("bac_agent.replay", "main", "play bags into the live graph on /clock"),
+    "replay": ("bac_agent.replay", "cli", "play bags into the live graph on /clock (the replay profile)"),
     "report": ("bac_agent.report", "main", "make a campaign's report (PNG + HTML)"),
     "reduce": ("bac_agent.reduce", "main", "simulation phase: find the parameters that matter (paper sec. III-D)"),
     "ground-truth": ("bac_sim.ground_truth", "main", "recompute the simulator's true optima by dense grids"),

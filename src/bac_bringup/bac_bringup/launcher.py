@@ -20,6 +20,7 @@ any node dies.
 from __future__ import annotations
 
 import ctypes
+import functools
 import importlib
 import logging
 import os
@@ -39,7 +40,6 @@ from bac_bringup.profile import (
     CanSpec,
     NodeSpec,
     Profile,
-    format_param_value,
 )
 from bac_common.contracts import ROS_ENV_DEFAULTS
 
@@ -60,12 +60,49 @@ def ros_environment(base: dict[str, str] | None = None) -> dict[str, str]:
     return env
 
 
+def nest_params(flat: dict[str, Any]) -> dict[str, Any]:
+    """``{"can.interface": x}`` -> ``{"can": {"interface": x}}`` (the parameter-file form)."""
+    out: dict[str, Any] = {}
+    for key, value in flat.items():
+        d = out
+        parts = key.split(".")
+        for part in parts[:-1]:
+            d = d.setdefault(part, {})
+        d[parts[-1]] = value
+    return out
+
+
+@functools.lru_cache(maxsize=1)
+def _override_dir() -> Path:
+    import atexit
+    import shutil
+
+    path = Path(tempfile.mkdtemp(prefix="bac-launch-"))
+    atexit.register(shutil.rmtree, path, True)
+    return path
+
+
+def overrides_file(spec: NodeSpec, params: dict[str, Any]) -> Path:
+    """A parameter file with one node's overrides, keyed by its name.
+
+    ``-p name:=value`` on the command line applies to every node (``/**``), and
+    rcl lets a node-specific entry of a parameter file win over it; a file
+    keyed by the node's name, given last, wins over the profile's files.
+    """
+    import yaml
+
+    path = _override_dir() / f"{spec.name}.overrides.yaml"
+    path.write_text(yaml.safe_dump({spec.name: {"ros__parameters": nest_params(params)}}))
+    return path
+
+
 def ros_args_for(profile: Profile, spec: NodeSpec) -> list[str]:
     args = ["--ros-args", "-r", f"__node:={spec.name}"]
     for f in profile.params_files:
         args += ["--params-file", str(f)]
-    for k, v in profile.params_for(spec).items():
-        args += ["-p", f"{k}:={format_param_value(v)}"]
+    params = profile.params_for(spec)
+    if params:
+        args += ["--params-file", str(overrides_file(spec, params))]
     return args
 
 

@@ -208,15 +208,3 @@ def load_profile(name_or_path: str | Path) -> Profile:
         global_params=dict(data.get("global_params") or {}),
         campaign=bool(data.get("campaign", False)),
     )
-
-
-def format_param_value(value: Any) -> str:
-    """A value in the syntax of ``--ros-args -p name:=value`` (YAML)."""
-    import yaml
-
-    if isinstance(value, str):
-        # quote strings that YAML would read as something else
-        dumped = yaml.safe_dump(value, default_flow_style=True).strip()
-        return dumped.removesuffix("\n...").strip()
-    text = yaml.safe_dump(value, default_flow_style=True).strip()
-    return text.removesuffix("...").strip()
