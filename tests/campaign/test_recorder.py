@@ -46,7 +46,8 @@ def read_bag(path: Path) -> dict[str, list[Any]]:
     out: dict[str, list[Any]] = {}
     with AnyReader([path], default_typestore=bac_typestore()) as reader:
         for conn, _t, raw in reader.messages():
-            out.setdefault(conn.topic, []).append(reader.deserialize(raw, conn.msgtype))
+            assert conn.topic.startswith("/")  # fully qualified, as ros2 bag record writes them
+            out.setdefault(conn.topic.lstrip("/"), []).append(reader.deserialize(raw, conn.msgtype))
     return out
 
 

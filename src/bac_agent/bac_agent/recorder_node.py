@@ -28,10 +28,15 @@ from rclpy.serialization import deserialize_message
 
 from bac_agent.recording import RECORDED_TOPICS, TrialBagWriter, cdr_stamp_ns, trial_bag_dir
 from bac_common.contracts import TOPIC_CALIBRATION, TOPIC_RUN_SCORE, TOPIC_RUN_SEGMENT, TOPIC_TRIAL
-from bac_common.rosnode import QOS_EVENTS, QOS_LATCHED, QOS_STREAM, BacNode, run_node
+from bac_common.rosnode import QOS_EVENTS, QOS_LATCHED, BacNode, run_node
+from bac_imu.topic_drain import TopicDrain
 from bac_msgs.msg import Calibration, RunScore, RunSegment, Trial
 
-SENSOR_DEEP = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=5000, reliability=ReliabilityPolicy.BEST_EFFORT)
+# the high-rate streams are read in batches (bac_imu.topic_drain) from deep reader histories: an executor
+# callback per message cannot keep up with a simulation running 10x faster than real time
+SENSOR_DEEP = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=50000, reliability=ReliabilityPolicy.BEST_EFFORT)
+STREAM_DEEP = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=50000, reliability=ReliabilityPolicy.RELIABLE)
+DRAINED_TOPICS = ("imu/data_raw", "imu/vehicle", "vehicle/odom")
 
 
 def _msg_class(msgtype: str) -> Any:
@@ -50,8 +55,8 @@ def _msg_class(msgtype: str) -> Any:
 
 QOS_BY_TOPIC = {
     "imu/data_raw": SENSOR_DEEP,
-    "imu/vehicle": QOS_STREAM,
-    "vehicle/odom": QOS_STREAM,
+    "imu/vehicle": STREAM_DEEP,
+    "vehicle/odom": STREAM_DEEP,
     "bac/trial": QOS_LATCHED,
     "bac/run_segment": QOS_EVENTS,
     "bac/run_score": QOS_EVENTS,
@@ -81,7 +86,7 @@ class CampaignRecorderNode(BacNode):
         self.close_grace_s = self.declare_float(
             "close_grace_s", 3.0, "keep the previous trial's bag open this long (wall) for late messages, s", 0.0, 60.0
         )
-        self._lock = threading.Lock()
+        self._lock = threading.RLock()
         # open bags: trial id -> (writer, first stamp of the trial in ns)
         self._open_bags: dict[int, tuple[TrialBagWriter, int]] = {}
         self._current = 0
@@ -98,12 +103,27 @@ class CampaignRecorderNode(BacNode):
                 callback_group=group,
             )
             for t in topics
+            if t not in DRAINED_TOPICS
         ]
+        self._drains = [
+            (t, TopicDrain(self, _msg_class(RECORDED_TOPICS[t]), t, QOS_BY_TOPIC[t]))
+            for t in topics
+            if t in DRAINED_TOPICS
+        ]
+        self.drain_period_s = self.declare_float(
+            "drain_period_s", 0.02, "how often the high-rate streams are taken from their readers, s", 0.001, 1.0
+        )
         self._wall = Clock(clock_type=ClockType.STEADY_TIME)
         self._close_timers: list[Any] = []
+        self._drain_timer = self.create_timer(self.drain_period_s, self._drain, callback_group=group, clock=self._wall)
         self.get_logger().info(f"recording {len(topics)} topics into {Path(self.campaign_dir) / 'bags'}")
 
     # --- routing -----------------------------------------------------------------------
+    def _drain(self) -> None:
+        for topic, drain in self._drains:
+            for data in drain.take():
+                self._on_message(topic, data)
+
     def _on_message(self, topic: str, data: bytes) -> None:
         now_ns = self.get_clock().now().nanoseconds
         with self._lock:
@@ -122,7 +142,8 @@ class CampaignRecorderNode(BacNode):
                 self._write(msg.trial_id, topic, now_ns, data)
                 return
             stamp = cdr_stamp_ns(data) if topic != TOPIC_CALIBRATION else None
-            self._write(self._owner(stamp), topic, now_ns, data)
+            # a batch taken from a drain arrives at once: its messages' own stamps keep their timing
+            self._write(self._owner(stamp), topic, stamp or now_ns, data)
 
     def _owner(self, stamp_ns: int | None) -> int:
         """The open trial a stamped message belongs to (the current one when unstamped)."""
@@ -174,8 +195,14 @@ class CampaignRecorderNode(BacNode):
 
     def destroy_node(self) -> None:
         with self._lock:
+            try:
+                self._drain()  # what arrived since the last drain
+            except Exception as exc:
+                self.get_logger().warning(f"last drain failed: {exc}")
             for trial_id in list(self._open_bags):
                 self._close(trial_id)
+        for _, drain in self._drains:
+            drain.destroy()
         super().destroy_node()
 
 

@@ -110,7 +110,8 @@ class TrialBagWriter:
             msgtype = self.topics.get(topic)
             if msgtype is None:
                 raise RecordingError(f"topic {topic!r} is not one the recorder knows the type of")
-            conn = self._writer.add_connection(topic, msgtype, typestore=self.store)
+            # fully qualified, as ros2 bag record names them
+            conn = self._writer.add_connection("/" + topic.lstrip("/"), msgtype, typestore=self.store)
             self._connections[topic] = conn
         self._writer.write(conn, int(stamp_ns), bytes(data))  # type: ignore[arg-type]
         self.count += 1

@@ -101,6 +101,8 @@ def launch_main(argv: Sequence[str]) -> int:
         except netns.NetnsError as exc:
             logging.getLogger("bac.launch").error("%s", exc)
             return 3
+    if profile.campaign:
+        launcher.save_launch_config(profile, Path(profile.global_params["campaign_dir"]), argv, args.single_process)
     return launcher.run_graph(profile, single_process=args.single_process, log_dir=args.log_dir, timeout_s=args.timeout)
 
 

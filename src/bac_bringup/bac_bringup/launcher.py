@@ -186,8 +186,19 @@ class ProcessGraph:
         return code if code is not None else stop_rc
 
     def stop(self) -> int:
-        """SIGINT to every live node, then SIGTERM, then SIGKILL. Returns 0 if all ended cleanly."""
-        live = [c for c in self.children if c.proc.poll() is None]
+        """Stop the nodes in waves of ``stop_order`` (SIGINT, then SIGTERM, then SIGKILL per wave).
+
+        Returns 0 if every node ended cleanly on SIGINT. Waves let a node that still needs another at its
+        shutdown (the ECU bridge restoring the baseline calibration on the simulated vehicle's ECU) go first.
+        """
+        unclean = 0
+        for order in sorted({c.spec.stop_order for c in self.children}):
+            wave = [c for c in self.children if c.spec.stop_order == order]
+            unclean += self._stop_wave(wave)
+        return 1 if unclean else 0
+
+    def _stop_wave(self, wave: list[NodeProcess]) -> int:
+        live = [c for c in wave if c.proc.poll() is None]
         unclean = 0
         for sig, grace in ((signal.SIGINT, STOP_GRACE_S), (signal.SIGTERM, STOP_GRACE_S), (signal.SIGKILL, 5.0)):
             if not live:
@@ -204,7 +215,7 @@ class ProcessGraph:
             while live and time.monotonic() < deadline:
                 live = [c for c in live if c.proc.poll() is None]
                 time.sleep(0.02)
-        return 1 if unclean else 0
+        return unclean
 
 
 class SingleProcessGraph:
@@ -255,7 +266,7 @@ class SingleProcessGraph:
             LOG.exception("a node crashed: shutting down the graph")
             code = 1
         finally:
-            for _, n in reversed(nodes):
+            for _, n in sorted(reversed(nodes), key=lambda sn: sn[0].stop_order):
                 try:
                     n.destroy_node()
                 except Exception:
@@ -284,6 +295,59 @@ def needs_private_netns(profile: Profile, single_process: bool) -> bool:
         and profile.can.interface in CAN_INTERFACES_CROSS_PROCESS
         and not netns.in_private_netns()
     )
+
+
+LAUNCH_RECORD = "launch.json"
+
+
+def save_launch_config(profile: Profile, campaign_dir: Path, argv: Sequence[str], single_process: bool) -> Path:
+    """Keep the configuration a campaign ran with: ``<campaign_dir>/config/`` (``config.resumeN/`` later).
+
+    The profile, each parameter file in order and the launch's overrides (node-keyed, last), with
+    ``launch.json`` listing the files in the order the nodes read them, so that offline tools
+    (rescoring, reports) rebuild exactly the nodes' configuration.
+    """
+    import json
+    import shutil
+
+    import yaml
+
+    out = campaign_dir / "config"
+    n = 1
+    while out.exists():
+        out = campaign_dir / f"config.resume{n}"
+        n += 1
+    out.mkdir(parents=True)
+    files: list[str] = []
+    for i, f in enumerate(profile.params_files):
+        name = f"{i:02d}_{f.name}"
+        shutil.copyfile(f, out / name)
+        files.append(name)
+    overrides = {spec.name: {"ros__parameters": nest_params(profile.params_for(spec))} for spec in profile.nodes}
+    name = f"{len(files):02d}_overrides.yaml"
+    (out / name).write_text(yaml.safe_dump(overrides, sort_keys=False))
+    files.append(name)
+    if profile.path is not None:
+        shutil.copyfile(profile.path, out / "profile.yaml")
+    record = {
+        "profile": profile.name,
+        "argv": list(argv),
+        "single_process": single_process,
+        "params_files": files,
+        "nodes": [spec.name for spec in profile.nodes],
+        "started": time.strftime("%Y-%m-%dT%H:%M:%S%z"),
+    }
+    (out / LAUNCH_RECORD).write_text(json.dumps(record, indent=2))
+    return out
+
+
+def campaign_params_files(campaign_dir: str | Path) -> list[Path]:
+    """The parameter files a campaign was launched with (its first launch), in reading order."""
+    import json
+
+    rec = Path(campaign_dir) / "config" / LAUNCH_RECORD
+    data = json.loads(rec.read_text())
+    return [rec.parent / name for name in data["params_files"]]
 
 
 def run_graph(

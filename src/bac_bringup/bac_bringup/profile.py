@@ -16,7 +16,9 @@ module's ``main()``), the single-process mode instantiates ``Class``.
 parameter (one new folder per launch unless ``--campaign-dir`` names one).
 ``can: true`` gives the node the profile's CAN settings as ``can.*``
 parameters. ``ends_graph: true`` marks the node whose normal exit (code 0)
-ends the whole graph; any other node exiting is a failure.
+ends the whole graph; any other node exiting is a failure. ``stop_order`` (default 0): at shutdown
+the nodes stop in waves of increasing ``stop_order`` (the simulated vehicle, whose ECU the bridge
+still talks to while it stops, goes last).
 """
 
 from __future__ import annotations
@@ -43,6 +45,7 @@ class NodeSpec:
     can: bool = False
     ends_graph: bool = False
     params: Mapping[str, Any] = field(default_factory=dict)  # per-node overrides
+    stop_order: int = 0  # nodes stop in waves of increasing stop_order
 
     @property
     def module(self) -> str:
@@ -176,6 +179,7 @@ def load_profile(name_or_path: str | Path) -> Profile:
                 entry=str(n["entry"]),
                 can=bool(n.get("can", False)),
                 ends_graph=bool(n.get("ends_graph", False)),
+                stop_order=int(n.get("stop_order", 0)),
                 params=dict(n.get("params") or {}),
             )
         )

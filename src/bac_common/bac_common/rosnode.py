@@ -152,7 +152,8 @@ class BacNode(Node):
         desc = ParameterDescriptor(
             description=description, type=ParameterType.PARAMETER_DOUBLE_ARRAY, read_only=read_only
         )
-        return [float(x) for x in self.declare_parameter(name, [float(x) for x in default], desc).value]
+        value = self.declare_parameter(name, [float(x) for x in default], desc).value
+        return [float(x) for x in (value or [])]
 
     def declare_str_list(
         self, name: str, default: Sequence[str], description: str, read_only: bool = False
@@ -161,7 +162,8 @@ class BacNode(Node):
             description=description, type=ParameterType.PARAMETER_STRING_ARRAY, read_only=read_only
         )
         value = self.declare_parameter(name, list(default) or [""], desc).value
-        return [str(x) for x in value if str(x)]
+        # an empty list in a parameter file has no type: rclpy hands it over as None
+        return [str(x) for x in (value or []) if str(x)]
 
     def add_parameter_check(self, name: str, check: Callable[[Any], str | None]) -> None:
         """Register an extra check for ``name``: returns None when fine, else the reason."""

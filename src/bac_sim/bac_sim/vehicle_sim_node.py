@@ -113,6 +113,14 @@ class VehicleSimNode(BacNode):
         self.run_in = self.declare_float("run_in_s", 6.0, "driving before the scored window, s", 1.0, 120.0)
         self.run_out = self.declare_float("run_out_s", 4.0, "driving after the scored window, s", 0.5, 120.0)
         self.frame_id = self.declare_str("frame_id", "imu_link", "frame of imu/data_raw", read_only=True)
+        imu_reliability = self.declare_str(
+            "imu_reliability",
+            "best_effort",
+            "QoS reliability of imu/data_raw: best_effort like an IMU driver (sensor-data QoS), or reliable "
+            "(then a reliable imu_ingest never loses a sample however fast the simulation runs)",
+            choices=("best_effort", "reliable"),
+            read_only=True,
+        )
         self.odom_frame = self.declare_str("odom_frame_id", "odom", "frame of vehicle/odom", read_only=True)
         self.driver = DriverModel(
             speed_error_std=self.declare_float(
@@ -193,7 +201,10 @@ class VehicleSimNode(BacNode):
         self.ecu.start()
 
         self.add_post_set_parameters_callback(self._parameters_changed)
-        self.pub_imu = self.create_publisher(Imu, TOPIC_IMU_RAW, QOS_IMU_OUT)
+        qos_imu = QOS_IMU_OUT
+        if imu_reliability == "reliable":
+            qos_imu = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=5000, reliability=ReliabilityPolicy.RELIABLE)
+        self.pub_imu = self.create_publisher(Imu, TOPIC_IMU_RAW, qos_imu)
         self.pub_odom = self.create_publisher(Odometry, TOPIC_ODOM, QOS_STREAM)
         self.pub_clock = self.create_publisher(Clock, TOPIC_CLOCK, QOS_CLOCK)
         self.create_subscription(Trial, TOPIC_TRIAL, self._on_trial, QOS_LATCHED)
