@@ -323,7 +323,7 @@ def main(argv: list[str] | None = None) -> int:
                         (i, c, t) for i, (c, t) in enumerate(zip(curves, times, strict=True))
                     ]
         problems = list(results)
-        optimizers = [o for o in OPTIMIZERS if all(o in results[pn] for pn in problems)]
+        optimizers = [o for o in OPTIMIZERS if any(o in results[pn] for pn in problems)]
     else:
         problems = [s for s in a.problems.split(",") if s] or available_problems()
         optimizers = [s for s in a.optimizers.split(",") if s]
@@ -353,9 +353,12 @@ def main(argv: list[str] | None = None) -> int:
         p = make_problem(pn, a.noise_share)
         p.budget = len(results[pn][optimizers[0]][0][1])
         print(f"\n## {pn}  d={p.dim}  budget={p.budget}  J*={p.j_star:.4g}  J_med={p.j_med:.4g}")
-        print(f"{'optimizer':<11} {'runs_to_opt':>11} {'found':>6} {'gap@10':>8} {'gap@20':>8} {'s/run':>7}")
+        print(
+            f"{'optimizer':<11} {'runs_to_opt':>11} {'found':>6} {'gap@10':>8} {'gap@20':>8} "
+            f"{'gap@' + str(p.budget):>8} {'s/run':>7}"
+        )
         summary[pn] = {}
-        for on in optimizers:
+        for on in [o for o in optimizers if o in results[pn]]:
             rows = sorted(results[pn][on])
             G = np.array([gap(js, p.j_star, p.j_med) for _, js, _ in rows])
             runs = np.array([min(runs_to_optimum(g), p.budget + 1) for g in G])
@@ -363,10 +366,18 @@ def main(argv: list[str] | None = None) -> int:
             found_share = float(np.mean(runs <= p.budget))
             g10 = float(np.median(G[:, min(9, p.budget - 1)]))
             g20 = float(np.median(G[:, min(19, p.budget - 1)]))
+            g_end = float(np.median(G[:, -1]))
             spr = float(np.mean([dt for *_, dt in rows])) / p.budget
-            summary[pn][on] = {"median_runs": med, "found": found_share, "gap10": g10, "gap20": g20, "s_per_run": spr}
+            summary[pn][on] = {
+                "median_runs": med,
+                "found": found_share,
+                "gap10": g10,
+                "gap20": g20,
+                "gap_end": g_end,
+                "s_per_run": spr,
+            }
             shown = f">{p.budget}" if med > p.budget else f"{med:g}"
-            print(f"{on:<11} {shown:>11} {found_share:>6.0%} {g10:>8.3f} {g20:>8.3f} {spr:>7.3f}")
+            print(f"{on:<11} {shown:>11} {found_share:>6.0%} {g10:>8.3f} {g20:>8.3f} {g_end:>8.3f} {spr:>7.3f}")
         if "bac" in summary[pn] and "botorch" in summary[pn]:
             r = summary[pn]["bac"]["median_runs"] / summary[pn]["botorch"]["median_runs"]
             ratios.append(r)
@@ -405,7 +416,7 @@ def _plot(results: dict, problems: list[str], optimizers: list[str], noise_share
     fig, axes = plt.subplots(1, len(problems), figsize=(4.5 * len(problems), 3.6), squeeze=False)
     for ax, pn in zip(axes[0], problems, strict=True):
         p = make_problem(pn, noise_share)
-        for on in optimizers:
+        for on in [o for o in optimizers if o in results[pn]]:
             G = np.array([gap(js, p.j_star, p.j_med) for _, js, _ in results[pn][on]])
             n = np.arange(1, G.shape[1] + 1)
             ax.plot(n, np.maximum(np.median(G, axis=0), 1e-4), label=on, lw=2 if on == "bac" else 1)
