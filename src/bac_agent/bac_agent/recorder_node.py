@@ -23,7 +23,7 @@ from typing import Any
 from rclpy.callback_groups import MutuallyExclusiveCallbackGroup
 from rclpy.clock import Clock
 from rclpy.clock_type import ClockType
-from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy
+from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 from rclpy.serialization import deserialize_message
 
 from bac_agent.recording import RECORDED_TOPICS, TrialBagWriter, cdr_stamp_ns, trial_bag_dir
@@ -35,7 +35,13 @@ from bac_msgs.msg import Calibration, RunScore, RunSegment, Trial
 # the high-rate streams are read in batches (bac_imu.topic_drain) from deep reader histories: an executor
 # callback per message cannot keep up with a simulation running 10x faster than real time
 SENSOR_DEEP = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=50000, reliability=ReliabilityPolicy.BEST_EFFORT)
-STREAM_DEEP = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=50000, reliability=ReliabilityPolicy.RELIABLE)
+STREAM_DEEP = QoSProfile(
+    history=HistoryPolicy.KEEP_LAST,
+    depth=50000,
+    reliability=ReliabilityPolicy.RELIABLE,
+    durability=DurabilityPolicy.TRANSIENT_LOCAL,  # gets what was published before it matched
+)
+STREAM_INPUT_DEEP = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=50000, reliability=ReliabilityPolicy.RELIABLE)
 DRAINED_TOPICS = ("imu/data_raw", "imu/vehicle", "vehicle/odom")
 
 
@@ -56,7 +62,7 @@ def _msg_class(msgtype: str) -> Any:
 QOS_BY_TOPIC = {
     "imu/data_raw": SENSOR_DEEP,
     "imu/vehicle": STREAM_DEEP,
-    "vehicle/odom": STREAM_DEEP,
+    "vehicle/odom": STREAM_INPUT_DEEP,  # may come from a car's odometry driver (volatile)
     "bac/trial": QOS_LATCHED,
     "bac/run_segment": QOS_EVENTS,
     "bac/run_score": QOS_EVENTS,

@@ -53,7 +53,7 @@ from bac_agent.segmentation import (
 )
 from bac_common.contracts import TOPIC_DIAGNOSTICS, TOPIC_IMU_VEHICLE, TOPIC_ODOM, TOPIC_RUN_SEGMENT, TOPIC_TRIAL
 from bac_common.errors import BacError
-from bac_common.rosnode import QOS_EVENTS, QOS_LATCHED, QOS_STREAM, BacNode, run_node
+from bac_common.rosnode import QOS_EVENTS, QOS_LATCHED, QOS_STREAM, QOS_STREAM_INPUT, BacNode, run_node
 from bac_imu import cdr
 from bac_imu.node_params import ParamSpec, declare_config
 from bac_imu.topic_drain import TopicDrain
@@ -176,7 +176,7 @@ class RunSegmenterNode(BacNode):
         odom_qos = (
             QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=2000, reliability=ReliabilityPolicy.BEST_EFFORT)
             if odom_best_effort
-            else QOS_STREAM
+            else QOS_STREAM_INPUT  # volatile: matches a car's odometry driver as well as vehicle_sim
         )
         # high-rate streams: drained in batches by the check timer (bac_imu.topic_drain)
         self.imu_drain = TopicDrain(self, Imu, TOPIC_IMU_VEHICLE, QOS_STREAM)

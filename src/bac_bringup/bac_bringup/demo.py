@@ -1,52 +1,243 @@
 """``bac demo`` (``make demo``): the main job, a calibration campaign on the simulated vehicle.
 
-Until every node of the ``sim`` profile exists, it says which are missing and
-runs the ``smoke`` graph instead (a latched topic across two processes).
+It runs the real node graph of the ``sim`` profile, every node in its own
+process (vehicle_sim with its ECU on CAN, imu_ingest, run_segmenter,
+kpi_scorer, ecu_bridge, campaign_recorder, bo_agent) on sim time, faster than
+real time: Controller I on the speed bump with a budget of 15 trials (the
+test road with ``--scenario road``). It shows the progress from the campaign
+journal, then writes the report and judges the recommendation against the
+simulator's true optimum; the last line reads ``recommendation_gap_pct <x>``
+(x = 100 × (J(θ_rec) − J*) / (J_med − J*), with the true, noise-free J).
+
+    bac demo [--scenario bump|road] [--budget 15] [--seed 0] [--with-grid] [--campaign-dir DIR] [--single-process]
 """
 
 from __future__ import annotations
 
 import argparse
-import importlib
-import logging
+import json
+import math
+import subprocess
 import sys
+import time
 from collections.abc import Sequence
+from pathlib import Path
+from typing import Any
 
-from bac_bringup.launcher import run_graph
-from bac_bringup.profile import load_profile
+from bac_bringup.profile import workspace_dir
 
-LOG = logging.getLogger("bac.demo")
+SCENARIOS = {
+    # scenario: (simulated problem for the truth, extra parameter file, grid size of the baseline)
+    "bump": ("bump_c1", None),
+    "road": ("road_c1", "scenario_road.yaml"),
+}
 
 
-def missing_nodes(profile_name: str) -> list[str]:
-    """Nodes of a profile whose entry module or class cannot be imported."""
-    missing = []
-    for spec in load_profile(profile_name).nodes:
+def out(text: str) -> None:
+    sys.stdout.write(text + "\n")
+    sys.stdout.flush()
+
+
+def _fmt(params: dict[str, Any]) -> str:
+    return " ".join(f"{k}={float(v):.3f}" for k, v in params.items())
+
+
+class JournalFollower:
+    """Prints a campaign's progress from its journal as the events arrive."""
+
+    def __init__(self, path: Path) -> None:
+        self.path = path
+        self.pos = 0
+        self.budget = 0
+        self.best = math.inf
+        self.best_trial = 0
+        self.buf = b""
+
+    def poll(self) -> None:
         try:
-            mod = importlib.import_module(spec.module)
-        except ModuleNotFoundError:
-            missing.append(spec.name)
-            continue
-        if not hasattr(mod, spec.class_name):
-            missing.append(spec.name)
-    return missing
+            with self.path.open("rb") as f:
+                f.seek(self.pos)
+                data = f.read()
+        except FileNotFoundError:
+            return
+        self.pos += len(data)
+        self.buf += data
+        *lines, self.buf = self.buf.split(b"\n")
+        for line in lines:
+            if line.strip():
+                self._show(json.loads(line))
+
+    def _show(self, e: dict[str, Any]) -> None:
+        kind = e.get("event")
+        tid = e.get("trial_id")
+        if kind == "campaign_started":
+            self.budget = int(e.get("budget", 0))
+            out(f"campaign {e.get('campaign_id')}: {', '.join(e.get('names', []))}, budget {self.budget} trials")
+        elif kind == "trial_proposed":
+            what = {
+                0: "initial design",
+                1: "max expected improvement",
+                2: "confirmation of the recommendation",
+                3: "grid point",
+            }.get(int(e.get("kind", 1)), "")
+            out(f"  trial {tid}/{self.budget}: driving {_fmt(e.get('params', {}))}  ({what})")
+        elif kind == "trial_scored":
+            j = float(e["j"])
+            if int(e.get("kind", 1)) != 2 and j < self.best:
+                self.best, self.best_trial = j, int(tid or 0)
+            out(f"  trial {tid}/{self.budget}: J = {j:.4f}   best so far {self.best:.4f} (trial {self.best_trial})")
+        elif kind == "run_rejected":
+            out(f"  trial {tid}: run {e.get('attempt')} rejected ({e.get('reason')}): driving it again")
+        elif kind == "trial_failed":
+            out(f"  trial {tid}: FAILED ({e.get('reason')})")
+        elif kind == "recommendation":
+            out(
+                f"recommendation: {_fmt(e.get('params', {}))}, "
+                f"predicted J {float(e.get('predicted_j') or math.nan):.4f}"
+            )
+        elif kind == "campaign_failed":
+            out(f"campaign FAILED: {e.get('reason')}")
+
+
+def run_campaign(
+    campaign_dir: Path,
+    params_files: list[Path],
+    overrides: list[str],
+    single_process: bool,
+    timeout_s: float,
+) -> int:
+    """Launch the sim profile in a child process and follow its journal; return the launcher's exit code."""
+    cmd = [
+        sys.executable,
+        "-m",
+        "bac_bringup.cli",
+        "launch",
+        "sim",
+        "--campaign-dir",
+        str(campaign_dir),
+        "--log-dir",
+        str(campaign_dir / "logs"),
+        "--timeout",
+        str(timeout_s),
+    ]
+    for f in params_files:
+        cmd += ["--params-file", str(f)]
+    for o in overrides:
+        cmd += ["-p", o]
+    if single_process:
+        cmd.append("--single-process")
+    follower = JournalFollower(campaign_dir / "journal.jsonl")
+    launcher_log = campaign_dir / "logs" / "launcher.log"
+    launcher_log.parent.mkdir(parents=True, exist_ok=True)
+    with launcher_log.open("wb") as log:
+        proc = subprocess.Popen(cmd, stdout=log, stderr=subprocess.STDOUT)
+        try:
+            while proc.poll() is None:
+                follower.poll()
+                time.sleep(0.2)
+        except KeyboardInterrupt:
+            proc.send_signal(2)
+            proc.wait()
+            raise
+    follower.poll()
+    return int(proc.returncode)
+
+
+def show_failure(campaign_dir: Path) -> None:
+    logs = sorted((campaign_dir / "logs").glob("*.log"))
+    for f in logs:
+        lines = f.read_text(errors="replace").splitlines()
+        bad = [x for x in lines if "ERROR" in x or "FATAL" in x or "Traceback" in x]
+        if bad:
+            out(f"--- {f.name} ---")
+            out("\n".join(lines[-15:]))
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    ap = argparse.ArgumentParser(prog="bac demo", description=__doc__)
-    ap.parse_args(list(sys.argv[1:] if argv is None else argv))
-    missing = missing_nodes("sim")
-    if missing:
-        sys.stdout.write(
-            "bac demo: the calibration campaign needs nodes that are not built yet: "
-            f"{', '.join(missing)}.\nRunning what exists: the smoke graph (two nodes, one latched topic).\n"
+    ap = argparse.ArgumentParser(
+        prog="bac demo", description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
+    )
+    ap.add_argument("--scenario", choices=sorted(SCENARIOS), default="bump", help="speed bump (default) or test road")
+    ap.add_argument("--budget", type=int, default=15, help="trials of the BO campaign")
+    ap.add_argument("--seed", type=int, default=0, help="seed of the agent and of the simulated runs")
+    ap.add_argument("--with-grid", action="store_true", help="also run the 8x8 grid-search baseline through the graph")
+    ap.add_argument("--grid-size", type=int, default=8, help="grid points per parameter of the baseline")
+    ap.add_argument("--campaign-dir", type=Path, help="campaign folder (default: campaigns/demo-<scenario>-<time>)")
+    ap.add_argument("--single-process", action="store_true", help="all nodes in one process (virtual CAN bus)")
+    ap.add_argument("--timeout", type=float, default=900.0, help="give up after this many seconds")
+    args = ap.parse_args(list(sys.argv[1:] if argv is None else argv))
+
+    problem_name, extra = SCENARIOS[args.scenario]
+    ws = workspace_dir()
+    files = [ws / "params" / extra] if extra else []
+    stamp = time.strftime("%Y%m%d-%H%M%S")
+    camp = (args.campaign_dir or Path("campaigns") / f"demo-{args.scenario}-{stamp}").resolve()
+    if (camp / "journal.jsonl").exists():
+        out(f"bac demo: {camp} holds a campaign already: it is resumed")
+    camp.mkdir(parents=True, exist_ok=True)
+    seeds = [f"bo_agent.seed:={args.seed}", f"vehicle_sim.seed:={args.seed}"]
+    where = "speed bump at 30 km/h" if args.scenario == "bump" else "1.5 km test road at 60 km/h"
+    out(f"bac demo: Controller I on the simulated {where}")
+    out(
+        f"  the node graph: vehicle_sim (+ its ECU on CAN), imu_ingest, run_segmenter, kpi_scorer, ecu_bridge, "
+        f"campaign_recorder, bo_agent, {'in one process' if args.single_process else 'each in its own process'}"
+    )
+    out(f"  campaign folder: {camp}")
+    t0 = time.monotonic()
+    rc = run_campaign(camp, files, [f"bo_agent.budget:={args.budget}", *seeds], args.single_process, args.timeout)
+    wall = time.monotonic() - t0
+    if rc != 0 or not (camp / "recommendation.json").exists():
+        out(f"bac demo: the campaign failed (launcher exit code {rc}); node logs in {camp / 'logs'}")
+        show_failure(camp)
+        return rc or 1
+    out(f"campaign done in {wall:.0f} s of wall time")
+
+    baseline = None
+    if args.with_grid:
+        baseline = camp.parent / f"{camp.name}-grid{args.grid_size}"
+        n = args.grid_size**2
+        out(f"bac demo: grid-search baseline, {args.grid_size}x{args.grid_size} = {n} trials through the same graph")
+        t1 = time.monotonic()
+        rc = run_campaign(
+            baseline,
+            files,
+            [
+                "bo_agent.strategy:=grid",
+                f"bo_agent.grid_size:={args.grid_size}",
+                f"bo_agent.budget:={n}",
+                "bo_agent.confirmation_run:=false",
+                *seeds,
+            ],
+            args.single_process,
+            args.timeout * 4,
         )
-        sys.stdout.flush()
-        code = run_graph(load_profile("smoke"), timeout_s=120)
-        sys.stdout.write(f"bac demo: smoke graph {'passed' if code == 0 else 'FAILED'}\n")
-        return code
-    LOG.error("the full campaign demo is not wired yet")
-    return 1
+        if rc != 0:
+            out(f"bac demo: the grid baseline failed (exit code {rc}); logs in {baseline / 'logs'}")
+            show_failure(baseline)
+            baseline = None
+        else:
+            out(f"grid baseline done in {time.monotonic() - t1:.0f} s")
+
+    from bac_agent.report import make_report
+
+    result = make_report(camp, truth_name=problem_name, baseline_dir=baseline)
+    s = result["summary"]
+    rec = s["recommendation"]
+    out("")
+    out(f"recommendation: {_fmt(rec['params'])}")
+    out(
+        f"  predicted J {rec['predicted_j']:.4f} ± {rec['predicted_std']:.4f}; "
+        f"true J {s['true_j_of_recommendation']:.4f} (true optimum J* {s['j_star']:.4f})"
+    )
+    if baseline is not None and result["baseline"]:
+        b = result["baseline"]
+        out(
+            f"grid baseline: {b['trials']} trials, best observed J {b['best_observed_j']:.4f}, "
+            f"gap of its best point {100 * b.get('gap_of_best_observed', math.nan):.1f} %"
+        )
+    out(f"report: {result['html']}")
+    out(f"recommendation_gap_pct {100 * s['gap']:.2f}")
+    return 0
 
 
 if __name__ == "__main__":

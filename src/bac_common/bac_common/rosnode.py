@@ -39,8 +39,18 @@ from rclpy.utilities import try_shutdown
 
 # sensor streams: best effort, keep last 5 (what IMU drivers publish with)
 QOS_SENSOR = qos_profile_sensor_data
-# high-rate streams inside the graph that must not drop samples (imu/vehicle, odom)
-QOS_STREAM = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=2000, reliability=ReliabilityPolicy.RELIABLE)
+# high-rate streams published inside the graph that must not drop samples (imu/vehicle; vehicle_sim's odom):
+# reliable, and transient local so that a reader matched late (discovery between processes takes seconds)
+# still gets the last samples (a run published just after start-up); readers ignore samples before their run
+QOS_STREAM = QoSProfile(
+    history=HistoryPolicy.KEEP_LAST,
+    depth=5000,
+    reliability=ReliabilityPolicy.RELIABLE,
+    durability=DurabilityPolicy.TRANSIENT_LOCAL,
+)
+# readers of streams that may come from outside bac (vehicle/odom from a car's odometry driver): volatile, so
+# that any reliable writer matches (a transient-local reader would not match a volatile writer)
+QOS_STREAM_INPUT = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=5000, reliability=ReliabilityPolicy.RELIABLE)
 # one message per run: reliable, a generous queue
 QOS_EVENTS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=50, reliability=ReliabilityPolicy.RELIABLE)
 # latched state (the trial, the active calibration): a late joiner gets the last one

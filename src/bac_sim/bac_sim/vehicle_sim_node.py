@@ -28,7 +28,7 @@ from typing import Any
 
 import numpy as np
 from nav_msgs.msg import Odometry
-from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy
+from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 from rosgraph_msgs.msg import Clock
 from sensor_msgs.msg import Imu
 
@@ -113,6 +113,22 @@ class VehicleSimNode(BacNode):
         self.run_in = self.declare_float("run_in_s", 6.0, "driving before the scored window, s", 1.0, 120.0)
         self.run_out = self.declare_float("run_out_s", 4.0, "driving after the scored window, s", 0.5, 120.0)
         self.frame_id = self.declare_str("frame_id", "imu_link", "frame of imu/data_raw", read_only=True)
+        self.subscriber_wait_s = self.declare_float(
+            "subscriber_wait_s",
+            20.0,
+            "before a run, wait this long (wall) for subscribers of the sensor topics, s",
+            0.0,
+            600.0,
+        )
+        self.expected_subscribers = self.declare_int(
+            "expected_subscribers",
+            1,
+            "subscribers of imu/data_raw and of vehicle/odom to wait for before a run (the sim profile: the "
+            "measurement chain and the recorder)",
+            0,
+            100,
+        )
+        self._listener_wait_since: float | None = None
         imu_reliability = self.declare_str(
             "imu_reliability",
             "best_effort",
@@ -203,7 +219,13 @@ class VehicleSimNode(BacNode):
         self.add_post_set_parameters_callback(self._parameters_changed)
         qos_imu = QOS_IMU_OUT
         if imu_reliability == "reliable":
-            qos_imu = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=5000, reliability=ReliabilityPolicy.RELIABLE)
+            # transient local too: a reader matched after a run was published (discovery) still gets it
+            qos_imu = QoSProfile(
+                history=HistoryPolicy.KEEP_LAST,
+                depth=5000,
+                reliability=ReliabilityPolicy.RELIABLE,
+                durability=DurabilityPolicy.TRANSIENT_LOCAL,
+            )
         self.pub_imu = self.create_publisher(Imu, TOPIC_IMU_RAW, qos_imu)
         self.pub_odom = self.create_publisher(Odometry, TOPIC_ODOM, QOS_STREAM)
         self.pub_clock = self.create_publisher(Clock, TOPIC_CLOCK, QOS_CLOCK)
@@ -267,6 +289,30 @@ class VehicleSimNode(BacNode):
             odom_rate_hz=self.odom_rate,
         )
 
+    def _listeners_ready(self, now: float) -> bool:
+        """True when imu/data_raw and vehicle/odom have subscribers (or after subscriber_wait_s).
+
+        Between processes, discovery takes a few seconds: a run published before the chain's readers are
+        matched would be lost on a volatile topic (the run then times out and is driven again).
+        """
+        need = self.expected_subscribers
+        if self.pub_imu.get_subscription_count() >= need and self.pub_odom.get_subscription_count() >= need:
+            self._listener_wait_since = None
+            return True
+        if self._listener_wait_since is None:
+            self._listener_wait_since = now
+            self.get_logger().info(
+                f"waiting for {need} subscriber(s) each of imu/data_raw and vehicle/odom before driving"
+            )
+        if now - self._listener_wait_since < self.subscriber_wait_s:
+            return False
+        self.get_logger().warning(
+            f"fewer than {need} subscribers of imu/data_raw / vehicle/odom after {self.subscriber_wait_s:g} s "
+            "(is the measurement chain running?): driving anyway"
+        )
+        self._listener_wait_since = None
+        return True
+
     # --- the clock and the playback ----------------------------------------------------------------
     def _loop(self) -> None:
         sim_t = self.start_time
@@ -277,7 +323,7 @@ class VehicleSimNode(BacNode):
         while not self._stop.is_set():
             now = time.monotonic()
             try:
-                if play is None and pending is None and not self._jobs.empty():
+                if play is None and pending is None and not self._jobs.empty() and self._listeners_ready(now):
                     job = self._jobs.get_nowait()
                     if self._latest is not None and self._latest != (job.key, Trial.STATE_READY_TO_DRIVE):
                         # the agent moved on while another run was being driven: nobody waits for this one
