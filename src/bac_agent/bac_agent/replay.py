@@ -76,7 +76,7 @@ class BagPlayerNode(BacNode):
         self.wait_subscribers_s = self.declare_float(
             "wait_subscribers_s",
             30.0,
-            "wait this long (wall) for imu/data_raw subscribers before playing, s",
+            "wait this long (wall) for subscribers of the played topics before playing, s",
             0.0,
             600.0,
         )
@@ -163,12 +163,14 @@ class BagPlayerNode(BacNode):
 
     def _tick(self) -> None:
         if self._t_start_wall is None:
-            subs = self.pubs["imu/data_raw"].get_subscription_count()
-            if subs == 0 and time.monotonic() - self._t_wait0 < self.wait_subscribers_s:
+            # discovery between processes takes seconds: play once the chain listens to every played topic
+            counts = {t: p.get_subscription_count() for t, p in self.pubs.items()}
+            ready = all(n > 0 for t, n in counts.items() if any(m.topic == t for m in self.queue[:1000]))
+            if not ready and time.monotonic() - self._t_wait0 < self.wait_subscribers_s:
                 return
             self._t_start_wall = time.monotonic()
             self._last_tick = self._t_start_wall
-            self.get_logger().info(f"playing at {self.rate:g}x real time ({subs} imu/data_raw subscribers)")
+            self.get_logger().info(f"playing at {self.rate:g}x real time (subscribers: {counts})")
         wall = time.monotonic()
         now_bag = self._bag_t0 + int((wall - self._t_start_wall) * self.rate * 1e9)
         while self._i < len(self.queue) and self.queue[self._i].time_ns <= now_bag:

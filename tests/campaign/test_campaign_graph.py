@@ -1,0 +1,134 @@
+"""The main job end to end: a short campaign through the real graph, each node in its own process.
+
+Then, on what it left in its folder: every trial's bag opens; rescoring reproduces every live J to 1e-9;
+replaying the bags into the live chain gives the same J again; the report is made; and the
+recommendation beats the best trial of the initial design on the simulator's true J.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import subprocess
+import sys
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pytest
+from rosbags.highlevel import AnyReader
+
+from bac_agent.journal import read_journal
+from bac_agent.recording import bac_typestore
+from bac_agent.rescore import rescore
+
+from conftest import ROOT
+
+pytestmark = [pytest.mark.integration, pytest.mark.slow]
+REAL_BAG = ROOT.parent / "shared" / "data" / "real_imu" / "robot_localization_test2.bag"
+BUDGET = 8
+
+
+@pytest.fixture(scope="module")
+def campaign(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    import os
+
+    camp = tmp_path_factory.mktemp("campaign") / "c"
+    env = {**os.environ, "ROS_DOMAIN_ID": "77", "ROS_AUTOMATIC_DISCOVERY_RANGE": "LOCALHOST"}
+    cmd = [
+        sys.executable, "-m", "bac_bringup.cli", "launch", "sim", "--campaign-dir", str(camp),
+        "--log-dir", str(camp / "logs"), "--timeout", "400",
+        "-p", f"bo_agent.budget:={BUDGET}", "-p", "bo_agent.seed:=3", "-p", "vehicle_sim.seed:=3",
+        "-p", "bo_agent.confirmation_run:=false",
+    ]  # fmt: skip
+    proc = subprocess.run(cmd, env=env, capture_output=True, text=True, timeout=600, check=False)
+    if proc.returncode != 0:
+        logs = "\n".join(f"--- {f.name}\n{f.read_text()[-3000:]}" for f in sorted((camp / "logs").glob("*.log")))
+        pytest.fail(f"campaign failed ({proc.returncode}):\n{proc.stdout[-3000:]}\n{logs}")
+    return camp
+
+
+def live_scores(camp: Path) -> dict[int, float]:
+    return {int(e["trial_id"]): float(e["j"]) for e in read_journal(camp / "journal.jsonl").events
+            if e["event"] == "trial_scored"}  # fmt: skip
+
+
+def test_every_trial_has_a_bag_that_opens(campaign: Path) -> None:
+    bags = sorted((campaign / "bags").iterdir())
+    assert [b.name for b in bags] == [f"trial_{i:04d}" for i in range(1, BUDGET + 1)]
+    for bag in bags:
+        assert list(bag.glob("*.mcap")) and (bag / "metadata.yaml").exists()
+        with AnyReader([bag], default_typestore=bac_typestore()) as reader:
+            topics = {c.topic for c in reader.connections}
+            assert {"/imu/data_raw", "/imu/vehicle", "/vehicle/odom", "/bac/trial", "/bac/run_segment",
+                    "/bac/run_score", "/bac/calibration"} <= topics, (bag, topics)  # fmt: skip
+            scores = [reader.deserialize(raw, c.msgtype) for c, _, raw in reader.messages()
+                      if c.topic == "/bac/run_score"]  # fmt: skip
+            assert scores and all(s.trial_id == int(bag.name[-4:]) for s in scores)
+    # the launch configuration is kept with the campaign
+    rec = json.loads((campaign / "config" / "launch.json").read_text())
+    assert rec["profile"] == "sim" and rec["params_files"][-1].endswith("overrides.yaml")
+
+
+def test_rescoring_reproduces_every_live_j(campaign: Path) -> None:
+    result = rescore([campaign])
+    live = live_scores(campaign)
+    valid = [r for r in result.runs if r.score.valid]
+    assert len(valid) == len(live) == BUDGET
+    for r in valid:
+        assert r.live_j is not None
+        assert abs(r.j - r.live_j) <= 1e-9, r.run
+        assert abs(r.j - live[r.run.trial_id]) <= 1e-9, r.run
+    # a changed KPI changes J: the rescoring really recomputes
+    changed = rescore([campaign], overrides={"kpi_scorer": {"weight_pitch_rate": 0.0}})
+    for a, b in zip(valid, [r for r in changed.runs if r.score.valid], strict=True):
+        assert b.j == pytest.approx(a.score.rms_accel_z, rel=1e-12) and b.j < a.j
+
+
+def test_replay_into_the_live_chain_gives_the_same_j(campaign: Path, ros_env: dict[str, str], tmp_path: Path) -> None:
+    out = tmp_path / "replay.json"
+    cmd = [sys.executable, "-m", "bac_bringup.cli", "replay", str(campaign), "--rate", "10", "--output", str(out)]
+    proc = subprocess.run(cmd, env=ros_env, capture_output=True, text=True, timeout=300, check=False)
+    assert proc.returncode == 0, proc.stdout[-4000:] + proc.stderr[-4000:]
+    runs = json.loads(out.read_text())["runs"]
+    assert len(runs) == BUDGET
+    for r in runs:
+        assert r["valid"], r
+        assert abs(r["replayed_j"] - r["recorded_j"]) <= 1e-9, r
+
+
+def test_the_recommendation_beats_the_best_initial_trial(campaign: Path) -> None:
+    from bac_sim.problems import get_problem
+
+    events = read_journal(campaign / "journal.jsonl").events
+    initial = [e for e in events if e["event"] == "trial_scored" and e["kind"] == 0]
+    assert len(initial) >= 3
+    best_initial = min(initial, key=lambda e: e["j"])
+    rec = json.loads((campaign / "recommendation.json").read_text())["params"]
+    p = get_problem("bump_c1")
+    names = list(p.names)
+    j_rec, j_init = p.true_j(np.array([[rec[n] for n in names], [best_initial["params"][n] for n in names]]))
+    assert j_rec < j_init, (rec, best_initial["params"], j_rec, j_init)
+
+
+def test_the_report_is_made(campaign: Path) -> None:
+    from bac_agent.report import make_report
+
+    result = make_report(campaign, truth_name="bump_c1")
+    names = {Path(f).name for f in result["figures"]}
+    assert {"gp_contour.png", "j_per_trial.png", "signals.png", "spectra.png"} <= names
+    html = Path(result["html"]).read_text()
+    assert html.count("<tr>") >= BUDGET + 1  # a row per trial
+    assert math.isfinite(result["summary"]["gap"]) and result["summary"]["trials"] == BUDGET
+
+
+def test_rescoring_a_ros1_bag_of_a_real_robot() -> None:
+    if not REAL_BAG.exists():
+        pytest.skip("the shared real recording is not available")
+    whole = rescore([REAL_BAG], window="whole")
+    (run,) = whole.runs
+    assert run.score.valid and run.score.j == pytest.approx(0.402421, abs=1e-5)  # the health report's figure
+    assert any("50.0 Hz" in n for n in whole.notes)
+    cut: Any = rescore([REAL_BAG])
+    (run,) = cut.runs
+    assert not run.score.valid and "too slow" in run.score.reason  # a robot at 3 km/h is no 30 km/h bump run
