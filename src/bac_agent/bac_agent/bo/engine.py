@@ -28,7 +28,8 @@ from __future__ import annotations
 
 import json
 import math
-from collections.abc import Mapping
+from collections.abc import Callable, Iterator, Mapping
+from contextlib import contextmanager
 from dataclasses import asdict, dataclass, field, replace
 from typing import Any
 
@@ -49,6 +50,33 @@ KIND_INITIAL = "initial"
 KIND_OPTIMIZED = "optimized"
 KIND_RANDOM = "random"
 KIND_GRID = "grid"
+
+
+def _make_blas_limiter() -> Callable[[], Any]:
+    """A context manager that runs BLAS on one thread (threadpoolctl), or does nothing without it.
+
+    The GP works on many small matrices: a multi-threaded OpenBLAS on a busy 2-core machine spins
+    on descheduled threads and one ask took 7 s instead of 0.09 s (bench/agent_latency.py).
+    """
+    try:
+        from threadpoolctl import ThreadpoolController
+
+        controller = ThreadpoolController()
+    except Exception:  # threadpoolctl missing or unable to inspect the BLAS: leave it alone
+        controller = None
+
+    @contextmanager
+    def limit() -> Iterator[None]:
+        if controller is None:
+            yield
+            return
+        with controller.limit(limits=1, user_api="blas"):
+            yield
+
+    return limit
+
+
+_one_blas_thread = _make_blas_limiter()
 
 
 class EngineError(BacError, ValueError):
@@ -184,6 +212,10 @@ class Engine:
 
     def ask_with_info(self) -> Suggestion:
         """The next parameters with the reason they were chosen and the model's prediction."""
+        with _one_blas_thread():
+            return self._ask_with_info()
+
+    def _ask_with_info(self) -> Suggestion:
         k = self.n_trials + len(self.pending)
         if k < self.n_initial and k < self._design.shape[0]:
             u = self._design[k]
@@ -300,7 +332,8 @@ class Engine:
     def predict(self, params: Mapping[str, float]) -> tuple[float, float]:
         """Posterior mean and standard deviation of J at ``params``."""
         x = self.space.to_array(params)
-        m, s = self._model().predict(self.space.to_unit(x)[None, :])
+        with _one_blas_thread():
+            m, s = self._model().predict(self.space.to_unit(x)[None, :])
         return float(m[0]), float(s[0])
 
     def predict_unit(self, U: FloatArray) -> tuple[FloatArray, FloatArray]:
@@ -334,6 +367,10 @@ class Engine:
 
     def recommend(self) -> Recommendation:
         """argmin over the domain of the posterior mean (+ recommend_beta · std), with its prediction."""
+        with _one_blas_thread():
+            return self._recommend()
+
+    def _recommend(self) -> Recommendation:
         gp = self._model()
         u = self._minimize_bound(self.config.recommend_beta)
         x = self.space.from_unit(u)
