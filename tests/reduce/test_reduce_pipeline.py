@@ -111,6 +111,16 @@ def test_the_cli_writes_the_file_the_plots_and_ends_with_the_figure_line(
     for png in ("optima_boxplot", "worst_loss", "sensitivity_kept", "campaigns", "validation"):
         p = tmp_path / "out" / f"{png}.png"
         assert p.stat().st_size > 10_000, png  # a real figure, not an empty canvas
+    # the stored campaigns can be re-analysed with other thresholds without running them again
+    first = json.loads((tmp_path / "out" / "result.json").read_text())
+    argv2 = ["--from-result", str(tmp_path / "out" / "result.json"), "--threshold", "0.15", "--quiet"]
+    argv2 += ["--validate-repeats", "0", "--verify-points", "0", "--no-plots", "--out", str(tmp_path / "again")]
+    assert reduce_cli.main(argv2) == 0
+    again = json.loads((tmp_path / "again" / "result.json").read_text())
+    assert again["campaigns"] == first["campaigns"] and again["backend"] == "stored campaigns"
+    assert again["curves"]["loss"] == pytest.approx(first["curves"]["loss"])
+    assert set(again["kept"]) == {n for n, s in zip(first["curves"]["names"], first["curves"]["loss"]) if s > 0.15}
+    capsys.readouterr()
     # the values the ECU would receive for any point of the reduced space stay within the raw bounds
     dims = d.dimensions
     rng = np.random.default_rng(0)

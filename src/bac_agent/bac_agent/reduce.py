@@ -34,7 +34,7 @@ from bac_agent.reduction.analysis import (
     DEFAULT_THRESHOLD,
     DEFAULT_TIE_TOL,
 )
-from bac_agent.reduction.campaigns import Progress
+from bac_agent.reduction.campaigns import CampaignResult, Progress
 from bac_agent.reduction.objectives import objective_names
 from bac_agent.reduction.pipeline import FAST_ENGINE, ReduceConfig, run_reduction
 from bac_agent.reduction.report import format_report, last_line, write_outputs
@@ -97,6 +97,12 @@ def build_parser() -> argparse.ArgumentParser:
         default="weighted",
         help="J_mu: the M posterior means averaged with precision weights, or plainly (paper eq. 3)",
     )
+    g.add_argument(
+        "--theta-bar",
+        choices=("simulator", "posterior"),
+        default="simulator",
+        help="θ̄ = the campaign optimum with the least noise-free simulated J, or with the least posterior mean J_i",
+    )
     g.add_argument("--name", default="", help="name of the reduced definition (default: <base>_reduced)")
     g = ap.add_argument_group("checks")
     g.add_argument("--verify-points", type=int, default=11, help="noise-free simulator sweep from θ̄, points (0 = skip)")
@@ -104,6 +110,12 @@ def build_parser() -> argparse.ArgumentParser:
         "--validate-repeats", type=int, default=10, help="BO campaigns on the reduced problem (0 = no validation)"
     )
     g.add_argument("--validate-trials", type=int, default=30, help="trials of each validation campaign")
+    g.add_argument(
+        "--from-result",
+        type=Path,
+        default=None,
+        help="re-analyse the campaigns stored in an earlier result.json (other T, ε, ...) instead of running them",
+    )
     g = ap.add_argument_group("output")
     g.add_argument("--out", type=Path, default=Path("reduce_out"), help="folder for result.json, report, plots")
     g.add_argument("--definition-out", type=Path, default=None, help="where to write the meta-parameter file")
@@ -115,6 +127,14 @@ def build_parser() -> argparse.ArgumentParser:
 def main(argv: Sequence[str] | None = None) -> int:
     args = build_parser().parse_args(list(argv) if argv is not None else None)
     try:
+        stored = None
+        if args.from_result is not None:
+            data = json.loads(args.from_result.read_text())
+            stored = [CampaignResult.from_dict(c) for c in data["campaigns"]]
+            old = data["config"]
+            args.problem, args.campaigns, args.trials = old["problem"], len(stored), old["trials"]
+            args.batch, args.n_initial, args.seed = old["batch"], old["n_initial"], old["seed"]
+            args.engine_config = old["engine"]
         config = ReduceConfig(
             problem=args.problem,
             campaigns=args.campaigns,
@@ -130,6 +150,7 @@ def main(argv: Sequence[str] | None = None) -> int:
             points=args.points,
             fixed_at=args.fixed_at,
             surrogate=args.surrogate,
+            theta_bar=args.theta_bar,
             verify_points=args.verify_points,
             validate_repeats=args.validate_repeats,
             validate_trials=args.validate_trials,
@@ -156,8 +177,11 @@ def main(argv: Sequence[str] | None = None) -> int:
                 flush=True,
             )
 
-        result = run_reduction(config, log=log, on_progress=progress)
+        result = run_reduction(config, log=log, on_progress=progress, campaigns=stored)
         files = write_outputs(result, args.out, args.definition_out, plots=not args.no_plots)
+    except (KeyError, TypeError, json.JSONDecodeError) as exc:
+        print(f"bac reduce: {args.from_result} is not a result.json of bac reduce: {exc}", file=sys.stderr)
+        return 2
     except (BacError, OSError) as exc:
         print(f"bac reduce: {exc}", file=sys.stderr)
         return 2

@@ -112,7 +112,25 @@ class CampaignResult:
             "theta": self.theta.tolist(),
             "j_pred": self.j_pred,
             "j_std": self.j_std,
+            "engine_state": self.engine_state,
         }
+
+    @classmethod
+    def from_dict(cls, d: Mapping[str, Any]) -> CampaignResult:
+        try:
+            return cls(
+                index=int(d["index"]),
+                seed=int(d["seed"]),
+                names=tuple(d["names"]),
+                X=np.asarray(d["X"], dtype=float),
+                y=np.asarray(d["y"], dtype=float),
+                theta=np.asarray(d["theta"], dtype=float),
+                j_pred=float(d["j_pred"]),
+                j_std=float(d["j_std"]),
+                engine_state=str(d["engine_state"]),
+            )
+        except (KeyError, TypeError, ValueError) as exc:
+            raise ReductionError(f"a stored campaign is incomplete ({exc}); re-run the campaigns") from exc
 
 
 @dataclass

@@ -91,6 +91,7 @@ class ReduceConfig:
     points: int = DEFAULT_POINTS
     fixed_at: str = "optimum"  # discarded parameters at θ̄'s values ("optimum") or at "nominal"
     surrogate: str = "weighted"  # how J_mu averages the M posterior means: "weighted" (precision) or "mean"
+    theta_bar: str = "simulator"  # θ̄ = the optimum with the least noise-free J ("simulator") or least J_i
     verify_points: int = 11  # noise-free simulator sweep from θ̄ (0 = skip)
     validate_repeats: int = 10  # BO campaigns on the reduced problem (0 = skip the validation)
     validate_trials: int = 30
@@ -103,6 +104,8 @@ class ReduceConfig:
     def __post_init__(self) -> None:
         if self.surrogate not in SURROGATES:
             raise ReductionError(f"surrogate must be one of {SURROGATES}, got {self.surrogate!r}")
+        if self.theta_bar not in ("simulator", "posterior"):
+            raise ReductionError(f"theta_bar must be 'simulator' or 'posterior', got {self.theta_bar!r}")
         if self.fixed_at not in ("optimum", "nominal"):
             raise ReductionError(f"fixed_at must be 'optimum' or 'nominal', got {self.fixed_at!r}")
         if self.campaigns < 1:
@@ -250,6 +253,7 @@ class ReductionResult:
     backend: str
     true_curves: SensitivityCurves | None = None  # the same sweep on the noise-free simulator
     other_curves: SensitivityCurves | None = None  # the same sweep with the other average (for comparison)
+    optima_true_j: FloatArray | None = None  # noise-free J of the M optima (when θ̄ is chosen by the simulator)
     validation: Validation | None = None
 
     @property
@@ -285,6 +289,7 @@ class ReductionResult:
             "backend": self.backend,
             "true_curves": self.true_curves.to_dict() if self.true_curves is not None else None,
             "other_curves": self.other_curves.to_dict() if self.other_curves is not None else None,
+            "optima_true_j": self.optima_true_j.tolist() if self.optima_true_j is not None else None,
             "validation": self.validation.to_dict() if self.validation is not None else None,
         }
 
@@ -300,8 +305,10 @@ def run_reduction(
     log: Callable[[str], None] = _log_nothing,
     on_progress: Callable[[Progress], None] | None = None,
     client: Any = None,
+    campaigns: Sequence[CampaignResult] | None = None,
 ) -> ReductionResult:
-    """Run the whole phase (see the module doc)."""
+    """Run the whole phase (see the module doc); with ``campaigns`` (e.g. from an earlier result.json)
+    the campaigns are not run again and only the analysis, the file and the checks are made."""
     t_start = time.perf_counter()
     obj = objective if objective is not None else make_objective(config.problem)
     base = obj.definition
@@ -309,30 +316,52 @@ def run_reduction(
         raise ReductionError(f"'{base.name}' is already reduced: the simulation phase starts from the full definition")
     names = tuple(d.name for d in base.dimensions)
     bounds = np.array([[d.lower, d.upper] for d in base.dimensions])
-    log(
-        f"simulation phase on {obj.label}: M = {config.campaigns} campaigns of N = {config.trials} trials, "
-        f"{config.batch} ask(s) per step"
-    )
+    if campaigns is None:
+        log(
+            f"simulation phase on {obj.label}: M = {config.campaigns} campaigns of N = {config.trials} trials, "
+            f"{config.batch} ask(s) per step"
+        )
 
-    # 1. the campaigns
-    outcome = run_campaigns(
-        obj,
-        config.settings(),
-        campaign_specs(config.campaigns, config.seed),
-        noise_seed=config.seed,
-        workers=config.workers,
-        scheduler=config.scheduler,
-        client=client,
-        group_size=config.group_size,
-        on_progress=on_progress,
-    )
-    campaigns = outcome.campaigns
-    log(f"campaigns done in {outcome.wall_s:.1f} s on {outcome.backend}")
+    # 1. the campaigns (or those of an earlier run: only the analysis is done again)
+    if campaigns is None:
+        outcome = run_campaigns(
+            obj,
+            config.settings(),
+            campaign_specs(config.campaigns, config.seed),
+            noise_seed=config.seed,
+            workers=config.workers,
+            scheduler=config.scheduler,
+            client=client,
+            group_size=config.group_size,
+            on_progress=on_progress,
+        )
+        campaigns = outcome.campaigns
+        log(f"campaigns done in {outcome.wall_s:.1f} s on {outcome.backend}")
+        backend = outcome.backend
+        timings = {
+            "campaigns_wall_s": outcome.wall_s,
+            "campaigns_sim_s": outcome.sim_s,
+            "campaigns_gp_s": outcome.gp_s,
+        }
+    else:
+        campaigns = list(campaigns)
+        if not campaigns or any(c.names != names for c in campaigns):
+            raise ReductionError(f"the stored campaigns do not tune the dimensions of {base.name}: {names}")
+        backend = "stored campaigns"
+        timings = {"campaigns_wall_s": 0.0, "campaigns_sim_s": 0.0, "campaigns_gp_s": 0.0}
+        log(f"re-analysing {len(campaigns)} stored campaigns")
 
     # 2. J_i, θ̄, J_mu
     t1 = time.perf_counter()
     j_i = np.array([c.j_pred for c in campaigns])
-    ibar = int(np.argmin(j_i))
+    optima_true_j: FloatArray | None = None
+    if config.theta_bar == "simulator":
+        ts = time.perf_counter()
+        optima_true_j = np.asarray(obj.true_j(np.array([c.theta for c in campaigns])), dtype=float)
+        timings["theta_bar_sim_s"] = time.perf_counter() - ts
+        ibar = int(np.argmin(optima_true_j))
+    else:
+        ibar = int(np.argmin(j_i))
     theta_bar = campaigns[ibar].theta
     surrogate = PosteriorMean.from_campaigns(campaigns, config.surrogate)
 
@@ -363,12 +392,7 @@ def run_reduction(
     t_analysis = time.perf_counter() - t1
     log(f"J_mu and reduction in {t_analysis:.1f} s: kept {len(kept)}/{len(names)}, {len(groups)} tuned dimensions")
 
-    timings = {
-        "campaigns_wall_s": outcome.wall_s,
-        "campaigns_sim_s": outcome.sim_s,
-        "campaigns_gp_s": outcome.gp_s,
-        "analysis_s": t_analysis,
-    }
+    timings["analysis_s"] = t_analysis
     result = ReductionResult(
         config,
         base,
@@ -380,8 +404,9 @@ def run_reduction(
         untied,
         definition,
         timings,
-        outcome.backend,
+        backend,
         other_curves=other_curves,
+        optima_true_j=optima_true_j,
     )
 
     # 5. checks on the noise-free simulator
@@ -394,10 +419,9 @@ def run_reduction(
         result.validation = validate(obj, result, log=log, on_progress=on_progress, client=client)
         timings["validate_s"] = result.validation.seconds
     timings["total_s"] = time.perf_counter() - t_start
-    timings["sim_s"] = (
-        outcome.sim_s + timings.get("verify_s", 0.0) + (result.validation.sim_s if result.validation else 0.0)
-    )
-    timings["gp_s"] = outcome.gp_s + t_analysis + (result.validation.gp_s if result.validation else 0.0)
+    v = result.validation
+    timings["sim_s"] = timings["campaigns_sim_s"] + timings.get("verify_s", 0.0) + (v.sim_s if v else 0.0)
+    timings["gp_s"] = timings["campaigns_gp_s"] + t_analysis + (v.gp_s if v else 0.0)
     return result
 
 
@@ -465,9 +489,12 @@ def validate(
     rbounds = np.array([[d.lower, d.upper] for d in dims])
     sim_s = 0.0
 
-    ts = time.perf_counter()
-    full_true = np.asarray(obj.true_j(result.thetas), dtype=float)
-    sim_s += time.perf_counter() - ts
+    if result.optima_true_j is not None:
+        full_true = result.optima_true_j
+    else:
+        ts = time.perf_counter()
+        full_true = np.asarray(obj.true_j(result.thetas), dtype=float)
+        sim_s += time.perf_counter() - ts
 
     settings = CampaignSettings(cfg.validate_trials, 0, cfg.batch, {})
     specs = [s for s in campaign_specs(cfg.validate_repeats, cfg.seed + 1)]

@@ -6,6 +6,7 @@ import json
 import math
 from datetime import UTC, datetime
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -20,13 +21,15 @@ def format_report(result: ReductionResult) -> str:
     v = result.validation
 
     add(f"== {len(result.campaigns)} BO campaigns of {cfg.trials} trials ({result.backend}) ==")
-    true_j = v.full_true_j if v is not None else None
+    true_j = result.optima_true_j if result.optima_true_j is not None else (v.full_true_j if v is not None else None)
     add("campaign  seed   J_i (posterior mean)  true J   best observed")
     for k, cr in enumerate(result.campaigns):
         tj = f"{true_j[k]:.4f}" if true_j is not None else "   -  "
         mark = "  <- θ̄" if k == result.theta_bar_index else ""
         add(f"{cr.index:>8}  {cr.seed:>4}   {cr.j_pred:.4f} ± {cr.j_std:.4f}      {tj}   {cr.y.min():.4f}{mark}")
 
+    how = "least noise-free J" if cfg.theta_bar == "simulator" else "least J_i"
+    add(f"θ̄ = the optimum of campaign {result.campaigns[result.theta_bar_index].index} ({how})")
     add("")
     add(f"== sensitivity from θ̄ (J_mu(θ̄) = {c.j_bar:.4f}; T = {100 * cfg.threshold:g} %, ε = {cfg.epsilon:g}) ==")
     iv = c.optimal_intervals(cfg.flat_tol)
@@ -151,6 +154,17 @@ def definition_text(result: ReductionResult) -> str:
     return "\n".join(head) + "\n" + yaml.safe_dump(result.definition.to_dict(), sort_keys=False)
 
 
+def _finite(x: Any) -> Any:
+    """NaN and infinities as null: result.json is strict JSON."""
+    if isinstance(x, float):
+        return x if math.isfinite(x) else None
+    if isinstance(x, dict):
+        return {k: _finite(v) for k, v in x.items()}
+    if isinstance(x, list | tuple):
+        return [_finite(v) for v in x]
+    return x
+
+
 def write_outputs(
     result: ReductionResult, out_dir: Path, definition_path: Path | None = None, plots: bool = True
 ) -> dict[str, Path]:
@@ -163,7 +177,7 @@ def write_outputs(
     rpath = out_dir / "result.json"
     data = result.to_dict()
     data["definition_file"] = str(dpath)
-    rpath.write_text(json.dumps(data, indent=1, allow_nan=True))
+    rpath.write_text(json.dumps(_finite(data), indent=1, allow_nan=False))
     files["result"] = rpath
     (out_dir / "report.txt").write_text(format_report(result) + "\n" + last_line(result) + "\n")
     files["report"] = out_dir / "report.txt"
