@@ -274,6 +274,8 @@ def _task(args: tuple[str, str, int, float, str, int]) -> tuple[str, str, int, l
     prob_name, opt_name, seed, noise_share, bac_config, budget = args
     BAC_CONFIG.update(json.loads(bac_config or "{}"))
     os.environ.setdefault("OMP_NUM_THREADS", "1")
+    # this pool already runs seeds in parallel; bac_sim's own process pool nested inside a worker hung
+    os.environ.setdefault("BAC_SIM_WORKERS", "1")
     try:
         import torch
 
