@@ -103,7 +103,7 @@ def make_problem(name: str, noise_share: float) -> Problem:
         bounds = np.array([[0.0, 1.0]] * 6)
         j_star, j_med = -3.32237, median_j(_hartmann6, bounds)
         return Problem(
-            name, bounds, _hartmann6, _with_noise(_hartmann6, noise_share * (j_med - j_star)), j_star, j_med, 40
+            name, bounds, _hartmann6, _with_noise(_hartmann6, noise_share * (j_med - j_star)), j_star, j_med, 80
         )
     from bac_sim.problems import get_problem  # the simulated vehicle (another package)
 
@@ -304,6 +304,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--noise-share", type=float, default=0.05, help="noise sd / (J_med - J*) on standard functions")
     ap.add_argument("--bac-config", default="", help='JSON overrides of EngineConfig, e.g. {"gp": {"ls_loc": 0.5}}')
     ap.add_argument("--budget", type=int, default=0, help="override every problem's budget")
+    ap.add_argument("--budgets", default="", help="per-problem budgets, e.g. hartmann6=60,branin=30")
     ap.add_argument("--workers", type=int, default=os.cpu_count() or 1)
     ap.add_argument("--out", default="bench/out/bo_efficiency.json", help="raw results (JSON) and a PNG beside it")
     ap.add_argument(
@@ -332,8 +333,9 @@ def main(argv: list[str] | None = None) -> int:
         for o in optimizers:
             if o not in OPTIMIZERS:
                 ap.error(f"unknown optimizer {o!r}; known: {', '.join(OPTIMIZERS)}")
+        per_problem = {k: int(v) for k, v in (kv.split("=") for kv in a.budgets.split(",") if kv)}
         tasks = [
-            (pn, on, s, a.noise_share, a.bac_config, a.budget)
+            (pn, on, s, a.noise_share, a.bac_config, per_problem.get(pn, a.budget))
             for pn in problems
             for on in optimizers
             for s in range(a.seeds)
@@ -353,7 +355,7 @@ def main(argv: list[str] | None = None) -> int:
     )
     for pn in problems:
         p = make_problem(pn, a.noise_share)
-        p.budget = len(results[pn][optimizers[0]][0][1])
+        p.budget = len(next(iter(results[pn].values()))[0][1])
         print(f"\n## {pn}  d={p.dim}  budget={p.budget}  J*={p.j_star:.4g}  J_med={p.j_med:.4g}")
         print(
             f"{'optimizer':<11} {'runs_to_opt':>11} {'found':>6} {'gap@10':>8} {'gap@20':>8} "

@@ -14,6 +14,7 @@ import os
 import shutil
 import subprocess
 import sys
+import tempfile
 from pathlib import Path
 
 import pytest
@@ -44,16 +45,21 @@ def run_probe(ros_env: dict[str, str], discovery_range: str, lo_multicast_route:
     args = [sys.executable, str(PROBE), "--discovery-range", discovery_range] + (["--launch"] if launch else [])
     env = {**ros_env, "PYTHONPATH": f"{ROOT / 'tests' / 'helpers'}:{ros_env.get('PYTHONPATH', '')}"}
     env["BAC_PRIVATE_NETNS"] = "1"
-    proc = subprocess.run(
-        ["unshare", "--net", "--", "/bin/sh", "-c", script, "sh", *args],
-        env=env,
-        capture_output=True,
-        text=True,
-        timeout=240,
-        check=False,
-    )
-    assert proc.returncode == 0, proc.stderr[-4000:]
-    return json.loads(proc.stdout.strip().splitlines()[-1])
+    # output to files, not pipes: a grandchild left running could otherwise keep a pipe open and hang the test
+    with tempfile.TemporaryFile("w+") as out, tempfile.TemporaryFile("w+") as err:
+        proc = subprocess.run(
+            ["unshare", "--net", "--", "/bin/sh", "-c", script, "sh", *args],
+            env=env,
+            stdout=out,
+            stderr=err,
+            timeout=240,
+            check=False,
+        )
+        out.seek(0)
+        err.seek(0)
+        stdout, stderr = out.read(), err.read()
+    assert proc.returncode == 0, stderr[-4000:]
+    return json.loads(stdout.strip().splitlines()[-1])
 
 
 def test_session_namespace_has_only_loopback(in_private_netns: bool) -> None:

@@ -73,15 +73,17 @@ def test_every_trial_has_a_bag_that_opens(campaign: Path) -> None:
 def test_rescoring_reproduces_every_live_j(campaign: Path) -> None:
     result = rescore([campaign])
     live = live_scores(campaign)
-    valid = [r for r in result.runs if r.score.valid]
+    # every run the live graph scored (a run lost in transport live may be driven again: it has no live J)
+    valid = [r for r in result.runs if r.live_j is not None and not math.isnan(r.live_j)]
     assert len(valid) == len(live) == BUDGET
     for r in valid:
-        assert r.live_j is not None
+        assert r.score.valid, r.score.reason
         assert abs(r.j - r.live_j) <= 1e-9, r.run
         assert abs(r.j - live[r.run.trial_id]) <= 1e-9, r.run
     # a changed KPI changes J: the rescoring really recomputes
-    changed = rescore([campaign], overrides={"kpi_scorer": {"weight_pitch_rate": 0.0}})
-    for a, b in zip(valid, [r for r in changed.runs if r.score.valid], strict=True):
+    changed = {r.key: r for r in rescore([campaign], overrides={"kpi_scorer": {"weight_pitch_rate": 0.0}}).runs}
+    for a in valid:
+        b = changed[a.key]
         assert b.j == pytest.approx(a.score.rms_accel_z, rel=1e-12) and b.j < a.j
 
 
@@ -90,7 +92,7 @@ def test_replay_into_the_live_chain_gives_the_same_j(campaign: Path, ros_env: di
     cmd = [sys.executable, "-m", "bac_bringup.cli", "replay", str(campaign), "--rate", "10", "--output", str(out)]
     proc = subprocess.run(cmd, env=ros_env, capture_output=True, text=True, timeout=300, check=False)
     assert proc.returncode == 0, proc.stdout[-4000:] + proc.stderr[-4000:]
-    runs = json.loads(out.read_text())["runs"]
+    runs = [r for r in json.loads(out.read_text())["runs"] if r["recorded_j"] is not None]
     assert len(runs) == BUDGET
     for r in runs:
         assert r["valid"], r

@@ -12,6 +12,7 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import signal
 import subprocess
 import sys
 import time
@@ -46,16 +47,27 @@ def ros_traffic(discovery_range: str) -> bool:
     got: list[object] = []
     pub = node.create_publisher(M.Calibration, "rt/in/Calibration", 10)
     node.create_subscription(M.Calibration, "rt/out/Calibration", got.append, 10)
-    deadline = time.monotonic() + 40
-    while time.monotonic() < deadline and not got:
-        if pub.get_subscription_count() > 0:
-            pub.publish(M.Calibration(trial_id=7, names=["a"], values=[1.0]))
-        ex.spin_once(timeout_sec=0.1)
-    node.destroy_node()
-    rclpy.try_shutdown(context=ctx)
-    echo.terminate()
-    echo.wait(10)
+    try:
+        deadline = time.monotonic() + 40
+        while time.monotonic() < deadline and not got:
+            if pub.get_subscription_count() > 0:
+                pub.publish(M.Calibration(trial_id=7, names=["a"], values=[1.0]))
+            ex.spin_once(timeout_sec=0.1)
+    finally:
+        node.destroy_node()
+        rclpy.try_shutdown(context=ctx)
+        stop(echo)
     return bool(got)
+
+
+def stop(proc: subprocess.Popen) -> None:
+    """Ctrl-C the child, then kill it: an echo node left behind would hold the caller's output pipe open."""
+    proc.send_signal(signal.SIGINT)
+    try:
+        proc.wait(10)
+    except subprocess.TimeoutExpired:
+        proc.kill()
+        proc.wait(10)
 
 
 def can_traffic() -> bool:

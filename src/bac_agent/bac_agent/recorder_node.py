@@ -9,7 +9,8 @@ can deliver a run's last samples after the next trial was announced), so a
 message goes to a trial by its *stamp*: trial k owns the stamps from its first
 ``bac/trial`` message up to the next trial's. The previous trial's bag stays
 open for ``close_grace_s`` after the next trial starts, to take late arrivals;
-Trial, RunSegment and RunScore messages go by their trial id.
+Trial, RunSegment, RunScore and Calibration messages go by their trial id (and
+wait for their trial's announcement when they overtake it).
 """
 
 from __future__ import annotations
@@ -96,6 +97,7 @@ class CampaignRecorderNode(BacNode):
         # open bags: trial id -> (writer, first stamp of the trial in ns)
         self._open_bags: dict[int, tuple[TrialBagWriter, int]] = {}
         self._current = 0
+        self._pending: dict[int, list[tuple[str, int, bytes]]] = {}  # messages of trials not announced yet
         self.dropped = 0  # messages that belong to no open trial
         self.bags: list[Path] = []
         group = MutuallyExclusiveCallbackGroup()
@@ -111,10 +113,19 @@ class CampaignRecorderNode(BacNode):
             for t in topics
             if t not in DRAINED_TOPICS
         ]
+        raw_reliability = self.declare_str(
+            "imu_raw_reliability",
+            "best_effort",
+            "QoS reliability of the imu/data_raw recording: best_effort (IMU drivers publish so) or reliable "
+            "(a simulator publishing reliably: the bag then holds every sample, even on a loaded machine)",
+            choices=("best_effort", "reliable"),
+            read_only=True,
+        )
+        qos = dict(QOS_BY_TOPIC)
+        if raw_reliability == "reliable":
+            qos["imu/data_raw"] = STREAM_INPUT_DEEP
         self._drains = [
-            (t, TopicDrain(self, _msg_class(RECORDED_TOPICS[t]), t, QOS_BY_TOPIC[t]))
-            for t in topics
-            if t in DRAINED_TOPICS
+            (t, TopicDrain(self, _msg_class(RECORDED_TOPICS[t]), t, qos[t])) for t in topics if t in DRAINED_TOPICS
         ]
         self.drain_period_s = self.declare_float(
             "drain_period_s", 0.02, "how often the high-rate streams are taken from their readers, s", 0.001, 1.0
@@ -143,11 +154,16 @@ class CampaignRecorderNode(BacNode):
                 if trial.state == Trial.STATE_DONE:
                     self._close_later(trial.trial_id)
                 return
-            if topic in (TOPIC_RUN_SEGMENT, TOPIC_RUN_SCORE):
-                msg = deserialize_message(data, RunSegment if topic == TOPIC_RUN_SEGMENT else RunScore)
-                self._write(msg.trial_id, topic, now_ns, data)
+            if topic in (TOPIC_RUN_SEGMENT, TOPIC_RUN_SCORE, TOPIC_CALIBRATION):
+                cls = {TOPIC_RUN_SEGMENT: RunSegment, TOPIC_RUN_SCORE: RunScore, TOPIC_CALIBRATION: Calibration}[topic]
+                tid = int(deserialize_message(data, cls).trial_id)
+                if tid > self._current and tid not in self._open_bags:
+                    # its trial's announcement has not arrived yet (topics are not ordered): hold it
+                    self._pending.setdefault(tid, []).append((topic, now_ns, data))
+                    return
+                self._write(tid if tid else self._current, topic, now_ns, data)
                 return
-            stamp = cdr_stamp_ns(data) if topic != TOPIC_CALIBRATION else None
+            stamp = cdr_stamp_ns(data)
             # a batch taken from a drain arrives at once: its messages' own stamps keep their timing
             self._write(self._owner(stamp), topic, stamp or now_ns, data)
 
@@ -181,6 +197,8 @@ class CampaignRecorderNode(BacNode):
             n += 1
         self._open_bags[trial_id] = (TrialBagWriter(path, storage=self.storage), start_ns)
         self._current = trial_id
+        for topic, t_ns, data in self._pending.pop(trial_id, []):
+            self._write(trial_id, topic, t_ns, data)
         self.bags.append(path)
         self.get_logger().info(f"trial {trial_id}: recording into {path}")
 

@@ -166,10 +166,17 @@ class ProcessGraph:
                 continue
             if child.spec.ends_graph and rc == 0:
                 LOG.info("%s finished: shutting down the graph", child.name)
+                self._linger()
                 return 0
             LOG.error("node %s exited with code %s: shutting down the graph", child.name, rc)
             return rc if rc > 0 else 1
         return None
+
+    def _linger(self) -> None:
+        """Let the other nodes take the finished node's last messages (a grace period, not a synchronisation)."""
+        deadline = time.monotonic() + self.profile.linger_s
+        while time.monotonic() < deadline and not self._stop_requested:
+            time.sleep(0.02)
 
     def wait(self, timeout_s: float | None = None) -> int:
         deadline = None if timeout_s is None else time.monotonic() + timeout_s
@@ -251,6 +258,9 @@ class SingleProcessGraph:
                     spec, node = done[0]
                     if spec.ends_graph and node.exit_code == 0:
                         LOG.info("%s finished: shutting down the graph", spec.name)
+                        linger_end = time.monotonic() + self.profile.linger_s
+                        while ok() and time.monotonic() < linger_end:
+                            executor.spin_once(timeout_sec=0.02)
                         code = 0
                     else:
                         LOG.error("node %s ended with code %s", spec.name, node.exit_code)

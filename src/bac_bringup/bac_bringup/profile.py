@@ -12,7 +12,9 @@ A profile is the bac equivalent of a launch file::
 
 ``entry`` is ``module:Class``: the process mode runs ``python -m module`` (the
 module's ``main()``), the single-process mode instantiates ``Class``.
-``campaign: true`` makes the launcher give every node a ``campaign_dir``
+``linger_s`` (default 1 s): after the ``ends_graph`` node finished, the
+other nodes keep running this long, so that its last messages reach them
+(the recorder). ``campaign: true`` makes the launcher give every node a ``campaign_dir``
 parameter (one new folder per launch unless ``--campaign-dir`` names one).
 ``can: true`` gives the node the profile's CAN settings as ``can.*``
 parameters. ``ends_graph: true`` marks the node whose normal exit (code 0)
@@ -84,6 +86,7 @@ class Profile:
     description: str = ""
     global_params: Mapping[str, Any] = field(default_factory=dict)  # given to every node
     campaign: bool = False  # nodes take a campaign_dir (the launcher makes one per run)
+    linger_s: float = 1.0  # after the ends_graph node finished, the others run this long (its last messages land)
 
     @property
     def needs_can(self) -> bool:
@@ -211,4 +214,5 @@ def load_profile(name_or_path: str | Path) -> Profile:
         description=str(data.get("description", "")),
         global_params=dict(data.get("global_params") or {}),
         campaign=bool(data.get("campaign", False)),
+        linger_s=float(data.get("linger_s", 1.0)),
     )

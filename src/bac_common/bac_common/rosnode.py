@@ -51,8 +51,15 @@ QOS_STREAM = QoSProfile(
 # readers of streams that may come from outside bac (vehicle/odom from a car's odometry driver): volatile, so
 # that any reliable writer matches (a transient-local reader would not match a volatile writer)
 QOS_STREAM_INPUT = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=5000, reliability=ReliabilityPolicy.RELIABLE)
-# one message per run: reliable, a generous queue
-QOS_EVENTS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=50, reliability=ReliabilityPolicy.RELIABLE)
+# one message per run (segments, scores): reliable, a generous queue, and transient local so that a reader
+# matched late (discovery between processes takes seconds, more on a loaded machine) still gets the runs
+# published before; readers key them by (campaign_id, trial_id, attempt) and ignore what is not theirs
+QOS_EVENTS = QoSProfile(
+    history=HistoryPolicy.KEEP_LAST,
+    depth=50,
+    reliability=ReliabilityPolicy.RELIABLE,
+    durability=DurabilityPolicy.TRANSIENT_LOCAL,
+)
 # latched state (the trial, the active calibration): a late joiner gets the last one
 QOS_LATCHED = QoSProfile(
     history=HistoryPolicy.KEEP_LAST,

@@ -20,7 +20,7 @@ vectorized numpy; no Python loop over samples.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Any
 
 import numpy as np
@@ -58,6 +58,7 @@ class GPConfig:
     noise_scale: float = 1.5
     noise_floor: float = 1e-6  # smallest noise variance (standardized units)
     noise_ceiling: float = 2.0
+    mean: str = "zero"  # prior mean of the standardized outputs: "zero" or "constant" (a learned constant, GLS)
     draws: int = 8  # draws from the prior, screened by their objective
     restarts: int = 1  # best draws optimized, besides the prior mode and the previous fit
     maxiter: int = 200
@@ -70,6 +71,7 @@ class Hyper:
     lengthscales: FloatArray
     outputscale: float
     noise: float
+    mean: float = 0.0  # constant prior mean (standardized units; 0 with GPConfig.mean == "zero")
 
     def to_vector(self) -> FloatArray:
         return np.concatenate([np.log(self.lengthscales), [math.log(self.outputscale), math.log(self.noise)]])
@@ -80,11 +82,21 @@ class Hyper:
         return cls(np.exp(v[:-2]), float(math.exp(v[-2])), float(math.exp(v[-1])))
 
     def to_dict(self) -> dict[str, Any]:
-        return {"lengthscales": self.lengthscales.tolist(), "outputscale": self.outputscale, "noise": self.noise}
+        return {
+            "lengthscales": self.lengthscales.tolist(),
+            "outputscale": self.outputscale,
+            "noise": self.noise,
+            "mean": self.mean,
+        }
 
     @classmethod
     def from_dict(cls, d: dict[str, Any]) -> Hyper:
-        return cls(np.asarray(d["lengthscales"], dtype=float), float(d["outputscale"]), float(d["noise"]))
+        return cls(
+            np.asarray(d["lengthscales"], dtype=float),
+            float(d["outputscale"]),
+            float(d["noise"]),
+            float(d.get("mean", 0.0)),
+        )
 
 
 @dataclass
@@ -123,7 +135,7 @@ class GP:
         ]
 
     # --- data ------------------------------------------------------------------------
-    def _set_data(self, X: FloatArray, y: FloatArray) -> None:
+    def _set_data(self, X: FloatArray, y: FloatArray, scaling: tuple[float, float] | None = None) -> None:
         X = np.atleast_2d(np.asarray(X, dtype=float))
         y = np.asarray(y, dtype=float).ravel()
         if X.shape[0] == 0 or X.shape[0] != y.shape[0]:
@@ -131,9 +143,12 @@ class GP:
         if not (np.all(np.isfinite(X)) and np.all(np.isfinite(y))):
             raise GPError("X and y must be finite (NaN or inf observations cannot be modelled)")
         self.X = X
-        self.y_mean = float(np.mean(y))
-        sd = float(np.std(y))
-        self.y_std = sd if sd > 1e-12 * max(1.0, abs(self.y_mean)) else 1.0
+        if scaling is not None:
+            self.y_mean, self.y_std = float(scaling[0]), float(scaling[1])
+        else:
+            self.y_mean = float(np.mean(y))
+            sd = float(np.std(y))
+            self.y_std = sd if sd > 1e-12 * max(1.0, abs(self.y_mean)) else 1.0
         self._z = (y - self.y_mean) / self.y_std
 
     # --- the objective: negative log posterior and its gradient ------------------------------
@@ -160,9 +175,13 @@ class GP:
         L, info = lapack.dpotrf(K, lower=1, clean=1)
         if info != 0:
             return 1e10, np.zeros_like(v)
-        alpha, _ = lapack.dpotrs(L, z, lower=1)
         Kinv, _ = lapack.dpotri(L, lower=1)
         Kinv = np.tril(Kinv) + np.tril(Kinv, -1).T
+        if self.config.mean == "constant":
+            # the constant mean profiled out (its GLS estimate); by the envelope theorem the gradient
+            # below (at fixed c) is the gradient of the profiled likelihood
+            z = z - self._gls_mean(Kinv, z)
+        alpha = Kinv @ z
         mll = -0.5 * float(z @ alpha) - float(np.sum(np.log(np.diag(L)))) - 0.5 * n * LOG_2PI
         W = np.outer(alpha, alpha) - Kinv
         # F = -2 dk/d(r^2) = s2 (5/3)(1 + sqrt5 r) exp(-sqrt5 r); d mll/d log l_k = 0.5 sum_ij W F D2_k / l_k^2
@@ -175,6 +194,12 @@ class GP:
         lp = -0.5 * float(np.sum(((v - loc) / scale) ** 2))
         glp = -(v - loc) / scale**2
         return -(mll + lp), -(grad + glp)
+
+    @staticmethod
+    def _gls_mean(Kinv: FloatArray, z: FloatArray) -> float:
+        """The generalized-least-squares constant: argmax of the likelihood over a constant mean."""
+        k1 = Kinv.sum(axis=0)
+        return float(k1 @ z / max(float(k1.sum()), 1e-300))
 
     def _d2(self) -> FloatArray:
         X = self.X
@@ -223,21 +248,33 @@ class GP:
             if np.isfinite(res.fun) and res.fun < best_f:
                 best_f, best_v = float(res.fun), np.asarray(res.x)
         self.hyper = Hyper.from_vector(best_v)
-        self._factorize()
+        self._factorize(refit_mean=True)
         return self
 
-    def condition(self, X: FloatArray, y: FloatArray, hyper: Hyper | None = None) -> GP:
-        """Condition on (X, y) with given (or the current) hyperparameters, no fitting."""
-        self._set_data(X, y)
+    def condition(
+        self,
+        X: FloatArray,
+        y: FloatArray,
+        hyper: Hyper | None = None,
+        scaling: tuple[float, float] | None = None,
+    ) -> GP:
+        """Condition on (X, y) with given (or the current) hyperparameters, no fitting.
+
+        ``scaling`` = (y_mean, y_std) keeps another GP's standardization (e.g. a model with
+        fantasized points added, whose hyperparameters, constant mean included, are those of
+        the GP fitted without them); by default y is standardized by its own mean and std.
+        """
+        self._set_data(X, y, scaling)
         if hyper is not None:
             self.hyper = hyper
         if self.hyper is None:
             loc, _ = self._prior(self.X.shape[1])
             self.hyper = Hyper.from_vector(loc)
-        self._factorize()
+        self._factorize(refit_mean=False)
         return self
 
-    def _factorize(self) -> None:
+    def _factorize(self, refit_mean: bool) -> None:
+        """Cholesky of the kernel matrix; ``refit_mean``: set the constant mean to its GLS estimate."""
         assert self.hyper is not None
         h = self.hyper
         n = self.X.shape[0]
@@ -251,7 +288,12 @@ class GP:
                 jitter *= 100.0
         else:
             raise GPError("kernel matrix is not positive definite even with jitter; duplicate points with no noise?")
-        self._alpha = np.asarray(sla.cho_solve((self._L, True), self._z, check_finite=False), dtype=float)
+        if self.config.mean == "constant" and refit_mean:
+            ones = sla.cho_solve((self._L, True), np.ones(n), check_finite=False)
+            h = self.hyper = replace(h, mean=float(ones @ self._z / max(float(ones.sum()), 1e-300)))
+        elif self.config.mean != "constant" and h.mean != 0.0:
+            h = self.hyper = replace(h, mean=0.0)
+        self._alpha = np.asarray(sla.cho_solve((self._L, True), self._z - h.mean, check_finite=False), dtype=float)
 
     # --- prediction ------------------------------------------------------------------------
     @property
@@ -266,7 +308,7 @@ class GP:
         h = self.hyper
         Xq = np.atleast_2d(np.asarray(Xq, dtype=float))
         Ks = matern52_from_r2(sq_dist(Xq, self.X, h.lengthscales), h.outputscale)
-        mu = Ks @ self._alpha
+        mu = h.mean + Ks @ self._alpha
         V = sla.solve_triangular(self._L, Ks.T, lower=True, check_finite=False)
         var = np.maximum(h.outputscale - np.sum(V * V, axis=0), 1e-12 * h.outputscale)
         return mu, var
@@ -287,7 +329,7 @@ class GP:
         r2 = sq_dist(Xq, self.X, h.lengthscales)
         Ks = matern52_from_r2(r2, h.outputscale)
         F = matern52_dr2_factor(r2, h.outputscale)
-        mu = Ks @ self._alpha
+        mu = h.mean + Ks @ self._alpha
         Vt = sla.cho_solve((self._L, True), Ks.T, check_finite=False).T  # (m, n) = Ks K^-1
         var_raw = h.outputscale - np.sum(Ks * Vt, axis=1)
         var = np.maximum(var_raw, 1e-12 * h.outputscale)

@@ -277,7 +277,8 @@ def check_ties(
     tied optimum leaves the group.
 
     The members that left are grouped again among themselves (same intervals, same ε) and checked the
-    same way once more; what still does not fit is tuned alone. Returns the groups with ``tie_loss``
+    same way once more; what still does not fit is tuned alone. Finally, groups whose tied optima lie
+    within ε are joined when the union still ties within ``tie_tol``. Returns the groups with ``tie_loss``
     and ``value`` measured on the tied sweep (``value`` = the relative position of its minimum).
     """
     if not (math.isfinite(tie_tol) and tie_tol >= 0):
@@ -298,7 +299,43 @@ def check_ties(
             out.extend(_single(curves, lv, pos) for lv in left)
     else:
         out.extend(_single(curves, lv, pos) for lv in leavers)
+    out = _merge(surrogate, curves, out, tie_tol, _epsilon_of(groups), pos)
     return sorted(out, key=lambda g: min(pos[m] for m in g.members))
+
+
+def _merge(
+    surrogate: Surrogate,
+    curves: SensitivityCurves,
+    groups: list[Group],
+    tie_tol: float,
+    epsilon: float,
+    pos: Mapping[str, int],
+) -> list[Group]:
+    """Join checked groups whose tied optima are within ε while the union still ties within ``tie_tol``
+    (splitting and regrouping can leave two groups at the same value, e.g. both at the upper bound)."""
+    groups = list(groups)
+    m = curves.values.shape[1]
+    while True:
+        best: tuple[float, int, int, Group] | None = None
+        for a in range(len(groups)):
+            for b in range(a + 1, len(groups)):
+                ga, gb = groups[a], groups[b]
+                if abs(ga.value - gb.value) > epsilon + 1e-12:
+                    continue
+                members = tuple(sorted(ga.members + gb.members))
+                u, j = tied_sweep(surrogate, curves, members, m)
+                k = int(np.argmin(j))
+                loss = float(j[k] / curves.j_bar - 1.0)
+                if loss <= tie_tol and (best is None or loss < best[0]):
+                    ivs = {
+                        **dict(zip(ga.members, ga.intervals, strict=True)),
+                        **dict(zip(gb.members, gb.intervals, strict=True)),
+                    }
+                    best = (loss, a, b, Group(members, float(u[k]), tuple(ivs[x] for x in members), loss, epsilon))
+        if best is None:
+            return groups
+        _, a, b, joined = best
+        groups = [g for i, g in enumerate(groups) if i not in (a, b)] + [joined]
 
 
 def _epsilon_of(groups: Sequence[Group]) -> float:

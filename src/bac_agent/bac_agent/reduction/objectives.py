@@ -65,6 +65,7 @@ class SimulatedCar:
 
     problem: str = "road_c2"
     definition_dict: Mapping[str, Any] | None = None
+    noisy: bool = True  # evaluate = runs with run-to-run noise (driver, alignment, IMU); False = noise-free runs
 
     def _problem(self) -> Any:
         key = (self.problem, _definition_key(self.definition_dict))
@@ -87,13 +88,15 @@ class SimulatedCar:
         return f"{self.problem} ({self.definition.name}, {len(self.definition.dimensions)} tuned)"
 
     def evaluate(self, thetas: FloatArray, rng: np.random.Generator) -> FloatArray:
+        if not self.noisy:
+            return self.true_j(thetas)
         return np.asarray(self._problem().noisy_j(np.atleast_2d(thetas), rng), dtype=float)
 
     def true_j(self, thetas: FloatArray) -> FloatArray:
         return np.asarray(self._problem().true_j(np.atleast_2d(thetas)), dtype=float)
 
     def with_definition(self, definition: CalibrationDefinition) -> SimulatedCar:
-        return SimulatedCar(self.problem, definition.to_dict())
+        return SimulatedCar(self.problem, definition.to_dict(), self.noisy)
 
     # ground truth of the full problem (None when the simulator has none stored)
     def reference(self) -> tuple[float, float] | None:

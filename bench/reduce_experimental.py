@@ -1,0 +1,132 @@
+"""The experimental phase in simulation: runs until BO on the meta-parameters finds the reduced optimum (issue 8).
+
+Takes the meta-parameter file written by ``bac reduce`` (and its ``result.json`` for the reduced
+problem's J* and J_med; without it they are computed here: the median over random reduced
+calibrations, and a polished best point) and runs the agent's engine with its **default**
+configuration (what ``bo_agent`` runs on the car: one run per trial, noisy runs of the simulated
+car) for ``--seeds`` independent campaigns of ``--budget`` trials. After every run the
+recommendation's true (noise-free) J gives its gap ``(J - J*_red) / (J_med,red - J*_red)``; a campaign
+has found the optimum after the first run whose recommendation has gap <= 0.05
+(``bac_common.progress``). The campaigns run in lock-step: each step simulates the runs of all seeds
+as one batch; the recommendations' true J are simulated in one batch at the end.
+
+Baseline measured in the same run: random search on the same reduced problem (best observed run).
+
+    .venv/bin/python bench/reduce_experimental.py --definition ros_ws/config/calibrations/controller_ii_reduced.yaml \\
+        [--result reduce_out/result.json] [--seeds 16] [--budget 15]
+
+LAST line: ``runs_to_optimum_median <n>`` (the paper took 6 runs on its car with 3 meta-parameters).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+from bac_agent.bo import Engine
+from bac_agent.bo.baselines import RandomStrategy
+from bac_agent.reduction.objectives import SimulatedCar
+from bac_agent.reduction.pipeline import polish
+from bac_common.paramspace import CalibrationDefinition
+from bac_common.progress import FOUND_GAP, gap, runs_to_optimum
+
+
+def references(car: SimulatedCar, result: Path | None, seed: int) -> tuple[float, float, str]:
+    if result is not None and result.is_file():
+        v = json.loads(result.read_text()).get("validation") or {}
+        if "j_star_reduced" in v and "j_med_reduced" in v:
+            return float(v["j_star_reduced"]), float(v["j_med_reduced"]), f"from {result}"
+    d = car.definition
+    b = np.array([[x.lower, x.upper] for x in d.dimensions])
+    rng = np.random.default_rng(seed)
+    pts = b[:, 0] + rng.random((256, b.shape[0])) * (b[:, 1] - b[:, 0])
+    j = car.true_j(pts)
+    _, jx, _ = polish(car.true_j, pts[int(np.argmin(j))], b, 10)
+    return float(jx), float(np.median(j)), "computed here (256 random points, best polished)"
+
+
+def run(car: SimulatedCar, strategy: str, seeds: int, budget: int) -> tuple[np.ndarray, float, float]:
+    """(S, budget) true J of the recommendation after each run; simulation and optimizer seconds."""
+    d = car.definition
+    names = [x.name for x in d.dimensions]
+    if strategy == "bo":
+        engines = [Engine(d, budget=budget, seed=s) for s in range(seeds)]
+    else:
+        engines = [RandomStrategy(d, budget, s) for s in range(seeds)]  # type: ignore[misc]
+    rng = np.random.default_rng(12345)
+    recs: list[list[np.ndarray]] = [[] for _ in range(seeds)]
+    sim_s = opt_s = 0.0
+    while not all(e.done for e in engines):
+        t0 = time.perf_counter()
+        # the initial design needs no model: all its runs in one step
+        asks = []
+        for k, e in enumerate(engines):
+            n = 1
+            if strategy == "bo":
+                n = max(1, e.n_initial - e.n_trials - len(e.pending))
+            for _ in range(n):
+                if e.n_trials + len(e.pending) < budget:
+                    asks.append((k, e.ask()))
+        t1 = time.perf_counter()
+        y = car.evaluate(np.array([[p[x] for x in names] for _, p in asks]), rng)
+        t2 = time.perf_counter()
+        for (k, p), v in zip(asks, y, strict=True):
+            e = engines[k]
+            e.tell(p, float(v))
+            r = e.recommend()
+            recs[k].append(np.array([r.params[x] for x in names]))
+        opt_s += (t1 - t0) + (time.perf_counter() - t2)
+        sim_s += t2 - t1
+    t3 = time.perf_counter()
+    flat = np.array([r for rs in recs for r in rs])
+    jt = car.true_j(flat).reshape(seeds, budget)
+    sim_s += time.perf_counter() - t3
+    return jt, sim_s, opt_s
+
+
+def main() -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--definition", type=Path, required=True, help="meta-parameter file written by bac reduce")
+    ap.add_argument("--result", type=Path, default=None, help="its result.json (reduced J*, J_med)")
+    ap.add_argument("--problem", default="road_c2")
+    ap.add_argument("--seeds", type=int, default=16)
+    ap.add_argument("--budget", type=int, default=15)
+    ap.add_argument("--no-baseline", action="store_true")
+    args = ap.parse_args()
+    d = CalibrationDefinition.load(args.definition)
+    car = SimulatedCar(args.problem).with_definition(d)
+    t0 = time.perf_counter()
+    j_star, j_med, source = references(car, args.result, 0)
+    print(
+        f"{d.name}: {len(d.dimensions)} tuned dimensions ({', '.join(d.tuned)}); J*_red {j_star:.5f}, "
+        f"J_med,red {j_med:.5f} ({source})"
+    )
+    out = {}
+    for strategy in ("bo",) + (() if args.no_baseline else ("random",)):
+        jt, sim_s, opt_s = run(car, strategy, args.seeds, args.budget)
+        g = gap(jt, j_star, j_med)
+        rto = np.array([runs_to_optimum(row, FOUND_GAP) for row in g])
+        med = float(np.median(rto))
+        out[strategy] = med
+        found10 = float(np.mean(rto <= 10))
+        print(
+            f"{strategy:>6}: runs to gap <= {FOUND_GAP}: median {med:g}, per seed {rto.tolist()}; found within 10 "
+            f"runs: {100 * found10:.0f} %; median gap after 5/10/{args.budget} runs: "
+            f"{np.median(g[:, 4]):.3f}/{np.median(g[:, min(9, args.budget - 1)]):.3f}/{np.median(g[:, -1]):.3f} "
+            f"(simulation {sim_s:.0f} s, optimizer {opt_s:.0f} s)"
+        )
+    if "random" in out and math.isfinite(out["random"]) and math.isfinite(out["bo"]):
+        print(f"ratio random/bo: {out['random'] / out['bo']:.2f}")
+    print(f"bench time {time.perf_counter() - t0:.0f} s")
+    print(f"runs_to_optimum_median {out['bo']:g}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
