@@ -93,7 +93,7 @@ class EngineConfig:
     n_candidates: int = 1024  # space-filling candidates for the acquisition maximizer
     n_local: int = 256  # candidates around the best points
     acq_restarts: int = 4  # L-BFGS-B starts from the best candidates
-    recommend_beta: float = 1.0  # recommendation minimizes mean + beta * std (0 = the paper's argmin of the mean)
+    recommend_beta: float = 0.0  # recommendation minimizes mean + beta * std (0, the default: the paper's argmin of the mean)
     gp: GPConfig = field(default_factory=GPConfig)
 
     def __post_init__(self) -> None:
@@ -260,7 +260,7 @@ class Engine:
             Xp = self.space.to_unit(np.array([self.space.to_array(p) for p in self.pending]))
             mp, _ = gp.predict(Xp)
             y_all = np.concatenate([gp.y_mean + gp.y_std * gp._z, mp])
-            model = GP(self.config.gp).condition(np.vstack([X_obs, Xp]), y_all, gp.hyper)
+            model = GP(self.config.gp).condition(np.vstack([X_obs, Xp]), y_all, gp.hyper, scaling=(gp.y_mean, gp.y_std))
             best = float((np.min(model.predict(X_obs)[0]) - model.y_mean) / model.y_std)
         cand = candidates(self.config.n_candidates, d, self.rng)
         # local candidates around the best points by posterior mean
