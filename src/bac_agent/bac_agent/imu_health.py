@@ -29,6 +29,7 @@ from bac_agent.bagio import ImuArrays, read_imu
 from bac_agent.kpi import Score, score
 from bac_agent.measure_config import ingest_config, kpi_config
 from bac_agent.segmentation import ImuSeries, window_segment
+from bac_common.console import say
 from bac_common.errors import BacError
 from bac_imu.ingest import NS, IngestOutput, StreamHealth, diagnose, ingest_all
 
@@ -145,12 +146,12 @@ def main(argv: list[str] | None = None) -> int:
         raw = read_imu(args.bag, args.topic)
         out, health, sc = analyse(raw, args.params, overrides, args.start, args.end)
     except BacError as exc:
-        print(f"error: {exc}", file=sys.stderr)
+        say(f"error: {exc}", err=True)
         return 2
     if args.json:
         h = asdict(health)
         s = {k: v for k, v in asdict(sc).items() if not k.startswith("psd_")}
-        print(
+        say(
             json.dumps(
                 {"health": h, "score": s},
                 default=lambda o: None if isinstance(o, float) and math.isnan(o) else str(o),
@@ -158,11 +159,11 @@ def main(argv: list[str] | None = None) -> int:
             )
         )
     else:
-        print(report_text(raw, health, sc))
+        say(report_text(raw, health, sc))
     if args.plot is not None:
         plot(raw, out, health, sc, args.plot)
         if not args.json:
-            print(f"plot: {args.plot}")
+            say(f"plot: {args.plot}")
     return 0
 
 

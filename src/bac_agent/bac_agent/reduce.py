@@ -38,6 +38,7 @@ from bac_agent.reduction.campaigns import CampaignResult, Progress
 from bac_agent.reduction.objectives import objective_names
 from bac_agent.reduction.pipeline import FAST_ENGINE, ReduceConfig, run_reduction
 from bac_agent.reduction.report import format_report, last_line, write_outputs
+from bac_common.console import say
 from bac_common.errors import BacError
 
 
@@ -164,14 +165,14 @@ def main(argv: Sequence[str] | None = None) -> int:
 
         def log(msg: str) -> None:
             if not args.quiet:
-                print(f"[{time.perf_counter() - t0:7.1f} s] {msg}", flush=True)
+                say(f"[{time.perf_counter() - t0:7.1f} s] {msg}", flush=True)
 
         def progress(p: Progress) -> None:
             now = time.perf_counter()
             if args.quiet or (now - last_print[0] < 10.0 and p.trials_done < p.trials):
                 return
             last_print[0] = now
-            print(
+            say(
                 f"[{now - t0:7.1f} s]   group {p.group}: {p.trials_done}/{p.trials} trials, best J {p.best_j:.4f} "
                 f"(simulation {p.sim_s:.0f} s, GP {p.gp_s:.0f} s)",
                 flush=True,
@@ -180,16 +181,16 @@ def main(argv: Sequence[str] | None = None) -> int:
         result = run_reduction(config, log=log, on_progress=progress, campaigns=stored)
         files = write_outputs(result, args.out, args.definition_out, plots=not args.no_plots)
     except (KeyError, TypeError, json.JSONDecodeError) as exc:
-        print(f"bac reduce: {args.from_result} is not a result.json of bac reduce: {exc}", file=sys.stderr)
+        say(f"bac reduce: {args.from_result} is not a result.json of bac reduce: {exc}", err=True)
         return 2
     except (BacError, OSError) as exc:
-        print(f"bac reduce: {exc}", file=sys.stderr)
+        say(f"bac reduce: {exc}", err=True)
         return 2
-    print(format_report(result))
-    print("")
+    say(format_report(result))
+    say("")
     for kind, path in files.items():
-        print(f"wrote {kind}: {path}")
-    print(last_line(result), flush=True)
+        say(f"wrote {kind}: {path}")
+    say(last_line(result), flush=True)
     return 0
 
 

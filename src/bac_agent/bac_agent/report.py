@@ -38,6 +38,7 @@ from typing import Any
 import numpy as np
 
 from bac_agent.journal import JOURNAL_NAME, read_journal
+from bac_common.console import say
 from bac_common.errors import BacError
 from bac_common.paramspace import CalibrationDefinition
 
@@ -654,9 +655,9 @@ def main(argv: Sequence[str] | None = None) -> int:
         sys.stderr.write(f"bac report: {exc}\n")
         return 2
     s = result["summary"]
-    print(f"report: {result['html']}")
+    say(f"report: {result['html']}")
     if "gap" in s:
-        print(f"recommendation true J {s['true_j_of_recommendation']:.5f}, gap {100 * s['gap']:.2f} %")
+        say(f"recommendation true J {s['true_j_of_recommendation']:.5f}, gap {100 * s['gap']:.2f} %")
     return 0
 
 

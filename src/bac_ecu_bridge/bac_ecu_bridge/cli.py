@@ -30,6 +30,7 @@ import sys
 from collections.abc import Sequence
 from pathlib import Path
 
+from bac_common.console import say
 from bac_common.errors import BacError, OutOfBoundsError, UnknownParameterError
 from bac_common.paramspace import CalibrationDefinition
 from bac_ecu_bridge.canbus import BusSettings, TracedBus, open_bus
@@ -95,16 +96,16 @@ def main(argv: Sequence[str] | None = None) -> int:
     try:
         return _run(args)
     except BridgeError as exc:
-        print(f"error {exc.code.name}: {exc}", file=sys.stderr)
+        say(f"error {exc.code.name}: {exc}", err=True)
         return int(exc.code)
     except OutOfBoundsError as exc:
-        print(f"error OUT_OF_BOUNDS: {exc}", file=sys.stderr)
+        say(f"error OUT_OF_BOUNDS: {exc}", err=True)
         return int(ErrorCode.OUT_OF_BOUNDS)
     except UnknownParameterError as exc:
-        print(f"error UNKNOWN_PARAMETER: {exc}", file=sys.stderr)
+        say(f"error UNKNOWN_PARAMETER: {exc}", err=True)
         return int(ErrorCode.UNKNOWN_PARAMETER)
     except (BacError, FileNotFoundError, ValueError) as exc:
-        print(f"error: {exc}", file=sys.stderr)
+        say(f"error: {exc}", err=True)
         return int(ErrorCode.INVALID_REQUEST)
 
 
@@ -130,9 +131,9 @@ def _run(args: argparse.Namespace) -> int:
             db = build_database(CalibrationDefinition.load(resolve_definition(args.definition)), ids)
         rows = decode_trace(args.trace, db, ids)
         for row in rows:
-            print(row.text())
+            say(row.text())
         bad = sum(not r.crc_ok for r in rows)
-        print(f"# {len(rows)} protocol frames, {bad} with a CRC-8 mismatch", file=sys.stderr)
+        say(f"# {len(rows)} protocol frames, {bad} with a CRC-8 mismatch", err=True)
         return 0
     definition = CalibrationDefinition.load(resolve_definition(args.definition))
     codec = CalibrationCodec(definition)
@@ -150,13 +151,13 @@ def _run(args: argparse.Namespace) -> int:
     try:
         if args.cmd == "status":
             st = client.status()
-            print(f"ECU table: {st.count} parameters, CRC-32 0x{st.crc:08X} ({st.latency_s * 1e3:.1f} ms)")
+            say(f"ECU table: {st.count} parameters, CRC-32 0x{st.crc:08X} ({st.latency_s * 1e3:.1f} ms)")
             return 0
         if args.cmd == "read":
             rd = client.read_active()
             for name, v in rd.values.items():
-                print(f"{name} = {v:.10g}")
-            print(f"# CRC-32 0x{rd.crc:08X}, {rd.latency_s * 1e3:.1f} ms", file=sys.stderr)
+                say(f"{name} = {v:.10g}")
+            say(f"# CRC-32 0x{rd.crc:08X}, {rd.latency_s * 1e3:.1f} ms", err=True)
             return 0
         if args.cmd == "restore":
             values = definition.baseline_values()
@@ -169,14 +170,14 @@ def _run(args: argparse.Namespace) -> int:
             res = client.apply(values)
         except BridgeError as exc:
             state = " The ECU's active calibration is UNKNOWN: read it back." if exc.uncertain else ""
-            print(f"error {exc.code.name} ({int(exc.code)}): {exc}.{state}", file=sys.stderr)
+            say(f"error {exc.code.name} ({int(exc.code)}): {exc}.{state}", err=True)
             return int(exc.code)
         for name, v in res.values.items():
-            print(f"{name} = {v:.10g}")
-        print(
+            say(f"{name} = {v:.10g}")
+        say(
             f"# applied: CRC-32 0x{res.crc:08X}, {res.attempts} transaction(s), {res.latency_s * 1e3:.1f} ms, "
             f"read back: {res.read_back}",
-            file=sys.stderr,
+            err=True,
         )
         return 0
     finally:

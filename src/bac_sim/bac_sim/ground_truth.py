@@ -24,6 +24,7 @@ from typing import Any
 import numpy as np
 from scipy.stats import qmc
 
+from bac_common.console import say
 from bac_sim.problems import GROUND_TRUTH_PATH, PROBLEM_NAMES, Problem, get_problem
 
 FloatArray = np.ndarray[Any, Any]
@@ -217,7 +218,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         truth["dt"] = p.scenario.dt
         truth["seconds"] = round(time.perf_counter() - t0, 1)
         data["problems"][name] = truth
-        print(
+        say(
             f"{name}: j_star {truth['j_star']:.5f} at {np.round(truth['theta_star'], 3).tolist()}, "
             f"j_med {truth['j_med']:.5f}, noise {100 * truth['noise_rel']:.2f} %"
         )
@@ -225,7 +226,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         out_path.parent.mkdir(parents=True, exist_ok=True)
         out_path.write_text(json.dumps(data, indent=1) + "\n")
     get_problem.cache_clear()
-    print(f"wrote {out_path}")
+    say(f"wrote {out_path}")
     return 0
 
 

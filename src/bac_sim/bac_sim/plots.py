@@ -20,6 +20,7 @@ from typing import Any
 import numpy as np
 from scipy.signal import welch
 
+from bac_common.console import say
 from bac_sim.engine import SEAT_DEFAULT
 from bac_sim.problems import get_problem
 
@@ -107,7 +108,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         fig.tight_layout()
         fig.savefig(out / fname, dpi=120)
         plt.close(fig)
-    print(f"wrote figures to {out}")
+    say(f"wrote figures to {out}")
     return 0
 
 

@@ -21,6 +21,7 @@ from pathlib import Path
 
 import numpy as np
 
+from bac_common.console import say
 from bac_common.errors import BacError
 from bac_common.paramspace import CalibrationDefinition
 from bac_sim.driver import DriverModel
@@ -96,13 +97,13 @@ def main(argv: Sequence[str] | None = None) -> int:
             path = out if args.runs == 1 else out / f"run_{i + 1:03d}"
             path.parent.mkdir(parents=True, exist_ok=True)
             write_run(rec, path, t, args.storage)
-            print(
+            say(
                 f"{path}: {rec.duration:.1f} s, {rec.t.size} IMU samples, true J {rec.j_true:.4f}"
                 f"{' (bad run)' if rec.bad_run else ''}"
             )
             t += rec.duration + 30.0
     except (BacError, ValueError) as exc:
-        print(f"record_run: {exc}", file=sys.stderr)
+        say(f"record_run: {exc}", err=True)
         return 2
     return 0
 

@@ -19,6 +19,7 @@ from typing import Any
 
 import numpy as np
 
+from bac_common.console import say
 from bac_sim.controllers import CONTROLLER_II_PARAMETERS
 from bac_sim.problems import PROBLEM_NAMES, Problem, get_problem
 
@@ -96,7 +97,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     args = ap.parse_args(argv)
     p = get_problem(args.problem)
     s = one_at_a_time(p, np.asarray(args.theta) if args.theta else None, args.points)
-    print(format_table(s, args.threshold, args.reveal))
+    say(format_table(s, args.threshold, args.reveal))
     if args.json:
         with open(args.json, "w") as fh:
             json.dump(

@@ -93,7 +93,7 @@ class EngineConfig:
     n_candidates: int = 1024  # space-filling candidates for the acquisition maximizer
     n_local: int = 256  # candidates around the best points
     acq_restarts: int = 4  # L-BFGS-B starts from the best candidates
-    recommend_beta: float = 0.0  # recommendation minimizes mean + beta * std (0, the default: the paper's argmin of the mean)
+    recommend_beta: float = 0.0  # recommendation minimizes mean + beta * std (0: the paper's argmin of the mean)
     gp: GPConfig = field(default_factory=GPConfig)
 
     def __post_init__(self) -> None:
