@@ -607,12 +607,15 @@ def make_report(
     out: str | Path | None = None,
     truth_name: str | None = None,
     baseline_dir: str | Path | None = None,
+    truth: Any | None = None,
 ) -> dict[str, Any]:
+    """Write the campaign's report; the truth (true J, J*, J_med) is a simulated problem by name, or an object
+    with the same interface (``names``, ``true_j``, ``theta_star``, ``j_star``, ``j_med``, ``gap``), e.g. a
+    reduced definition's (:func:`bac_agent.reduction.truth.definition_truth`)."""
     campaign = load_campaign(campaign_dir)
     out_dir = Path(out) if out else campaign.path / "report"
     out_dir.mkdir(parents=True, exist_ok=True)
-    truth = None
-    if truth_name:
+    if truth is None and truth_name:
         from bac_sim.problems import get_problem
 
         truth = get_problem(truth_name)

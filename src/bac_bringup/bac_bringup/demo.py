@@ -10,6 +10,11 @@ simulator's true optimum; the last line reads ``recommendation_gap_pct <x>``
 (x = 100 × (J(θ_rec) − J*) / (J_med − J*), with the true, noise-free J).
 
     bac demo [--scenario bump|road] [--budget 15] [--seed 0] [--with-grid] [--campaign-dir DIR] [--single-process]
+             [--definition META_FILE [--truth-from RESULT_JSON]]
+
+With ``--definition`` the campaign calibrates another definition, e.g. the meta-parameter file of
+``bac reduce`` (the experimental phase of paper sec. III-D: Controller II on the test road, the
+bridge expanding each meta-parameter into its raw parameters), and the gap is that space's own.
 """
 
 from __future__ import annotations
@@ -165,11 +170,51 @@ def main(argv: Sequence[str] | None = None) -> int:
     ap.add_argument("--campaign-dir", type=Path, help="campaign folder (default: campaigns/demo-<scenario>-<time>)")
     ap.add_argument("--single-process", action="store_true", help="all nodes in one process (virtual CAN bus)")
     ap.add_argument("--timeout", type=float, default=900.0, help="give up after this many seconds")
+    ap.add_argument(
+        "--definition",
+        type=Path,
+        help="calibration definition to calibrate instead of Controller I, e.g. the meta-parameter file of "
+        "`bac reduce` (the experimental phase: Controller II on the test road, the bridge expands the "
+        "meta-parameters); judged against that space's own optimum",
+    )
+    ap.add_argument(
+        "--truth-from",
+        type=Path,
+        help="with --definition: the result.json of `bac reduce` holding the reduced optimum (else it is measured)",
+    )
     args = ap.parse_args(list(sys.argv[1:] if argv is None else argv))
 
     problem_name, extra = SCENARIOS[args.scenario]
     ws = workspace_dir()
     files = [ws / "params" / extra] if extra else []
+    truth: Any = None
+    definition_overrides: list[str] = []
+    controller = "Controller I"
+    if args.definition is not None:
+        from bac_agent.reduction.truth import definition_truth
+        from bac_common.errors import BacError
+        from bac_common.paramspace import CalibrationDefinition
+
+        try:
+            definition = CalibrationDefinition.load(args.definition.resolve())
+        except (BacError, OSError, ValueError) as exc:
+            out(f"bac demo: cannot load the definition {args.definition}: {exc}")
+            return 2
+        n_raw = len(definition.parameter_names)
+        if n_raw == 2:
+            pass  # Controller I through another definition (e.g. a meta-parameter over front and rear)
+        elif args.scenario != "road":
+            out("bac demo: Controller II is simulated on the test road only: add --scenario road")
+            return 2
+        else:
+            problem_name = "road_c2"
+        d = args.definition.resolve()
+        definition_overrides = [f"{n}.definition_file:={d}" for n in ("vehicle_sim", "ecu_bridge", "bo_agent")]
+        dims = ", ".join(x.name for x in definition.dimensions)
+        controller = f"{definition.name} ({len(definition.dimensions)} tuned: {dims})"
+        out(f"bac demo: establishing the true optimum of {definition.name} on {problem_name} (noise-free simulator)")
+        truth = definition_truth(definition, problem_name, args.truth_from, seed=args.seed)
+        out(f"  J* {truth.j_star:.4f}, J_med {truth.j_med:.4f} ({truth.source})")
     stamp = time.strftime("%Y%m%d-%H%M%S")
     camp = (args.campaign_dir or Path("campaigns") / f"demo-{args.scenario}-{stamp}").resolve()
     if (camp / "journal.jsonl").exists():
@@ -177,14 +222,15 @@ def main(argv: Sequence[str] | None = None) -> int:
     camp.mkdir(parents=True, exist_ok=True)
     seeds = [f"bo_agent.seed:={args.seed}", f"vehicle_sim.seed:={args.seed}"]
     where = "speed bump at 30 km/h" if args.scenario == "bump" else "1.5 km test road at 60 km/h"
-    out(f"bac demo: Controller I on the simulated {where}")
+    out(f"bac demo: {controller} on the simulated {where}")
     out(
         f"  the node graph: vehicle_sim (+ its ECU on CAN), imu_ingest, run_segmenter, kpi_scorer, ecu_bridge, "
         f"campaign_recorder, bo_agent, {'in one process' if args.single_process else 'each in its own process'}"
     )
     out(f"  campaign folder: {camp}")
     t0 = time.monotonic()
-    rc = run_campaign(camp, files, [f"bo_agent.budget:={args.budget}", *seeds], args.single_process, args.timeout)
+    overrides = [f"bo_agent.budget:={args.budget}", *seeds, *definition_overrides]
+    rc = run_campaign(camp, files, overrides, args.single_process, args.timeout)
     wall = time.monotonic() - t0
     if rc != 0 or not (camp / "recommendation.json").exists():
         out(f"bac demo: the campaign failed (launcher exit code {rc}); node logs in {camp / 'logs'}")
@@ -207,6 +253,7 @@ def main(argv: Sequence[str] | None = None) -> int:
                 f"bo_agent.budget:={n}",
                 "bo_agent.confirmation_run:=false",
                 *seeds,
+                *definition_overrides,
             ],
             args.single_process,
             args.timeout * 4,
@@ -220,7 +267,7 @@ def main(argv: Sequence[str] | None = None) -> int:
 
     from bac_agent.report import make_report
 
-    result = make_report(camp, truth_name=problem_name, baseline_dir=baseline)
+    result = make_report(camp, truth_name=problem_name, baseline_dir=baseline, truth=truth)
     s = result["summary"]
     rec = s["recommendation"]
     out("")
