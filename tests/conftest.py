@@ -68,15 +68,16 @@ def ros_env(ros_domain: int) -> dict[str, str]:
 
 
 class RosHarness:
-    """An rclpy context with a background multi-threaded executor."""
+    """An rclpy context with a background executor (single-threaded: rclpy's multi-threaded executor takes
+    a few hundred messages a second at most, too few for a 400 Hz IMU replayed faster than real time)."""
 
     def __init__(self, domain: int) -> None:
         import rclpy
-        from rclpy.executors import MultiThreadedExecutor
+        from rclpy.executors import SingleThreadedExecutor
 
         self.context = rclpy.Context()
         rclpy.init(context=self.context, domain_id=domain)
-        self.executor = MultiThreadedExecutor(context=self.context)
+        self.executor = SingleThreadedExecutor(context=self.context)
         self.nodes: list[Any] = []
         self._thread = threading.Thread(target=self._spin, daemon=True)
         self._thread.start()

@@ -123,6 +123,17 @@ class BoAgentNode(BacNode):
         max_attempts = self.declare_int("max_attempts", 3, "runs per trial before it is given up", 1, 100)
         apply_timeout = self.declare_float("apply_timeout_s", 10.0, "time limit of one apply, s", 0.1, 600.0)
         apply_retries = self.declare_int("apply_retries", 2, "further apply tries after a failed one", 0, 20)
+        self.expected_trial_subscribers = self.declare_int(
+            "expected_trial_subscribers",
+            0,
+            "readers of bac/trial (the recorder, the segmenter, a simulated car...) to wait for before the first "
+            "trial, so that none misses it while discovery between processes is still going on (0: do not wait)",
+            0,
+            100,
+        )
+        self.subscriber_wait_s = self.declare_float(
+            "subscriber_wait_s", 30.0, "longest wait for expected_trial_subscribers, then start anyway, s", 0.0, 3600.0
+        )
         self.service_wait_s = self.declare_float(
             "service_wait_s", 15.0, "how long to wait for the ECU bridge's service to appear, s", 0.1, 3600.0
         )
@@ -197,6 +208,7 @@ class BoAgentNode(BacNode):
         self._run: AwaitRun | None = None
         self._run_deadline_ns = 0  # ROS time
         self._started = False
+        self._wait_since: float | None = None
         self._tick = self.create_timer(
             0.05, self._on_tick, callback_group=self._group, clock=Clock(clock_type=ClockType.STEADY_TIME)
         )
@@ -262,11 +274,31 @@ class BoAgentNode(BacNode):
             if self.exit_code is not None:
                 return
             if not self._started:
+                if not self._readers_ready():
+                    return
                 self._started = True
                 self._do(self.campaign.start())
                 return
             self._poll_apply()
             self._poll_run()
+
+    def _readers_ready(self) -> bool:
+        """True when bac/trial has its expected readers, or when waiting for them took too long (with a warning)."""
+        need = self.expected_trial_subscribers
+        have = self.pub_trial.get_subscription_count()
+        if have >= need:
+            return True
+        now = time.monotonic()
+        if self._wait_since is None:
+            self._wait_since = now
+            self.get_logger().info(f"waiting for {need} readers of {TOPIC_TRIAL} before trial 1 ({have} so far)")
+        if now - self._wait_since < self.subscriber_wait_s:
+            return False
+        self.get_logger().warning(
+            f"{have} of {need} expected readers of {TOPIC_TRIAL} after {self.subscriber_wait_s:g} s "
+            "(is the whole graph running?): starting anyway"
+        )
+        return True
 
     def _poll_apply(self) -> None:
         a = self._apply
