@@ -137,7 +137,7 @@ def sensitivity_kept(result: ReductionResult, path: Path) -> Path:
         axes[k // cols][k % cols].axis("off")
     extra = "; dotted: noise-free simulator" if result.true_curves is not None else ""
     fig.suptitle(
-        "One-at-a-time sensitivity of the kept parameters from θ̄ (shaded: near-optimal intervals; "
+        "One-at-a-time sensitivity of the kept parameters from θ̄\n(shaded: near-optimal intervals; "
         f"dashed: group value, J_mu(θ̄)·(1+T){extra})",
         fontsize=9,
     )
