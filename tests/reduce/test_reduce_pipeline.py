@@ -84,6 +84,13 @@ def test_the_phase_end_to_end_on_the_synthetic_problem(tmp_path: Path) -> None:
     data = json.loads(files["result"].read_text())
     assert data["kept"] == list(res.kept) and len(data["campaigns"]) == 2
     assert LAST.match(files["report"].read_text().splitlines()[-1])
+    # and its CAN description beside it: the raw parameters on the bus, one signal each
+    import cantools
+
+    db = cantools.database.load_file(str(files["dbc"]))
+    signals = {s.name for m in db.messages for s in m.signals}
+    assert files["dbc"] == files["definition"].with_suffix(".dbc")
+    assert {f"P_{x.name}" for x in d.parameters} <= signals, signals
 
 
 def test_fixed_at_nominal_and_the_plain_average(tmp_path: Path) -> None:
