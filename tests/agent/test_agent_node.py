@@ -139,3 +139,20 @@ def test_resume_after_kill_9_loses_no_trial(procs: Any, tmp_path: Path) -> None:
 
 if __name__ == "__main__":
     sys.exit(pytest.main([__file__, "-q"]))
+
+
+def test_trial_1_waits_for_the_expected_readers_of_the_trial_topic(procs: Any, tmp_path: Path) -> None:
+    cdir = tmp_path / "camp"
+    procs.python("bridge", [str(HERE / "standins.py"), "bridge", "--ros-args", "-p",
+                            f"log_file:={tmp_path / 'bridge.jsonl'}"])  # fmt: skip
+    agent = start_agent(procs, "agent", cdir, "budget:=2", "expected_trial_subscribers:=1",
+                        "subscriber_wait_s:=300.0")  # fmt: skip
+    wait_for(lambda: "waiting for 1 readers of bac/trial" in procs.log("agent"), 60, what="the agent waiting")
+    # nothing proposed, nothing applied while nobody listens to bac/trial (the bridge stand-in does not)
+    assert not [e for e in jsonl(cdir / "journal.jsonl") if e["event"] == "trial_proposed"]
+    assert not jsonl(tmp_path / "bridge.jsonl")
+    procs.python("chain", [str(HERE / "standins.py"), "chain", "--ros-args", "-p",
+                           f"log_file:={tmp_path / 'chain.jsonl'}"])  # fmt: skip
+    assert wait_exit(agent, 120, "bo_agent to finish once a reader is there") == 0, procs.log("agent")
+    chain = jsonl(tmp_path / "chain.jsonl")
+    assert [c["trial_id"] for c in chain][:1] == [1]  # the reader saw trial 1 driven
