@@ -58,7 +58,7 @@ def test_one_bag_per_trial(procs: Any, ros_context: Any, tmp_path: Path) -> None
     camp = tmp_path / "campaign"
     procs.python(
         "recorder",
-        ["-m", "bac_agent.recorder_node", "--ros-args", "-p", f"campaign_dir:={camp}", "-p", "close_grace_s:=1.5"],
+        ["-m", "bac_agent.recorder_node", "--ros-args", "-p", f"campaign_dir:={camp}", "-p", "close_grace_s:=5.0"],
     )
     node = ros_context.node("feeder")
     p_trial = node.create_publisher(Trial, "bac/trial", QOS_LATCHED)

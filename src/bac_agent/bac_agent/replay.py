@@ -80,6 +80,14 @@ class BagPlayerNode(BacNode):
             0.0,
             600.0,
         )
+        self.settle_s = self.declare_float(
+            "settle_s",
+            2.0,
+            "once every played topic and bac/run_score are connected, wait this long (wall) more before playing: "
+            "discovery is not symmetric, and the chain's own links (imu/vehicle, bac/run_segment) match on their own",
+            0.0,
+            60.0,
+        )
         self.output = self.declare_str("output", "", "write recorded vs replayed J as JSON to this file")
         self.hold_s = self.declare_float(
             "hold_for_score_s",
@@ -108,6 +116,7 @@ class BagPlayerNode(BacNode):
         self._wall = Clock(clock_type=ClockType.STEADY_TIME)
         self._t_start_wall: float | None = None
         self._t_wait0 = time.monotonic()
+        self._t_ready: float | None = None
         self._i = 0
         self._last_tick = time.monotonic()
         self._current_run: RunKey | None = None
@@ -166,7 +175,13 @@ class BagPlayerNode(BacNode):
             # discovery between processes takes seconds: play once the chain listens to every played topic
             counts = {t: p.get_subscription_count() for t, p in self.pubs.items()}
             ready = all(n > 0 for t, n in counts.items() if any(m.topic == t for m in self.queue[:1000]))
-            if not ready and time.monotonic() - self._t_wait0 < self.wait_subscribers_s:
+            ready = ready and self.score_sub.get_publisher_count() > 0  # the scorer is there to answer
+            now = time.monotonic()
+            if ready and self._t_ready is None:
+                self._t_ready = now
+            if ready and now - (self._t_ready or now) < self.settle_s:
+                return
+            if not ready and now - self._t_wait0 < self.wait_subscribers_s:
                 return
             self._t_start_wall = time.monotonic()
             self._last_tick = self._t_start_wall
