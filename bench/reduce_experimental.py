@@ -21,7 +21,6 @@ LAST line: ``runs_to_optimum_median <n>`` (the paper took 6 runs on its car with
 from __future__ import annotations
 
 import argparse
-import json
 import math
 import sys
 import time
@@ -32,23 +31,9 @@ import numpy as np
 from bac_agent.bo import Engine
 from bac_agent.bo.baselines import RandomStrategy
 from bac_agent.reduction.objectives import SimulatedCar
-from bac_agent.reduction.pipeline import polish
+from bac_agent.reduction.truth import definition_truth
 from bac_common.paramspace import CalibrationDefinition
 from bac_common.progress import FOUND_GAP, gap, runs_to_optimum
-
-
-def references(car: SimulatedCar, result: Path | None, seed: int) -> tuple[float, float, str]:
-    if result is not None and result.is_file():
-        v = json.loads(result.read_text()).get("validation") or {}
-        if "j_star_reduced" in v and "j_med_reduced" in v:
-            return float(v["j_star_reduced"]), float(v["j_med_reduced"]), f"from {result}"
-    d = car.definition
-    b = np.array([[x.lower, x.upper] for x in d.dimensions])
-    rng = np.random.default_rng(seed)
-    pts = b[:, 0] + rng.random((256, b.shape[0])) * (b[:, 1] - b[:, 0])
-    j = car.true_j(pts)
-    _, jx, _ = polish(car.true_j, pts[int(np.argmin(j))], b, 10)
-    return float(jx), float(np.median(j)), "computed here (256 random points, best polished)"
 
 
 def run(car: SimulatedCar, strategy: str, seeds: int, budget: int) -> tuple[np.ndarray, float, float]:
@@ -102,7 +87,8 @@ def main() -> int:
     d = CalibrationDefinition.load(args.definition)
     car = SimulatedCar(args.problem).with_definition(d)
     t0 = time.perf_counter()
-    j_star, j_med, source = references(car, args.result, 0)
+    truth = definition_truth(d, args.problem, args.result)
+    j_star, j_med, source = truth.j_star, truth.j_med, truth.source
     print(
         f"{d.name}: {len(d.dimensions)} tuned dimensions ({', '.join(d.tuned)}); J*_red {j_star:.5f}, "
         f"J_med,red {j_med:.5f} ({source})"
@@ -115,10 +101,14 @@ def main() -> int:
         med = float(np.median(rto))
         out[strategy] = med
         found10 = float(np.mean(rto <= 10))
+
+        def g_at(n: int, g: np.ndarray = g) -> float:
+            return float(np.median(g[:, min(n, args.budget) - 1]))
+
         print(
             f"{strategy:>6}: runs to gap <= {FOUND_GAP}: median {med:g}, per seed {rto.tolist()}; found within 10 "
             f"runs: {100 * found10:.0f} %; median gap after 5/10/{args.budget} runs: "
-            f"{np.median(g[:, 4]):.3f}/{np.median(g[:, min(9, args.budget - 1)]):.3f}/{np.median(g[:, -1]):.3f} "
+            f"{g_at(5):.3f}/{g_at(10):.3f}/{g_at(args.budget):.3f} "
             f"(simulation {sim_s:.0f} s, optimizer {opt_s:.0f} s)"
         )
     if "random" in out and math.isfinite(out["random"]) and math.isfinite(out["bo"]):
