@@ -29,6 +29,14 @@ def _plt() -> Any:
     return plt
 
 
+def _save(fig: Any, path: Path) -> Path:
+    """Lay out, write (PNG, 120 dpi) and close a figure."""
+    fig.tight_layout()
+    fig.savefig(path, dpi=120)
+    _plt().close(fig)
+    return path
+
+
 def _group_colors(result: ReductionResult) -> dict[str, str]:
     cmap = ["tab:blue", "tab:orange", "tab:green", "tab:red", "tab:purple", "tab:brown", "tab:pink", "tab:olive"]
     out = {}
@@ -56,10 +64,7 @@ def optima_boxplot(result: ReductionResult, path: Path) -> Path:
     ax.tick_params(axis="x", rotation=60 if c.dim > 12 else 0)
     ax.legend(loc="upper right", fontsize=8)
     ax.grid(axis="y", alpha=0.3)
-    fig.tight_layout()
-    fig.savefig(path, dpi=120)
-    plt.close(fig)
-    return path
+    return _save(fig, path)
 
 
 def worst_loss_bars(result: ReductionResult, path: Path) -> Path:
@@ -96,10 +101,7 @@ def worst_loss_bars(result: ReductionResult, path: Path) -> Path:
     ax.set_title("Significance: (max s_i − J_mu(θ̄)) / J_mu(θ̄); kept parameters coloured by group")
     ax.legend(fontsize=8)
     ax.grid(axis="y", alpha=0.3)
-    fig.tight_layout()
-    fig.savefig(path, dpi=120)
-    plt.close(fig)
-    return path
+    return _save(fig, path)
 
 
 def sensitivity_kept(result: ReductionResult, path: Path) -> Path:
@@ -141,10 +143,7 @@ def sensitivity_kept(result: ReductionResult, path: Path) -> Path:
         f"dashed: group value, J_mu(θ̄)·(1+T){extra})",
         fontsize=9,
     )
-    fig.tight_layout()
-    fig.savefig(path, dpi=120)
-    plt.close(fig)
-    return path
+    return _save(fig, path)
 
 
 def campaigns_plot(result: ReductionResult, path: Path) -> Path:
@@ -160,10 +159,7 @@ def campaigns_plot(result: ReductionResult, path: Path) -> Path:
     ax.set_ylabel("best observed (noisy) J")
     ax.set_title(f"The {len(result.campaigns)} campaigns of the simulation phase")
     ax.grid(alpha=0.3)
-    fig.tight_layout()
-    fig.savefig(path, dpi=120)
-    plt.close(fig)
-    return path
+    return _save(fig, path)
 
 
 def validation_plot(result: ReductionResult, path: Path) -> Path | None:
@@ -184,10 +180,7 @@ def validation_plot(result: ReductionResult, path: Path) -> Path | None:
     ax.set_title("BO on the full and the reduced problem")
     ax.legend(fontsize=8)
     ax.grid(axis="y", alpha=0.3)
-    fig.tight_layout()
-    fig.savefig(path, dpi=120)
-    plt.close(fig)
-    return path
+    return _save(fig, path)
 
 
 def write_plots(result: ReductionResult, out_dir: Path) -> list[Path]:

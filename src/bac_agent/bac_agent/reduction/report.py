@@ -11,8 +11,6 @@ from typing import Any
 import numpy as np
 
 from bac_agent.reduction.pipeline import ReductionResult
-from bac_common.errors import BacError
-from bac_common.paramspace import CalibrationDefinition
 
 
 def format_report(result: ReductionResult) -> str:
@@ -176,17 +174,6 @@ def _finite(x: Any) -> Any:
     return x
 
 
-def _dbc_encodable(definition: CalibrationDefinition) -> bool:
-    """Whether the ECU bridge's codec can describe the definition (the synthetic problem's may not)."""
-    from bac_ecu_bridge.protocol import CalibrationCodec
-
-    try:
-        CalibrationCodec(definition)
-    except (BacError, ValueError):
-        return False
-    return True
-
-
 def write_outputs(
     result: ReductionResult, out_dir: Path, definition_path: Path | None = None, plots: bool = True
 ) -> dict[str, Path]:
@@ -196,10 +183,9 @@ def write_outputs(
     dpath.parent.mkdir(parents=True, exist_ok=True)
     dpath.write_text(definition_text(result))
     files["definition"] = dpath
-    if result.definition.parameters and _dbc_encodable(result.definition):
-        from bac_ecu_bridge.dbc import write_dbc  # the CAN trace description of the file, for CANape / SavvyCAN
+    from bac_ecu_bridge.dbc import write_dbc  # the CAN trace description of the file, for CANape / SavvyCAN
 
-        files["dbc"] = write_dbc(result.definition, dpath.with_suffix(".dbc"))
+    files["dbc"] = write_dbc(result.definition, dpath.with_suffix(".dbc"))
     rpath = out_dir / "result.json"
     data = result.to_dict()
     data["definition_file"] = str(dpath)

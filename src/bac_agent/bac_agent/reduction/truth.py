@@ -16,7 +16,6 @@ from __future__ import annotations
 import json
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
@@ -51,16 +50,6 @@ class DefinitionTruth:
 
     def gap(self, j: FloatArray | float) -> FloatArray:
         return np.asarray((np.asarray(j, dtype=float) - self.j_star) / (self.j_med - self.j_star))
-
-    def to_dict(self) -> dict[str, Any]:
-        return {
-            "problem": self.car.problem,
-            "definition": self.car.definition.name,
-            "theta_star": dict(zip(self.names, self.theta_star.tolist(), strict=True)),
-            "j_star": self.j_star,
-            "j_med": self.j_med,
-            "source": self.source,
-        }
 
 
 def definition_truth(
