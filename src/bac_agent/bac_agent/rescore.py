@@ -38,6 +38,7 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+from numpy.typing import NDArray
 
 from bac_agent.bagio import (
     BagError,
@@ -146,17 +147,23 @@ def default_params_files(campaign_dir: Path | None) -> list[Path]:
     return [ws / "params" / "common.yaml", ws / "params" / f"{profile}.yaml"]
 
 
-def _concat_imu(parts: list[ImuArrays]) -> ImuArrays:
-    stamp = np.concatenate([p.stamp_ns for p in parts])
+def _merge_order(stamps: list[NDArray[np.int64]]) -> tuple[NDArray[np.int64], NDArray[np.intp]]:
+    """Stamps of several recordings merged in time order, a message recorded in two bags counted once:
+    (the merged stamps, the index of each into the concatenated parts)."""
+    stamp = np.concatenate(stamps)
     order = np.argsort(stamp, kind="stable")
-    stamp = stamp[order]
-    keep = np.ones(stamp.shape, bool)
-    keep[1:] = np.diff(stamp) != 0  # a message recorded in two bags counts once
+    keep = np.ones(order.shape, bool)
+    keep[1:] = np.diff(stamp[order]) != 0
     idx = order[keep]
+    return stamp[idx], idx
+
+
+def _concat_imu(parts: list[ImuArrays]) -> ImuArrays:
+    stamp, idx = _merge_order([p.stamp_ns for p in parts])
     return ImuArrays(
         topic=parts[0].topic,
         frame_id=parts[0].frame_id,
-        stamp_ns=stamp[keep],
+        stamp_ns=stamp,
         recv_ns=np.concatenate([p.recv_ns for p in parts])[idx],
         accel=np.concatenate([p.accel for p in parts])[idx],
         gyro=np.concatenate([p.gyro for p in parts])[idx],
@@ -164,16 +171,11 @@ def _concat_imu(parts: list[ImuArrays]) -> ImuArrays:
 
 
 def _concat_odom(parts: list[OdomArrays]) -> OdomArrays:
-    stamp = np.concatenate([p.stamp_ns for p in parts])
-    order = np.argsort(stamp, kind="stable")
-    stamp = stamp[order]
-    keep = np.ones(stamp.shape, bool)
-    keep[1:] = np.diff(stamp) != 0
-    idx = order[keep]
+    stamp, idx = _merge_order([p.stamp_ns for p in parts])
     return OdomArrays(
         topic=parts[0].topic,
         frame_id=parts[0].frame_id,
-        stamp_ns=stamp[keep],
+        stamp_ns=stamp,
         recv_ns=np.concatenate([p.recv_ns for p in parts])[idx],
         distance_m=np.concatenate([p.distance_m for p in parts])[idx],
         speed_mps=np.concatenate([p.speed_mps for p in parts])[idx],

@@ -200,13 +200,10 @@ def main(argv: Sequence[str] | None = None) -> int:
         except (BacError, OSError, ValueError) as exc:
             out(f"bac demo: cannot load the definition {args.definition}: {exc}")
             return 2
-        n_raw = len(definition.parameter_names)
-        if n_raw == 2:
-            pass  # Controller I through another definition (e.g. a meta-parameter over front and rear)
-        elif args.scenario != "road":
-            out("bac demo: Controller II is simulated on the test road only: add --scenario road")
-            return 2
-        else:
+        if len(definition.parameter_names) != 2:  # 2 raw parameters: Controller I through another definition
+            if args.scenario != "road":
+                out("bac demo: Controller II is simulated on the test road only: add --scenario road")
+                return 2
             problem_name = "road_c2"
         d = args.definition.resolve()
         definition_overrides = [f"{n}.definition_file:={d}" for n in ("vehicle_sim", "ecu_bridge", "bo_agent")]
