@@ -299,6 +299,7 @@ def _task(args: tuple[str, str, int, float, str, int]) -> tuple[str, str, int, l
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--seeds", type=int, default=20)
+    ap.add_argument("--first-seed", type=int, default=0, help="seeds first-seed .. first-seed + seeds - 1")
     ap.add_argument("--problems", default="", help="comma list (default: every available problem)")
     ap.add_argument("--optimizers", default=",".join(OPTIMIZERS))
     ap.add_argument("--noise-share", type=float, default=0.05, help="noise sd / (J_med - J*) on standard functions")
@@ -338,7 +339,7 @@ def main(argv: list[str] | None = None) -> int:
             (pn, on, s, a.noise_share, a.bac_config, per_problem.get(pn, a.budget))
             for pn in problems
             for on in optimizers
-            for s in range(a.seeds)
+            for s in range(a.first_seed, a.first_seed + a.seeds)
         ]
         with ProcessPoolExecutor(max_workers=a.workers) as ex:
             for pn, on, s, js, dt in ex.map(_task, tasks):

@@ -11,10 +11,16 @@ the Mills ratio m written through ``erfcx`` and an asymptotic branch beyond
 from __future__ import annotations
 
 import math
+import warnings
+from typing import Any
 
 import numpy as np
+import scipy.linalg as sla
 from numpy.typing import NDArray
-from scipy.special import erfcx, log_ndtr, ndtr
+from scipy.special import erfcx, log_ndtr, logsumexp, ndtr, ndtri
+from scipy.stats import qmc
+
+from bac_agent.bo.kernel import matern52_dr2_factor, matern52_from_r2, sq_dist
 
 FloatArray = NDArray[np.float64]
 
@@ -49,16 +55,19 @@ def log_h(z: FloatArray) -> FloatArray:
     return out
 
 
-def log_ei(mu: FloatArray, sd: FloatArray, best: float) -> FloatArray:
+def log_ei(mu: FloatArray, sd: FloatArray, best: float | FloatArray) -> FloatArray:
     """log EI for minimization, elementwise."""
     z = (best - mu) / sd
     return np.log(sd) + log_h(z)
 
 
 def log_ei_with_grad(
-    mu: FloatArray, sd: FloatArray, dmu: FloatArray, dsd: FloatArray, best: float
+    mu: FloatArray, sd: FloatArray, dmu: FloatArray, dsd: FloatArray, best: float | FloatArray
 ) -> tuple[FloatArray, FloatArray]:
-    """log EI and its gradient w.r.t. the inputs, given μ, σ and their gradients (m, d)."""
+    """log EI and its gradient w.r.t. the inputs, given μ, σ and their gradients (m, d).
+
+    ``best`` is a scalar or one incumbent per point (m,).
+    """
     z = (best - mu) / sd
     lh = log_h(z)
     lei = np.log(sd) + lh
@@ -67,3 +76,102 @@ def log_ei_with_grad(
     r_phi = np.exp(-0.5 * z * z - _LOG_SQRT_2PI - lh)  # φ(z)/h(z)
     grad = (-r_phi_cdf / sd)[:, None] * dmu + (r_phi / sd)[:, None] * dsd
     return lei, grad
+
+
+class NoisyEI:
+    """Noisy Expected Improvement (Letham et al. 2019, "Constrained Bayesian optimization with noisy
+    experiments"), in log form, for a fitted :class:`~bac_agent.bo.gp.GP`.
+
+    With noisy runs nobody knows the best value seen so far. Plain EI plugs in an estimate (the best
+    posterior mean); NEI integrates over it: ``n_samples`` joint draws of the latent J at the observed
+    points (quasi-random, fixed for one ask), and for each draw the GP conditioned *noise-free* on the
+    drawn values gives an analytic EI over that draw's best. The acquisition is their mean:
+    log NEI(x) = logsumexp_s log EI_s(x) − log S. Points near the incumbent score by how much better
+    they may be than the incumbent *jointly*, which makes local refinement under noise much cheaper.
+    """
+
+    def __init__(self, gp: Any, n_samples: int, rng: np.random.Generator) -> None:
+        h = gp.hyper
+        if h is None or gp.X.shape[0] == 0:
+            raise ValueError("NoisyEI needs a fitted GP")
+        self.X = gp.X
+        self.ls = h.lengthscales
+        self.os = h.outputscale
+        self.mean = h.mean
+        n = self.X.shape[0]
+        K = matern52_from_r2(sq_dist(self.X, self.X, self.ls), self.os)
+        mu_b, _ = gp.predict_std_units(self.X)
+        # posterior covariance of f at X: K - K (K + s2 I)^-1 K, sampled through its eigendecomposition
+        # (positive semidefinite up to round-off; negative eigenvalues clipped)
+        V = sla.solve_triangular(gp._L, K, lower=True, check_finite=False)
+        cov = K - V.T @ V
+        w, Q = np.linalg.eigh(0.5 * (cov + cov.T))
+        root = Q * np.sqrt(np.maximum(w, 0.0))
+        S = max(1, int(n_samples))
+        Z = _normal_qmc(n, S, rng)
+        F = mu_b[:, None] + root @ Z  # (n, S)
+        self.best = F.min(axis=0)  # each draw's incumbent
+        jitter = 1e-8 * self.os
+        for _ in range(8):
+            try:
+                self._L0 = np.asarray(np.linalg.cholesky(K + jitter * np.eye(n)), dtype=float)
+                break
+            except np.linalg.LinAlgError:
+                jitter *= 10.0
+        else:  # pragma: no cover - K + 1e-1*os*I is always positive definite
+            raise ValueError("kernel matrix not positive definite")
+        self.A = np.asarray(sla.cho_solve((self._L0, True), F - self.mean, check_finite=False), dtype=float)
+        self.log_s = math.log(S)
+
+    def _conditional(self, Xq: FloatArray) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray]:
+        r2 = sq_dist(Xq, self.X, self.ls)
+        Ks = matern52_from_r2(r2, self.os)
+        mu = self.mean + Ks @ self.A  # (m, S)
+        V = sla.solve_triangular(self._L0, Ks.T, lower=True, check_finite=False)
+        var = np.maximum(self.os - np.sum(V * V, axis=0), 1e-12 * self.os)
+        return mu, np.sqrt(var), r2, Ks
+
+    def __call__(self, Xq: FloatArray) -> FloatArray:
+        """log NEI at the rows of ``Xq`` (m, d), standardized units."""
+        mu, sd, _, _ = self._conditional(np.atleast_2d(Xq))
+        lei = log_ei(mu, sd[:, None], self.best[None, :])
+        return np.asarray(logsumexp(lei, axis=1) - self.log_s, dtype=float)
+
+    def value_and_grad(self, Xq: FloatArray) -> tuple[FloatArray, FloatArray]:
+        """log NEI (m,) and its gradient w.r.t. the rows of ``Xq`` (m, d)."""
+        Xq = np.atleast_2d(Xq)
+        m, d = Xq.shape
+        mu, sd, r2, Ks = self._conditional(Xq)
+        S = mu.shape[1]
+        il2 = 1.0 / self.ls**2
+        Fk = matern52_dr2_factor(r2, self.os)  # (m, n)
+        FA = Fk @ self.A  # (m, S)
+        # sum_n Fk[m, n] A[n, s] X[n, :] as one batched matrix product (m, S, n) @ (n, d)
+        FAX = np.matmul((Fk[:, :, None] * self.A[None, :, :]).transpose(0, 2, 1), self.X)
+        dmu = -(Xq[:, None, :] * FA[:, :, None] - FAX) * il2
+        Vt = sla.cho_solve((self._L0, True), Ks.T, check_finite=False).T
+        FV = Fk * Vt
+        dvar = 2.0 * (Xq * FV.sum(axis=1)[:, None] - FV @ self.X) * il2
+        dsd = dvar / (2.0 * sd[:, None])
+        lei, g = log_ei_with_grad(
+            mu.ravel(),
+            np.repeat(sd, S),
+            dmu.reshape(m * S, d),
+            np.repeat(dsd, S, axis=0),
+            np.tile(self.best, m),
+        )
+        lei = lei.reshape(m, S)
+        val = logsumexp(lei, axis=1)
+        wts = np.exp(lei - val[:, None])  # softmax over the draws
+        grad = np.matmul(wts[:, None, :], g.reshape(m, S, d))[:, 0, :]
+        return np.asarray(val - self.log_s, dtype=float), np.asarray(grad, dtype=float)
+
+
+def _normal_qmc(n: int, s: int, rng: np.random.Generator) -> FloatArray:
+    """(n, s) standard normal draws, quasi-random over the s draws (scrambled Sobol, inverse CDF)."""
+    seed = int(rng.integers(0, 2**63 - 1))
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", UserWarning)  # balance warning for s != 2^m
+        u = qmc.Sobol(d=n, scramble=True, seed=seed).random(s) if n <= 21201 else rng.random((s, n))
+    u = np.clip(u, 1e-10, 1.0 - 1e-10)
+    return np.asarray(ndtri(u).T, dtype=float)

@@ -37,7 +37,7 @@ import numpy as np
 from numpy.typing import NDArray
 from scipy.optimize import minimize
 
-from bac_agent.bo.acquisition import log_ei, log_ei_with_grad
+from bac_agent.bo.acquisition import NoisyEI, log_ei, log_ei_with_grad
 from bac_agent.bo.design import candidates, default_n_initial, initial_design
 from bac_agent.bo.gp import GP, GPConfig, Hyper
 from bac_agent.bo.space import SearchSpace
@@ -50,6 +50,7 @@ KIND_INITIAL = "initial"
 KIND_OPTIMIZED = "optimized"
 KIND_RANDOM = "random"
 KIND_GRID = "grid"
+ACQUISITIONS = ("ei", "nei")
 
 
 def _make_blas_limiter() -> Callable[[], Any]:
@@ -94,6 +95,8 @@ class EngineConfig:
     n_local: int = 256  # candidates around the best points
     acq_restarts: int = 4  # L-BFGS-B starts from the best candidates
     recommend_beta: float = 0.0  # recommendation minimizes mean + beta * std (0: the paper's argmin of the mean)
+    acquisition: str = "nei"  # "nei": noisy EI (sampled incumbents); "ei": log EI over the best posterior mean
+    nei_samples: int = 64  # joint draws at the observed points for "nei"
     gp: GPConfig = field(default_factory=GPConfig)
 
     def __post_init__(self) -> None:
@@ -101,6 +104,8 @@ class EngineConfig:
             raise EngineError(f"budget must be >= 1, got {self.budget}")
         if self.n_initial < 0:
             raise EngineError(f"n_initial must be >= 0 (0 = automatic), got {self.n_initial}")
+        if self.acquisition not in ACQUISITIONS:
+            raise EngineError(f"acquisition must be one of {', '.join(ACQUISITIONS)}, got {self.acquisition!r}")
 
     def to_dict(self) -> dict[str, Any]:
         d = asdict(self)
@@ -270,29 +275,37 @@ class Engine:
         idx = self.rng.integers(0, top.shape[0], self.config.n_local)
         local = np.clip(top[idx] + self.rng.standard_normal((self.config.n_local, d)) * scale, 0.0, 1.0)
         cand = np.vstack([cand, local])
-        mu, var = model.predict_std_units(cand)
-        acq = log_ei(mu, np.sqrt(var), best)
-        acq = np.where(self._near_failures(cand), -np.inf, acq)
+        if self.config.acquisition == "nei":
+            nei = NoisyEI(model, self.config.nei_samples, self.rng)
+            acq_values: Callable[[FloatArray], FloatArray] = nei
+            acq_grad: Callable[[FloatArray], tuple[FloatArray, FloatArray]] = nei.value_and_grad
+        else:
+
+            def acq_values(U: FloatArray) -> FloatArray:
+                mu, var = model.predict_std_units(U)
+                return log_ei(mu, np.sqrt(var), best)
+
+            def acq_grad(U: FloatArray) -> tuple[FloatArray, FloatArray]:
+                return log_ei_with_grad(*model.predict_with_grad(U), best)
+
+        acq = np.where(self._near_failures(cand), -np.inf, acq_values(cand))
         order = np.argsort(-acq)
         starts = cand[order[: self.config.acq_restarts]]
         k = starts.shape[0]
 
         def f(flat: FloatArray) -> tuple[float, FloatArray]:
-            Xq = flat.reshape(k, d)
-            m, s, dm, ds = model.predict_with_grad(Xq)
-            lei, g = log_ei_with_grad(m, s, dm, ds, best)
+            lei, g = acq_grad(flat.reshape(k, d))
             return -float(np.sum(lei)), -g.ravel()
 
         res = minimize(f, starts.ravel(), jac=True, method="L-BFGS-B", bounds=[(0.0, 1.0)] * (k * d))
         opt = np.clip(res.x.reshape(k, d), 0.0, 1.0)
-        m2, v2 = model.predict_std_units(np.vstack([opt, starts]))
-        acq2 = log_ei(m2, np.sqrt(v2), best)
-        acq2 = np.where(self._near_failures(np.vstack([opt, starts])), -np.inf, acq2)
+        both = np.vstack([opt, starts])
+        acq2 = np.where(self._near_failures(both), -np.inf, acq_values(both))
         acq2 = np.where(np.isfinite(acq2), acq2, -np.inf)
         i = int(np.argmax(acq2))
         if not np.isfinite(acq2[i]):
             return self.rng.random(d)
-        return np.asarray(np.vstack([opt, starts])[i], dtype=float)
+        return np.asarray(both[i], dtype=float)
 
     def _near_failures(self, U: FloatArray, radius: float = 0.01) -> NDArray[np.bool_]:
         if not self.failures:

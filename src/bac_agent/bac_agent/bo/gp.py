@@ -58,7 +58,7 @@ class GPConfig:
     noise_scale: float = 1.5
     noise_floor: float = 1e-6  # smallest noise variance (standardized units)
     noise_ceiling: float = 2.0
-    mean: str = "zero"  # prior mean of the standardized outputs: "zero" or "constant" (a learned constant, GLS)
+    mean: str = "constant"  # prior mean of the standardized outputs: "constant" (a learned constant, GLS) or "zero"
     draws: int = 8  # draws from the prior, screened by their objective
     restarts: int = 1  # best draws optimized, besides the prior mode and the previous fit
     maxiter: int = 200
