@@ -96,7 +96,7 @@ def main(argv: list[str] | None = None) -> int:
     m_ours, m_base = statistics.median(ours), statistics.median(base)
     print(f"# {a.reps} repetitions, n={N} observations, d={D} dimensions, medians")
     print(
-        f"bac ask (fit from scratch + log-EI maximization): {m_ours:.3f} s  (min {min(ours):.3f}, max {max(ours):.3f})"
+        f"bac ask (fit from scratch + log-NEI maximization): {m_ours:.3f} s  (min {min(ours):.3f}, max {max(ours):.3f})"
     )
     print(f"sklearn GPR fit (2 restarts) + predict 1024:      {m_base:.3f} s")
     print(f"ratio bac / sklearn: {m_ours / m_base:.2f}")
