@@ -21,7 +21,7 @@ per run. LAST line: ``worst_ratio_vs_botorch <x>``, the largest over problems of
 
 Needs the benchmark dependencies: ``scripts/setup.sh --bench``.
 
-    .venv/bin/python bench/bo_efficiency.py                       # everything, 20 seeds (about 1.5 h on 2 cores: BoTorch on Hartmann-6 at budget 80 alone ~40 min per core)
+    .venv/bin/python bench/bo_efficiency.py                       # everything, 20 seeds (about 1.5 h on 2 cores)
     .venv/bin/python bench/bo_efficiency.py --seeds 5 --problems branin --optimizers bac,botorch
 """
 
