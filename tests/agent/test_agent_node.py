@@ -11,6 +11,8 @@ from typing import Any
 
 import pytest
 
+from bac_agent.report import load_campaign
+
 from conftest import wait_for
 
 pytestmark = pytest.mark.integration
@@ -65,9 +67,15 @@ def check_scores_on_confirmed_calibrations(events: list[dict[str, Any]]) -> None
 def test_campaign_runs_to_done_and_recommends(procs: Any, tmp_path: Path) -> None:
     cdir = tmp_path / "camp"
     start_standins(procs, tmp_path)
-    agent = start_agent(procs, "agent", cdir, "budget:=5", "seed:=3", "confirmation_run:=true")
+    agent = start_agent(
+        procs, "agent", cdir, "budget:=5", "seed:=3", "confirmation_run:=true", "acquisition:=ei", "recommend_beta:=1.0"
+    )
     assert wait_exit(agent, 90, "bo_agent to finish") == 0, procs.log("agent")
     ev = jsonl(cdir / "journal.jsonl")
+    # the optimizer's settings are journaled with the start, and the offline refit (bac report) reads them back
+    start = next(e for e in ev if e["event"] == "campaign_started")
+    assert (start["config"]["acquisition"], start["config"]["recommend_beta"]) == ("ei", 1.0)
+    assert load_campaign(cdir).recommend_beta == 1.0
     scored = [e for e in ev if e["event"] == "trial_scored"]
     assert [e["trial_id"] for e in scored] == [1, 2, 3, 4, 5, 6]  # 5 trials + the confirmation run
     assert scored[-1]["kind"] == 2

@@ -32,7 +32,7 @@ from rclpy.clock import Clock
 from rclpy.clock_type import ClockType
 
 from bac_agent.bo.baselines import GridStrategy, RandomStrategy
-from bac_agent.bo.engine import Engine, EngineConfig
+from bac_agent.bo.engine import ACQUISITIONS, Engine, EngineConfig
 from bac_agent.campaign import (
     Action,
     Apply,
@@ -116,9 +116,24 @@ class BoAgentNode(BacNode):
         )
         budget = self.declare_int("budget", 15, "trials of the campaign (bo, random)", 1, 10_000, read_only=True)
         n_initial = self.declare_int(
-            "n_initial", 0, "space-filling initial trials (0 = automatic: 3 for d <= 2, else d + 1)", 0, 1000, True
+            "n_initial", 0, "space-filling initial trials (0 = automatic: 5 for d <= 4, else d + 1)", 0, 1000, True
         )
         seed = self.declare_int("seed", 0, "random seed of the optimizer", 0, 2**31 - 1, read_only=True)
+        acquisition = self.declare_str(
+            "acquisition",
+            "nei",
+            "bo: how the next calibration is chosen (nei: noisy expected improvement, ei: EI over the best mean)",
+            choices=ACQUISITIONS,
+            read_only=True,
+        )
+        recommend_beta = self.declare_float(
+            "recommend_beta",
+            0.0,
+            "bo: the recommendation minimizes posterior mean + beta * std (0: the paper's argmin of the mean)",
+            0.0,
+            5.0,
+            read_only=True,
+        )
         grid_size = self.declare_int("grid_size", 4, "levels per dimension of the grid strategy", 1, 100, True)
         max_attempts = self.declare_int("max_attempts", 3, "runs per trial before it is given up", 1, 100)
         apply_timeout = self.declare_float("apply_timeout_s", 10.0, "time limit of one apply, s", 0.1, 600.0)
@@ -169,7 +184,16 @@ class BoAgentNode(BacNode):
         elif self.strategy == "random":
             optimizer = RandomStrategy(self.definition, budget, seed)
         else:
-            optimizer = Engine(self.definition, EngineConfig(budget=budget, n_initial=n_initial, seed=seed))
+            optimizer = Engine(
+                self.definition,
+                EngineConfig(
+                    budget=budget,
+                    n_initial=n_initial,
+                    seed=seed,
+                    acquisition=acquisition,
+                    recommend_beta=recommend_beta,
+                ),
+            )
         cfg = CampaignConfig(
             campaign_id=cid,
             budget=budget,
@@ -183,7 +207,13 @@ class BoAgentNode(BacNode):
             max_consecutive_failures=max_failures,
             busy_retry_s=busy_retry,
             busy_timeout_s=busy_timeout,
-            extra={"n_initial": n_initial, "grid_size": grid_size, "definition_file": str(definition_file)},
+            extra={
+                "n_initial": n_initial,
+                "grid_size": grid_size,
+                "definition_file": str(definition_file),
+                "acquisition": acquisition,
+                "recommend_beta": recommend_beta,
+            },
         )
         self.campaign = Campaign(
             optimizer,

@@ -71,6 +71,7 @@ class Campaign:
     trials: list[TrialRow]
     recommendation: dict[str, Any] | None
     seed: int
+    recommend_beta: float = 0.0  # the live campaign's recommendation rule (journaled with its start)
 
     @property
     def names(self) -> tuple[str, ...]:
@@ -136,6 +137,7 @@ def load_campaign(path: str | Path) -> Campaign:
         trials=[rows[k] for k in sorted(rows)],
         recommendation=rec,
         seed=int(start.get("seed", 0) or 0),
+        recommend_beta=float((start.get("config") or {}).get("recommend_beta", 0.0) or 0.0),
     )
 
 
@@ -266,9 +268,12 @@ def comparison_signals(campaign: Campaign) -> list[Signals]:
 
 
 def refit_engine(campaign: Campaign) -> Any:
-    from bac_agent.bo import Engine
+    from bac_agent.bo import Engine, EngineConfig
 
-    eng = Engine(campaign.definition, budget=max(1, len(campaign.trials)), seed=campaign.seed)
+    eng = Engine(
+        campaign.definition,
+        EngineConfig(budget=max(1, len(campaign.trials)), seed=campaign.seed, recommend_beta=campaign.recommend_beta),
+    )
     for t in campaign.scored(include_confirmation=True):
         eng.tell(t.params, t.j)
     return eng

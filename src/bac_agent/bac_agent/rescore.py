@@ -371,14 +371,20 @@ def _segmenter_template(files: Sequence[Path], overrides: Mapping[str, Any] | No
 
 def refit(campaign_dir: Path, runs: Sequence[RunResult]) -> dict[str, Any]:
     """Fit the campaign's GP on the rescored J of each trial and recommend (argmin of the posterior mean)."""
-    from bac_agent.bo import Engine
+    from bac_agent.bo import Engine, EngineConfig
     from bac_common.paramspace import CalibrationDefinition
 
     _, started = journal_params(campaign_dir)
     if started is None or not started.get("definition"):
         raise RescoreError(f"{campaign_dir}: the journal does not say which parameters were tuned")
     definition = CalibrationDefinition.from_dict(started["definition"])
-    eng = Engine(definition, budget=max(1, len(runs)), seed=int(started.get("seed", 0)))
+    cfg = EngineConfig(
+        budget=max(1, len(runs)),
+        seed=int(started.get("seed", 0)),
+        # the live campaign's recommendation rule (journaled with its start)
+        recommend_beta=float((started.get("config") or {}).get("recommend_beta", 0.0) or 0.0),
+    )
+    eng = Engine(definition, cfg)
     told = 0
     for r in runs:
         if r.params is not None and r.score.valid:
