@@ -22,9 +22,12 @@ DEFN = HERE.parents[1] / "ros_ws" / "config" / "calibrations" / "controller_i.ya
 
 
 def jsonl(path: Path) -> list[dict[str, Any]]:
+    """The complete lines of a JSON-lines file that another process may be appending to right now."""
     if not path.exists():
         return []
-    return [json.loads(x) for x in path.read_text().splitlines() if x.strip()]
+    text = path.read_text()
+    lines = text.split("\n")[:-1]  # a last piece without its newline is still being written
+    return [json.loads(x) for x in lines if x.strip()]
 
 
 def start_standins(procs: Any, tmp: Path, bridge_args: list[str] = (), chain_args: list[str] = ()) -> None:  # type: ignore[assignment]

@@ -11,6 +11,14 @@ from typing import Any
 from bac_common.rosnode import BacNode, run_node
 
 
+def _write_atomically(path: Path, text: str) -> None:
+    """Write then rename: a test polling for the file never reads it half-written (an empty start.json was
+    once read as invalid JSON under CI load)."""
+    tmp = path.with_name(path.name + ".tmp")
+    tmp.write_text(text)
+    os.replace(tmp, path)
+
+
 class Reporter(BacNode):
     def __init__(self, **kwargs: Any) -> None:
         super().__init__("reporter", **kwargs)
@@ -28,7 +36,7 @@ class Reporter(BacNode):
             "netns": os.stat("/proc/self/ns/net").st_ino,
             "use_sim_time": self.get_parameter("use_sim_time").value,
         }
-        (self.out_dir / f"{self.get_name()}.start.json").write_text(json.dumps(report))
+        _write_atomically(self.out_dir / f"{self.get_name()}.start.json", json.dumps(report))
         if crash >= 0:
             self._t1 = self.create_timer(crash, self._crash, clock=self._wall())
         if finish >= 0:
@@ -43,7 +51,7 @@ class Reporter(BacNode):
         raise RuntimeError("reporter crashed on purpose")
 
     def destroy_node(self) -> None:
-        (self.out_dir / f"{self.get_name()}.clean.json").write_text("{}")
+        _write_atomically(self.out_dir / f"{self.get_name()}.clean.json", "{}")
         super().destroy_node()
 
 
