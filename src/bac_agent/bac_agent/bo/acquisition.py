@@ -12,7 +12,6 @@ from __future__ import annotations
 
 import math
 import warnings
-from typing import Any
 
 import numpy as np
 import scipy.linalg as sla
@@ -20,6 +19,7 @@ from numpy.typing import NDArray
 from scipy.special import erfcx, log_ndtr, logsumexp, ndtr, ndtri
 from scipy.stats import qmc
 
+from bac_agent.bo.gp import GP, latent_sd_with_grad, latent_var
 from bac_agent.bo.kernel import matern52_dr2_factor, matern52_from_r2, sq_dist
 
 FloatArray = NDArray[np.float64]
@@ -90,7 +90,7 @@ class NoisyEI:
     they may be than the incumbent *jointly*, which makes local refinement under noise much cheaper.
     """
 
-    def __init__(self, gp: Any, n_samples: int, rng: np.random.Generator) -> None:
+    def __init__(self, gp: GP, n_samples: int, rng: np.random.Generator) -> None:
         h = gp.hyper
         if h is None or gp.X.shape[0] == 0:
             raise ValueError("NoisyEI needs a fitted GP")
@@ -123,17 +123,11 @@ class NoisyEI:
         self.A = np.asarray(sla.cho_solve((self._L0, True), F - self.mean, check_finite=False), dtype=float)
         self.log_s = math.log(S)
 
-    def _conditional(self, Xq: FloatArray) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray]:
-        r2 = sq_dist(Xq, self.X, self.ls)
-        Ks = matern52_from_r2(r2, self.os)
-        mu = self.mean + Ks @ self.A  # (m, S)
-        V = sla.solve_triangular(self._L0, Ks.T, lower=True, check_finite=False)
-        var = np.maximum(self.os - np.sum(V * V, axis=0), 1e-12 * self.os)
-        return mu, np.sqrt(var), r2, Ks
-
     def __call__(self, Xq: FloatArray) -> FloatArray:
         """log NEI at the rows of ``Xq`` (m, d), standardized units."""
-        mu, sd, _, _ = self._conditional(np.atleast_2d(Xq))
+        Ks = matern52_from_r2(sq_dist(np.atleast_2d(Xq), self.X, self.ls), self.os)
+        mu = self.mean + Ks @ self.A  # (m, S): each draw's noise-free conditional mean
+        sd = np.sqrt(latent_var(self._L0, Ks, self.os))  # the same for every draw
         lei = log_ei(mu, sd[:, None], self.best[None, :])
         return np.asarray(logsumexp(lei, axis=1) - self.log_s, dtype=float)
 
@@ -141,7 +135,9 @@ class NoisyEI:
         """log NEI (m,) and its gradient w.r.t. the rows of ``Xq`` (m, d)."""
         Xq = np.atleast_2d(Xq)
         m, d = Xq.shape
-        mu, sd, r2, Ks = self._conditional(Xq)
+        r2 = sq_dist(Xq, self.X, self.ls)
+        Ks = matern52_from_r2(r2, self.os)
+        mu = self.mean + Ks @ self.A  # (m, S)
         S = mu.shape[1]
         il2 = 1.0 / self.ls**2
         Fk = matern52_dr2_factor(r2, self.os)  # (m, n)
@@ -149,10 +145,7 @@ class NoisyEI:
         # sum_n Fk[m, n] A[n, s] X[n, :] as one batched matrix product (m, S, n) @ (n, d)
         FAX = np.matmul((Fk[:, :, None] * self.A[None, :, :]).transpose(0, 2, 1), self.X)
         dmu = -(Xq[:, None, :] * FA[:, :, None] - FAX) * il2
-        Vt = sla.cho_solve((self._L0, True), Ks.T, check_finite=False).T
-        FV = Fk * Vt
-        dvar = 2.0 * (Xq * FV.sum(axis=1)[:, None] - FV @ self.X) * il2
-        dsd = dvar / (2.0 * sd[:, None])
+        sd, dsd = latent_sd_with_grad(Xq, self.X, self._L0, Ks, Fk, il2, self.os)
         lei, g = log_ei_with_grad(
             mu.ravel(),
             np.repeat(sd, S),

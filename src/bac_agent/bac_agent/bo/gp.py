@@ -309,9 +309,7 @@ class GP:
         Xq = np.atleast_2d(np.asarray(Xq, dtype=float))
         Ks = matern52_from_r2(sq_dist(Xq, self.X, h.lengthscales), h.outputscale)
         mu = h.mean + Ks @ self._alpha
-        V = sla.solve_triangular(self._L, Ks.T, lower=True, check_finite=False)
-        var = np.maximum(h.outputscale - np.sum(V * V, axis=0), 1e-12 * h.outputscale)
-        return mu, var
+        return mu, latent_var(self._L, Ks, h.outputscale)
 
     def predict(self, Xq: FloatArray) -> tuple[FloatArray, FloatArray]:
         """Posterior mean and standard deviation of the latent function, in the units of y."""
@@ -330,14 +328,31 @@ class GP:
         Ks = matern52_from_r2(r2, h.outputscale)
         F = matern52_dr2_factor(r2, h.outputscale)
         mu = h.mean + Ks @ self._alpha
-        Vt = sla.cho_solve((self._L, True), Ks.T, check_finite=False).T  # (m, n) = Ks K^-1
-        var_raw = h.outputscale - np.sum(Ks * Vt, axis=1)
-        var = np.maximum(var_raw, 1e-12 * h.outputscale)
         Fa = F * self._alpha[None, :]
         dmu = -(Xq * Fa.sum(axis=1)[:, None] - Fa @ self.X) * il2
-        FV = F * Vt
-        dvar = 2.0 * (Xq * FV.sum(axis=1)[:, None] - FV @ self.X) * il2
-        dvar[var_raw <= 1e-12 * h.outputscale] = 0.0
-        sd = np.sqrt(var)
-        dsd = dvar / (2.0 * sd[:, None])
+        sd, dsd = latent_sd_with_grad(Xq, self.X, self._L, Ks, F, il2, h.outputscale)
         return mu, sd, dmu, dsd
+
+
+def latent_var(L: FloatArray, Ks: FloatArray, outputscale: float) -> FloatArray:
+    """Posterior variance at m query points: ``outputscale - diag(Ks K^-1 Ks^T)``, K = L L^T, Ks (m, n)."""
+    V = sla.solve_triangular(L, Ks.T, lower=True, check_finite=False)
+    return np.asarray(np.maximum(outputscale - np.sum(V * V, axis=0), 1e-12 * outputscale), dtype=float)
+
+
+def latent_sd_with_grad(
+    Xq: FloatArray, X: FloatArray, L: FloatArray, Ks: FloatArray, F: FloatArray, il2: FloatArray, outputscale: float
+) -> tuple[FloatArray, FloatArray]:
+    """Posterior standard deviation (m,) and its gradient w.r.t. the query points (m, d).
+
+    ``F`` is the Matérn derivative factor at (Xq, X) (kernel.matern52_dr2_factor), ``il2`` = 1 / lengthscales².
+    Shared by the GP and by noisy EI (whose draws condition on a noise-free factor L of the same kernel).
+    """
+    Vt = sla.cho_solve((L, True), Ks.T, check_finite=False).T  # (m, n) = Ks K^-1
+    var_raw = outputscale - np.sum(Ks * Vt, axis=1)
+    var = np.maximum(var_raw, 1e-12 * outputscale)
+    FV = F * Vt
+    dvar = 2.0 * (Xq * FV.sum(axis=1)[:, None] - FV @ X) * il2
+    dvar[var_raw <= 1e-12 * outputscale] = 0.0
+    sd = np.sqrt(var)
+    return sd, dvar / (2.0 * sd[:, None])
