@@ -5,6 +5,7 @@ from __future__ import annotations
 import json
 import os
 import sys
+import time
 from pathlib import Path
 from typing import Any
 
@@ -27,6 +28,9 @@ class Reporter(BacNode):
         crash = self.declare_float("crash_after_s", -1.0, "raise after this long (wall), -1 = never")
         finish = self.declare_float("finish_after_s", -1.0, "finish(0) after this long (wall), -1 = never")
         self.can_interface = self.declare_str("can.interface", "", "CAN interface given by the launcher")
+        busy = self.declare_float("busy_callback_s", -1.0, "a callback 0.1 s after start that runs this long")
+        self.hang_on_destroy = self.declare_bool("hang_on_destroy", False, "destroy_node never returns")
+        self._callback_done = False
         report = {
             "name": self.get_name(),
             "pid": os.getpid(),
@@ -41,6 +45,9 @@ class Reporter(BacNode):
             self._t1 = self.create_timer(crash, self._crash, clock=self._wall())
         if finish >= 0:
             self._t2 = self.create_timer(finish, lambda: self.finish(0), clock=self._wall())
+        if busy >= 0:
+            self._busy_s = busy
+            self._t3 = self.create_timer(0.1, self._busy, clock=self._wall())
 
     def _wall(self) -> Any:
         from rclpy.clock import Clock, ClockType
@@ -50,8 +57,21 @@ class Reporter(BacNode):
     def _crash(self) -> None:
         raise RuntimeError("reporter crashed on purpose")
 
+    def _busy(self) -> None:
+        """A long callback (a score being computed as SIGINT arrives); it publishes a log line at its end."""
+        self._t3.cancel()
+        _write_atomically(self.out_dir / f"{self.get_name()}.busy.json", "{}")
+        end = time.monotonic() + self._busy_s
+        while time.monotonic() < end:
+            time.sleep(0.01)
+        self._callback_done = True
+        self.get_logger().info("busy callback done")
+
     def destroy_node(self) -> None:
-        _write_atomically(self.out_dir / f"{self.get_name()}.clean.json", "{}")
+        report = {"callback_done": self._callback_done}
+        _write_atomically(self.out_dir / f"{self.get_name()}.clean.json", json.dumps(report))
+        while self.hang_on_destroy:  # an rclpy clean-up that never returns
+            time.sleep(0.05)
         super().destroy_node()
 
 

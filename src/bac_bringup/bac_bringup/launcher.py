@@ -240,7 +240,10 @@ class SingleProcessGraph:
             os.environ.setdefault(k, v)
         os.environ["ROS_AUTOMATIC_DISCOVERY_RANGE"] = "LOCALHOST"
         rclpy.init(args=["bac_launch"])
+        from bac_common.rosnode import drain_executor
+
         nodes: list[Any] = []
+        executor: MultiThreadedExecutor | None = None
         code = 0
         try:
             for spec in self.profile.nodes:
@@ -276,6 +279,8 @@ class SingleProcessGraph:
             LOG.exception("a node crashed: shutting down the graph")
             code = 1
         finally:
+            if executor is not None and not drain_executor(executor, STOP_GRACE_S / 2):
+                LOG.warning("a callback was still running at shutdown")
             for _, n in sorted(reversed(nodes), key=lambda sn: sn[0].stop_order):
                 try:
                     n.destroy_node()

@@ -6,13 +6,17 @@
   :func:`run_node` stop spinning then).
 * QoS profiles of the graph's contracts.
 * :func:`run_node`: a Jazzy-safe ``main()`` (ros2/demos style): spin on a
-  multi-threaded executor, handle Ctrl-C / SIGTERM / external shutdown,
-  destroy the node, ``try_shutdown``.
+  multi-threaded executor, handle Ctrl-C / SIGTERM / external shutdown, let
+  the callbacks in flight finish (:func:`drain_executor`), destroy the node,
+  ``try_shutdown``; a watchdog ends the process if that clean-up hangs.
 """
 
 from __future__ import annotations
 
+import os
 import sys
+import threading
+import time
 import traceback
 from collections.abc import Callable, Sequence
 from typing import Any, TypeVar
@@ -203,6 +207,10 @@ class BacNode(Node):
         return SetParametersResult(successful=True)
 
     # --- ending ---------------------------------------------------------------------------
+    def cleanup_time_s(self) -> float:
+        """The longest this node's own clean-up in ``destroy_node`` may take, s (run_node's watchdog allows it)."""
+        return 0.0
+
     def finish(self, code: int = 0) -> None:
         """Ask whoever spins this node to stop (0 = job done, else failure)."""
         if self.exit_code is None:
@@ -223,10 +231,62 @@ def spin_until_done(executor: MultiThreadedExecutor, nodes: Sequence[Node], poll
     return 0
 
 
-def run_node(node_cls: Callable[..., N], args: Sequence[str] | None = None) -> int:
-    """A Jazzy-safe main(): create, spin, clean up. Returns the process exit code."""
+CLEANUP_TIMEOUT_S = 5.0  # after spinning: drain + destroy + shutdown must end by then (the launcher waits 8 s)
+
+
+def drain_executor(executor: MultiThreadedExecutor, timeout_s: float) -> bool:
+    """Stop handing out callbacks and wait up to ``timeout_s`` for those in flight; True if all ended.
+
+    rclpy's MultiThreadedExecutor never stops its thread pool: a callback still running on a worker
+    (a score being published as SIGINT arrives) would otherwise race the node's destruction.
+    """
+    executor.shutdown(timeout_sec=0)
+    pool = getattr(executor, "_executor", None)  # rclpy: the ThreadPoolExecutor running the callbacks
+    if pool is not None:
+        pool.shutdown(wait=False, cancel_futures=True)
+    deadline = time.monotonic() + timeout_s
+    for task in list(getattr(executor, "_futures", [])):
+        while not task.done():
+            if time.monotonic() > deadline:
+                return False
+            time.sleep(0.01)
+        task.exception()  # fetched: a publish cut short by the shutdown is expected, not "never retrieved"
+    return True
+
+
+def _cleanup_watchdog(name: str, timeout_s: float, code: list[int]) -> threading.Event:
+    """Start a daemon thread that ends the process if clean-up is not done within ``timeout_s``.
+
+    Clean-up after the job is done (the journal and bags are flushed as they go) must not keep a node
+    alive: an rclpy shutdown that hangs would otherwise cost the launcher SIGTERM and SIGKILL.
+    """
+    done = threading.Event()
+
+    def watch() -> None:
+        if not done.wait(timeout_s):
+            sys.stderr.write(
+                f"[{name}] clean-up did not finish within {timeout_s:g} s after spinning stopped "
+                f"(an rclpy shutdown hang); exiting with code {code[0]}\n"
+            )
+            sys.stderr.flush()
+            os._exit(code[0])
+
+    threading.Thread(target=watch, name="bac-cleanup-watchdog", daemon=True).start()
+    return done
+
+
+def run_node(
+    node_cls: Callable[..., N], args: Sequence[str] | None = None, cleanup_timeout_s: float = CLEANUP_TIMEOUT_S
+) -> int:
+    """A Jazzy-safe main() (a process's, not a library call): create, spin, clean up; returns the exit code.
+
+    The returned code is final: once spinning stops, the process ends within ``cleanup_timeout_s`` (plus the
+    node's own :meth:`BacNode.cleanup_time_s`) even if rclpy's clean-up, or the interpreter's exit that joins
+    the executor's threads, hangs.
+    """
     rclpy.init(args=list(args) if args is not None else sys.argv)
     node: N | None = None
+    executor: MultiThreadedExecutor | None = None
     code = 0
     try:
         node = node_cls()
@@ -243,6 +303,11 @@ def run_node(node_cls: Callable[..., N], args: Sequence[str] | None = None) -> i
             rclpy.logging.get_logger(getattr(node_cls, "__name__", "bac")).fatal(f"node failed to start:\n{msg}")
         code = 1
     finally:
+        name = node.get_name() if node is not None else getattr(node_cls, "__name__", "bac")
+        own = node.cleanup_time_s() if isinstance(node, BacNode) else 0.0
+        _cleanup_watchdog(name, cleanup_timeout_s + own, [code])  # never cancelled: it also covers the exit
+        if executor is not None and not drain_executor(executor, cleanup_timeout_s / 2):
+            sys.stderr.write(f"[{name}] a callback was still running at shutdown\n")
         if node is not None:
             node.destroy_node()
         try_shutdown()

@@ -504,6 +504,11 @@ class EcuBridgeNode(BacNode):
                 self._client = None
                 self._lock.release()
 
+    def cleanup_time_s(self) -> float:
+        """close(): wait out an apply in flight, then restore the baseline (each within its own bound)."""
+        p = self.get_parameter
+        return float(p("default_timeout_s").value) + 1.0 + float(p("restore_timeout_s").value) + 1.0
+
     def destroy_node(self) -> None:
         try:
             self.close()

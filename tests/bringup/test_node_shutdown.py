@@ -1,0 +1,64 @@
+"""run_node's shutdown: a callback in flight ends before the node is destroyed, and a hung clean-up cannot
+keep the process alive (the launcher would otherwise need SIGTERM and SIGKILL, and report a failure)."""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+
+from conftest import ROOT, wait_for
+
+pytestmark = pytest.mark.integration
+HELPERS = ROOT / "tests" / "helpers"
+
+
+def start_reporter(env: dict[str, str], out: Path, **params: object) -> subprocess.Popen[bytes]:
+    args = [f"out_dir:={out}"] + [f"{k}:={json.dumps(v)}" for k, v in params.items()]
+    ros_args = [a for kv in args for a in ("-p", kv)]
+    return subprocess.Popen(
+        [sys.executable, "-m", "graph_nodes", "--ros-args", "-r", "__node:=reporter", *ros_args],
+        env={**env, "PYTHONPATH": f"{HELPERS}:{env.get('PYTHONPATH', '')}"},
+        stdout=subprocess.PIPE,
+        stderr=subprocess.STDOUT,
+        start_new_session=True,
+    )
+
+
+def test_a_callback_in_flight_finishes_before_the_node_is_destroyed(ros_env: dict[str, str], tmp_path: Path) -> None:
+    p = start_reporter(ros_env, tmp_path, busy_callback_s=1.5)
+    try:
+        wait_for(lambda: (tmp_path / "reporter.busy.json").exists(), 60, what="the long callback started")
+        p.send_signal(signal.SIGINT)
+        out, _ = p.communicate(timeout=30)
+    finally:
+        if p.poll() is None:
+            os.killpg(p.pid, signal.SIGKILL)
+    text = out.decode(errors="replace")
+    assert p.returncode == 0, text
+    assert json.loads((tmp_path / "reporter.clean.json").read_text()) == {"callback_done": True}, text
+    assert "never retrieved" not in text
+
+
+def test_a_hung_clean_up_ends_the_process_with_its_code(ros_env: dict[str, str], tmp_path: Path) -> None:
+    p = start_reporter(ros_env, tmp_path, hang_on_destroy=True)
+    try:
+        wait_for(lambda: (tmp_path / "reporter.start.json").exists(), 60, what="the node started")
+        p.send_signal(signal.SIGINT)
+        wait_for(lambda: (tmp_path / "reporter.clean.json").exists(), 30, what="clean-up began")
+        t0 = time.monotonic()
+        out, _ = p.communicate(timeout=30)
+        waited = time.monotonic() - t0
+    finally:
+        if p.poll() is None:
+            os.killpg(p.pid, signal.SIGKILL)
+    text = out.decode(errors="replace")
+    assert p.returncode == 0, text
+    assert "clean-up did not finish within 5 s" in text
+    assert waited < 8.0, f"the process took {waited:.1f} s to end after its clean-up hung (launcher grace 8 s)"
