@@ -243,7 +243,9 @@ def drain_executor(executor: MultiThreadedExecutor, timeout_s: float) -> bool:
     executor.shutdown(timeout_sec=0)
     pool = getattr(executor, "_executor", None)  # rclpy: the ThreadPoolExecutor running the callbacks
     if pool is not None:
-        pool.shutdown(wait=False, cancel_futures=True)
+        # no new work; callbacks already handed to the pool still run (cancelling a queued one would leave
+        # its rclpy task pending forever, and it may carry an event the node must not lose)
+        pool.shutdown(wait=False)
     deadline = time.monotonic() + timeout_s
     for task in list(getattr(executor, "_futures", [])):
         while not task.done():
