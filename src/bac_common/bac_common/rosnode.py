@@ -256,25 +256,24 @@ def drain_executor(executor: MultiThreadedExecutor, timeout_s: float) -> bool:
     return True
 
 
-def _cleanup_watchdog(name: str, timeout_s: float, code: list[int]) -> threading.Event:
-    """Start a daemon thread that ends the process if clean-up is not done within ``timeout_s``.
+def _start_exit_watchdog(name: str, timeout_s: float, code: int) -> None:
+    """Start a daemon thread that ends the process with ``code`` if it is still alive after ``timeout_s``.
 
     Clean-up after the job is done (the journal and bags are flushed as they go) must not keep a node
-    alive: an rclpy shutdown that hangs would otherwise cost the launcher SIGTERM and SIGKILL.
+    alive: an rclpy shutdown that hangs would otherwise cost the launcher SIGTERM and SIGKILL. A process
+    that exits in time takes the daemon thread with it.
     """
-    done = threading.Event()
 
     def watch() -> None:
-        if not done.wait(timeout_s):
-            sys.stderr.write(
-                f"[{name}] clean-up did not finish within {timeout_s:g} s after spinning stopped "
-                f"(an rclpy shutdown hang); exiting with code {code[0]}\n"
-            )
-            sys.stderr.flush()
-            os._exit(code[0])
+        time.sleep(timeout_s)
+        sys.stderr.write(
+            f"[{name}] clean-up did not finish within {timeout_s:g} s after spinning stopped "
+            f"(an rclpy shutdown hang); exiting with code {code}\n"
+        )
+        sys.stderr.flush()
+        os._exit(code)
 
-    threading.Thread(target=watch, name="bac-cleanup-watchdog", daemon=True).start()
-    return done
+    threading.Thread(target=watch, name="bac-exit-watchdog", daemon=True).start()
 
 
 def run_node(
@@ -307,7 +306,7 @@ def run_node(
     finally:
         name = node.get_name() if node is not None else getattr(node_cls, "__name__", "bac")
         own = node.cleanup_time_s() if isinstance(node, BacNode) else 0.0
-        _cleanup_watchdog(name, cleanup_timeout_s + own, [code])  # never cancelled: it also covers the exit
+        _start_exit_watchdog(name, cleanup_timeout_s + own, code)  # also covers the interpreter's exit
         if executor is not None and not drain_executor(executor, cleanup_timeout_s / 2):
             sys.stderr.write(f"[{name}] a callback was still running at shutdown\n")
         if node is not None:
