@@ -480,8 +480,7 @@ class EcuBridgeNode(BacNode):
         if self._closed:
             return
         self._closed = True
-        timeout = float(self.get_parameter("restore_timeout_s").value)
-        wait = float(self.get_parameter("default_timeout_s").value) + 1.0
+        wait, timeout = self._close_bounds()
         if not self._lock.acquire(timeout=wait):  # an apply in flight ends within its own bound
             self.get_logger().error("an apply did not end in time; closing without restoring the baseline")
             return
@@ -504,10 +503,14 @@ class EcuBridgeNode(BacNode):
                 self._client = None
                 self._lock.release()
 
+    def _close_bounds(self) -> tuple[float, float]:
+        """close()'s time limits, s: waiting out an apply in flight, then restoring the baseline."""
+        wait = float(self.get_parameter("default_timeout_s").value) + 1.0  # an apply ends within its own bound
+        return wait, float(self.get_parameter("restore_timeout_s").value)
+
     def cleanup_time_s(self) -> float:
-        """close(): wait out an apply in flight, then restore the baseline (each within its own bound)."""
-        p = self.get_parameter
-        return float(p("default_timeout_s").value) + 1.0 + float(p("restore_timeout_s").value) + 1.0
+        """close() within its bounds, plus a second for opening and closing the bus."""
+        return sum(self._close_bounds()) + 1.0
 
     def destroy_node(self) -> None:
         try:
