@@ -173,6 +173,12 @@ class Journal:
         self.close()
 
 
+def journaled_recommend_beta(started: Mapping[str, Any]) -> float:
+    """The recommendation rule a campaign ran with, from its ``campaign_started`` record (0: the paper's
+    argmin of the posterior mean, also for journals written before the rule was configurable)."""
+    return float((started.get("config") or {}).get("recommend_beta", 0.0) or 0.0)
+
+
 def write_json_atomic(path: str | Path, data: Mapping[str, Any]) -> None:
     """Write a JSON file so that a reader sees the old or the new content, never a mix."""
     p = Path(path)

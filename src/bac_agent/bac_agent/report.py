@@ -37,7 +37,7 @@ from typing import Any
 
 import numpy as np
 
-from bac_agent.journal import JOURNAL_NAME, read_journal
+from bac_agent.journal import JOURNAL_NAME, journaled_recommend_beta, read_journal
 from bac_common.console import say
 from bac_common.errors import BacError
 from bac_common.paramspace import CalibrationDefinition
@@ -137,7 +137,7 @@ def load_campaign(path: str | Path) -> Campaign:
         trials=[rows[k] for k in sorted(rows)],
         recommendation=rec,
         seed=int(start.get("seed", 0) or 0),
-        recommend_beta=float((start.get("config") or {}).get("recommend_beta", 0.0) or 0.0),
+        recommend_beta=journaled_recommend_beta(start),
     )
 
 

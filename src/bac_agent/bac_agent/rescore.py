@@ -51,7 +51,7 @@ from bac_agent.bagio import (
     read_trials,
     run_starts,
 )
-from bac_agent.journal import JOURNAL_NAME, read_journal
+from bac_agent.journal import JOURNAL_NAME, journaled_recommend_beta, read_journal
 from bac_agent.kpi import KpiConfig, Score, score
 from bac_agent.measure_config import (
     NODE_IMU_INGEST,
@@ -381,8 +381,7 @@ def refit(campaign_dir: Path, runs: Sequence[RunResult]) -> dict[str, Any]:
     cfg = EngineConfig(
         budget=max(1, len(runs)),
         seed=int(started.get("seed", 0)),
-        # the live campaign's recommendation rule (journaled with its start)
-        recommend_beta=float((started.get("config") or {}).get("recommend_beta", 0.0) or 0.0),
+        recommend_beta=journaled_recommend_beta(started),  # the live campaign's rule
     )
     eng = Engine(definition, cfg)
     told = 0
