@@ -14,10 +14,15 @@ noise-free J of its recommendation after every run:
 
 gap = (J - J*) / (J_med - J*) (bac_common.progress); found = gap <= 0.05.
 Printed per problem and optimizer: the median number of runs until the optimum
-is first found (a seed that never finds it counts as budget + 1, shown ">B"),
-the share of seeds that found it, the median gap after 10 and 20 runs, the time
-per run. LAST line: ``worst_ratio_vs_botorch <x>``, the largest over problems of
-(bac's median runs to optimum) / (BoTorch's).
+is first found (a seed that never finds it counts as budget + 1, shown ">B") with
+a 90 % bootstrap interval over the seeds, the share of seeds that found it, the
+median gap after 10 and 20 runs, the time per run; per problem the ratio of bac's
+median to BoTorch's with a 90 % bootstrap interval (seeds resampled in pairs: both
+ran on the same seeds). LAST line: ``worst_ratio_vs_botorch <x>``, the largest
+over problems of (bac's median runs to optimum) / (BoTorch's).
+
+``--from-json a.json,b.json`` summarizes earlier outputs together: other problems,
+or other seeds of the same problem (``--first-seed 20`` in b adds seeds 20..39).
 
 Needs the benchmark dependencies: ``scripts/setup.sh --bench``.
 
@@ -38,6 +43,7 @@ from collections.abc import Callable
 from concurrent.futures import ProcessPoolExecutor
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -296,6 +302,32 @@ def _task(args: tuple[str, str, int, float, str, int]) -> tuple[str, str, int, l
     return prob_name, opt_name, seed, [float(j) for j in js], dt
 
 
+BOOTSTRAP_DRAWS = 4000
+
+
+def bootstrap_median_ci(runs: FloatArray, level: float = 0.9, seed: int = 0) -> tuple[float, float]:
+    """Percentile bootstrap interval of the median of ``runs`` over seeds (resampling seeds)."""
+    rng = np.random.default_rng(seed)
+    idx = rng.integers(0, runs.size, (BOOTSTRAP_DRAWS, runs.size))
+    meds = np.median(runs[idx], axis=1)
+    q = (1.0 - level) / 2.0
+    return float(np.quantile(meds, q)), float(np.quantile(meds, 1.0 - q))
+
+
+def bootstrap_ratio_ci(ours: FloatArray, theirs: FloatArray, level: float = 0.9, seed: int = 0) -> tuple[float, float]:
+    """Percentile bootstrap interval of median(ours) / median(theirs), seeds resampled in pairs.
+
+    Both optimizers ran on the same seeds (the same initial noise draws and problems), so a
+    seed is resampled with both of its results; with 20 seeds a median of runs moves by several
+    runs with the seeds alone, and this interval says how far the printed ratio can be trusted.
+    """
+    rng = np.random.default_rng(seed)
+    idx = rng.integers(0, ours.size, (BOOTSTRAP_DRAWS, ours.size))
+    r = np.median(ours[idx], axis=1) / np.median(theirs[idx], axis=1)
+    q = (1.0 - level) / 2.0
+    return float(np.quantile(r, q)), float(np.quantile(r, 1.0 - q))
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--seeds", type=int, default=20)
@@ -317,15 +349,25 @@ def main(argv: list[str] | None = None) -> int:
     results: dict[str, dict[str, list[tuple[int, list[float], float]]]] = {}
     t0 = time.perf_counter()
     if a.from_json:
+        noise_shares = set()
         for f in a.from_json.split(","):
             data = json.loads(Path(f).read_text())
-            a.seeds, a.noise_share = data["seeds"], data["noise_share"]
+            noise_shares.add(data["noise_share"])
             for pn, d in data["curves"].items():
                 for on, curves in d.items():
                     times = data.get("times", {}).get(pn, {}).get(on, [math.nan] * len(curves))
-                    results.setdefault(pn, {})[on] = [
-                        (i, c, t) for i, (c, t) in enumerate(zip(curves, times, strict=True))
-                    ]
+                    have = results.setdefault(pn, {}).setdefault(on, [])
+                    # files of the same problem and optimizer add seeds (e.g. --first-seed 0 and 20)
+                    first = int(data.get("first_seed", len(have)))
+                    known = {s for s, _, _ in have}
+                    for i, (c, t) in enumerate(zip(curves, times, strict=True)):
+                        if first + i in known:
+                            ap.error(f"{f}: seed {first + i} of {pn}/{on} is already in an earlier file")
+                        have.append((first + i, c, t))
+        if len(noise_shares) != 1:
+            ap.error(f"the files mix noise shares {sorted(noise_shares)}; summarize one noise level at a time")
+        a.noise_share = noise_shares.pop()
+        a.seeds = max(len(v) for d in results.values() for v in d.values())
         problems = list(results)
         optimizers = [o for o in OPTIMIZERS if any(o in results[pn] for pn in problems)]
     else:
@@ -348,7 +390,7 @@ def main(argv: list[str] | None = None) -> int:
 
     out_path = Path(a.out)
     out_path.parent.mkdir(parents=True, exist_ok=True)
-    summary: dict[str, dict[str, dict[str, float]]] = {}
+    summary: dict[str, dict[str, dict[str, Any]]] = {}
     ratios = []
     print(
         f"# {a.seeds} seeds, noise sd = {a.noise_share} x (J_med - J*) on standard functions; "
@@ -359,15 +401,18 @@ def main(argv: list[str] | None = None) -> int:
         p.budget = len(next(iter(results[pn].values()))[0][1])
         print(f"\n## {pn}  d={p.dim}  budget={p.budget}  J*={p.j_star:.4g}  J_med={p.j_med:.4g}")
         print(
-            f"{'optimizer':<11} {'runs_to_opt':>11} {'found':>6} {'gap@10':>8} {'gap@20':>8} "
-            f"{'gap@' + str(p.budget):>8} {'s/run':>7}"
+            f"{'optimizer':<11} {'runs_to_opt':>11} {'90% CI':>9} {'found':>6} {'gap@10':>8} {'gap@20':>8} "
+            f"{'gap@' + str(p.budget):>8} {'s/run':>7} {'seeds':>5}"
         )
+        runs_by: dict[str, dict[int, float]] = {}
         summary[pn] = {}
         for on in [o for o in optimizers if o in results[pn]]:
             rows = sorted(results[pn][on])
             G = np.array([gap(js, p.j_star, p.j_med) for _, js, _ in rows])
             runs = np.array([min(runs_to_optimum(g), p.budget + 1) for g in G])
+            runs_by[on] = {int(seed): float(r) for (seed, _, _), r in zip(rows, runs, strict=True)}
             med = float(np.median(runs))
+            lo, hi = bootstrap_median_ci(runs)
             found_share = float(np.mean(runs <= p.budget))
             g10 = float(np.median(G[:, min(9, p.budget - 1)]))
             g20 = float(np.median(G[:, min(19, p.budget - 1)]))
@@ -380,17 +425,32 @@ def main(argv: list[str] | None = None) -> int:
                 "gap20": g20,
                 "gap_end": g_end,
                 "s_per_run": spr,
+                "median_runs_ci90": [lo, hi],
+                "n_seeds": len(rows),
             }
             shown = f">{p.budget}" if med > p.budget else f"{med:g}"
-            print(f"{on:<11} {shown:>11} {found_share:>6.0%} {g10:>8.3f} {g20:>8.3f} {g_end:>8.3f} {spr:>7.3f}")
+            ci = f"{lo:g}-{hi:g}"
+            print(
+                f"{on:<11} {shown:>11} {ci:>9} {found_share:>6.0%} {g10:>8.3f} {g20:>8.3f} {g_end:>8.3f} "
+                f"{spr:>7.3f} {len(rows):>5}"
+            )
         if "bac" in summary[pn] and "botorch" in summary[pn]:
             r = summary[pn]["bac"]["median_runs"] / summary[pn]["botorch"]["median_runs"]
             ratios.append(r)
-            print(f"ratio bac/botorch (median runs to optimum): {r:.3f}")
+            common = sorted(set(runs_by["bac"]) & set(runs_by["botorch"]))
+            rlo, rhi = bootstrap_ratio_ci(
+                np.array([runs_by["bac"][s] for s in common]), np.array([runs_by["botorch"][s] for s in common])
+            )
+            summary[pn]["ratio_vs_botorch"] = {"ratio": r, "ci90": [rlo, rhi], "paired_seeds": len(common)}
+            print(
+                f"ratio bac/botorch (median runs to optimum): {r:.3f}  "
+                f"(90% bootstrap interval over {len(common)} paired seeds: {rlo:.2f}-{rhi:.2f})"
+            )
     out_path.write_text(
         json.dumps(
             {
                 "seeds": a.seeds,
+                "first_seed": a.first_seed,
                 "noise_share": a.noise_share,
                 "summary": summary,
                 "curves": {
