@@ -305,27 +305,29 @@ def _task(args: tuple[str, str, int, float, str, int]) -> tuple[str, str, int, l
 BOOTSTRAP_DRAWS = 4000
 
 
-def bootstrap_median_ci(runs: FloatArray, level: float = 0.9, seed: int = 0) -> tuple[float, float]:
-    """Percentile bootstrap interval of the median of ``runs`` over seeds (resampling seeds)."""
-    rng = np.random.default_rng(seed)
-    idx = rng.integers(0, runs.size, (BOOTSTRAP_DRAWS, runs.size))
-    meds = np.median(runs[idx], axis=1)
-    q = (1.0 - level) / 2.0
-    return float(np.quantile(meds, q)), float(np.quantile(meds, 1.0 - q))
+def bootstrap_ci(
+    statistic: Callable[..., FloatArray], *per_seed: FloatArray, level: float = 0.9, seed: int = 0
+) -> tuple[float, float]:
+    """Percentile bootstrap interval of ``statistic`` over seeds.
 
-
-def bootstrap_ratio_ci(ours: FloatArray, theirs: FloatArray, level: float = 0.9, seed: int = 0) -> tuple[float, float]:
-    """Percentile bootstrap interval of median(ours) / median(theirs), seeds resampled in pairs.
-
-    Both optimizers ran on the same seeds (the same initial noise draws and problems), so a
-    seed is resampled with both of its results; with 20 seeds a median of runs moves by several
-    runs with the seeds alone, and this interval says how far the printed ratio can be trusted.
+    ``per_seed`` are arrays with one value per seed, in the same seed order; a seed is resampled with all
+    of its values (both optimizers ran on the same seeds, so a ratio is resampled in pairs).
+    ``statistic`` maps the resampled arrays, each (draws, seeds), to (draws,). With 20 seeds a median
+    of runs moves by several runs with the seeds alone; this interval says how far it can be trusted.
     """
     rng = np.random.default_rng(seed)
-    idx = rng.integers(0, ours.size, (BOOTSTRAP_DRAWS, ours.size))
-    r = np.median(ours[idx], axis=1) / np.median(theirs[idx], axis=1)
+    idx = rng.integers(0, per_seed[0].size, (BOOTSTRAP_DRAWS, per_seed[0].size))
+    values = statistic(*(a[idx] for a in per_seed))
     q = (1.0 - level) / 2.0
-    return float(np.quantile(r, q)), float(np.quantile(r, 1.0 - q))
+    return float(np.quantile(values, q)), float(np.quantile(values, 1.0 - q))
+
+
+def _median(runs: FloatArray) -> FloatArray:
+    return np.median(runs, axis=1)
+
+
+def _median_ratio(ours: FloatArray, theirs: FloatArray) -> FloatArray:
+    return np.median(ours, axis=1) / np.median(theirs, axis=1)
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -391,6 +393,7 @@ def main(argv: list[str] | None = None) -> int:
     out_path = Path(a.out)
     out_path.parent.mkdir(parents=True, exist_ok=True)
     summary: dict[str, dict[str, dict[str, Any]]] = {}
+    ratio_info: dict[str, dict[str, Any]] = {}  # per problem: bac/BoTorch with its paired interval
     ratios = []
     print(
         f"# {a.seeds} seeds, noise sd = {a.noise_share} x (J_med - J*) on standard functions; "
@@ -412,7 +415,7 @@ def main(argv: list[str] | None = None) -> int:
             runs = np.array([min(runs_to_optimum(g), p.budget + 1) for g in G])
             runs_by[on] = {int(seed): float(r) for (seed, _, _), r in zip(rows, runs, strict=True)}
             med = float(np.median(runs))
-            lo, hi = bootstrap_median_ci(runs)
+            lo, hi = bootstrap_ci(_median, runs)
             found_share = float(np.mean(runs <= p.budget))
             g10 = float(np.median(G[:, min(9, p.budget - 1)]))
             g20 = float(np.median(G[:, min(19, p.budget - 1)]))
@@ -438,10 +441,12 @@ def main(argv: list[str] | None = None) -> int:
             r = summary[pn]["bac"]["median_runs"] / summary[pn]["botorch"]["median_runs"]
             ratios.append(r)
             common = sorted(set(runs_by["bac"]) & set(runs_by["botorch"]))
-            rlo, rhi = bootstrap_ratio_ci(
-                np.array([runs_by["bac"][s] for s in common]), np.array([runs_by["botorch"][s] for s in common])
+            rlo, rhi = bootstrap_ci(
+                _median_ratio,
+                np.array([runs_by["bac"][s] for s in common]),
+                np.array([runs_by["botorch"][s] for s in common]),
             )
-            summary[pn]["ratio_vs_botorch"] = {"ratio": r, "ci90": [rlo, rhi], "paired_seeds": len(common)}
+            ratio_info[pn] = {"ratio": r, "ci90": [rlo, rhi], "paired_seeds": len(common)}
             print(
                 f"ratio bac/botorch (median runs to optimum): {r:.3f}  "
                 f"(90% bootstrap interval over {len(common)} paired seeds: {rlo:.2f}-{rhi:.2f})"
@@ -453,6 +458,7 @@ def main(argv: list[str] | None = None) -> int:
                 "first_seed": a.first_seed,
                 "noise_share": a.noise_share,
                 "summary": summary,
+                "ratio_vs_botorch": ratio_info,
                 "curves": {
                     pn: {on: [js for _, js, _ in sorted(v)] for on, v in d.items()} for pn, d in results.items()
                 },
