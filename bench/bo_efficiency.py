@@ -485,17 +485,20 @@ def _plot(results: dict, problems: list[str], optimizers: list[str], noise_share
     fig, axes = plt.subplots(1, len(problems), figsize=(4.5 * len(problems), 3.6), squeeze=False)
     for ax, pn in zip(axes[0], problems, strict=True):
         p = make_problem(pn, noise_share)
-        for on in [o for o in optimizers if o in results[pn]]:
+        ran = [o for o in optimizers if o in results[pn]]
+        mixed = len({len(results[pn][o]) for o in ran}) > 1  # merged files: say which curve has how many seeds
+        for on in ran:
             G = np.array([gap(js, p.j_star, p.j_med) for _, js, _ in results[pn][on]])
             n = np.arange(1, G.shape[1] + 1)
-            ax.plot(n, np.maximum(np.median(G, axis=0), 1e-4), label=on, lw=2 if on == "bac" else 1)
+            label = f"{on} ({G.shape[0]} seeds)" if mixed else on
+            ax.plot(n, np.maximum(np.median(G, axis=0), 1e-4), label=label, lw=2 if on == "bac" else 1)
         ax.axhline(FOUND_GAP, color="k", ls=":", lw=1)
         ax.set_yscale("log")
         ax.set_title(f"{pn} (d={p.dim})")
         ax.set_xlabel("runs")
         ax.set_ylabel("median gap of the recommendation")
         ax.grid(alpha=0.3)
-    axes[0][0].legend(fontsize=8)
+        ax.legend(fontsize=8)
     fig.tight_layout()
     fig.savefig(path, dpi=110)
     plt.close(fig)
