@@ -71,7 +71,15 @@ def test_campaign_runs_to_done_and_recommends(procs: Any, tmp_path: Path) -> Non
     cdir = tmp_path / "camp"
     start_standins(procs, tmp_path)
     agent = start_agent(
-        procs, "agent", cdir, "budget:=5", "seed:=3", "confirmation_run:=true", "acquisition:=ei", "recommend_beta:=1.0"
+        procs,
+        "agent",
+        cdir,
+        "budget:=5",
+        "seed:=3",
+        "confirmation_run:=true",
+        "acquisition:=ei",
+        "recommend_beta:=1.0",
+        "gp_mean:=constant",
     )
     assert wait_exit(agent, 90, "bo_agent to finish") == 0, procs.log("agent")
     ev = jsonl(cdir / "journal.jsonl")
@@ -79,6 +87,7 @@ def test_campaign_runs_to_done_and_recommends(procs: Any, tmp_path: Path) -> Non
     start = next(e for e in ev if e["event"] == "campaign_started")
     assert (start["config"]["acquisition"], start["config"]["recommend_beta"]) == ("ei", 1.0)
     assert load_campaign(cdir).recommend_beta == 1.0
+    assert start["config"]["gp_mean"] == "constant" and load_campaign(cdir).gp_mean == "constant"
     scored = [e for e in ev if e["event"] == "trial_scored"]
     assert [e["trial_id"] for e in scored] == [1, 2, 3, 4, 5, 6]  # 5 trials + the confirmation run
     assert scored[-1]["kind"] == 2

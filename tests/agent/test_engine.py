@@ -10,7 +10,7 @@ from scipy.stats import norm
 
 from bac_agent.bo import Engine, EngineConfig, EngineError, SearchSpace, SpaceError
 from bac_agent.bo.acquisition import NoisyEI, log_ei, log_ei_with_grad, log_h
-from bac_agent.bo.gp import GP, Hyper
+from bac_agent.bo.gp import GP, GPConfig, Hyper
 from bac_common.errors import OutOfBoundsError, UnknownParameterError
 from bac_common.paramspace import CalibrationDefinition, MetaParameter, RawParameter, uniform_parameters
 
@@ -47,8 +47,18 @@ def _nei_gp(noise: float) -> GP:
     return GP().condition(X, y, Hyper(np.array([0.4, 0.7, 1.5]), 1.3, noise))
 
 
-def test_noisy_ei_gradient_matches_finite_difference() -> None:
-    gp = _nei_gp(0.05)
+def _nei_gp_bowl() -> GP:
+    rng = np.random.default_rng(5)
+    X = rng.random((14, 3))
+    y = np.sqrt(np.sum((X - 0.4) ** 2, axis=1) + 0.01) + 0.02 * rng.standard_normal(14)
+    gp = GP(GPConfig(mean="bowl")).fit(X, y, rng)
+    assert gp.hyper is not None and gp.hyper.bowl is not None
+    return gp
+
+
+@pytest.mark.parametrize("mean", ["constant", "bowl"])
+def test_noisy_ei_gradient_matches_finite_difference(mean: str) -> None:
+    gp = _nei_gp(0.05) if mean == "constant" else _nei_gp_bowl()
     nei = NoisyEI(gp, 32, np.random.default_rng(1))
     Q = np.random.default_rng(2).random((6, 3))
     val, g = nei.value_and_grad(Q)
@@ -165,6 +175,27 @@ def test_engine_finds_quadratic_minimum_under_noise() -> None:
     assert 0 < r.predicted_std < 0.1
     assert r.n_observations == 15
     assert r.best_observed_j == min(o.value for o in eng.observations)
+
+
+def test_bowl_mean_only_for_the_first_runs() -> None:
+    eng = Engine({"a": (0.0, 1.0), "b": (0.0, 1.0)}, budget=14, seed=3)
+    assert eng.n_initial == 5 and eng.bowl_runs == 10  # automatic: twice the initial design
+    rng = np.random.default_rng(3)
+    means = []
+    while not eng.done:
+        p = eng.ask()
+        eng.tell(p, math.sqrt(quad(p) + 0.01) + 0.01 * rng.standard_normal())
+        eng.recommend()
+        assert eng.hyper is not None
+        means.append((eng._gp.config.mean, eng.hyper.bowl is not None))
+    assert means[2:10] == [("bowl", True)] * 8  # from 3 runs on, a bowl-shaped J gets its bowl
+    assert means[10:] == [("constant", False)] * 4  # then the constant mean
+    r = eng.recommend()
+    assert quad(r.params) < 0.01
+    fixed = Engine({"a": (0.0, 1.0)}, EngineConfig(bowl_runs=3, gp=GPConfig(mean="constant")))
+    assert fixed.bowl_runs == 3 and fixed._gp_config().mean == "constant"
+    with pytest.raises(EngineError, match="bowl_runs"):
+        EngineConfig(bowl_runs=-1)
 
 
 def test_two_asks_without_tell_differ_and_tell_clears_pending() -> None:

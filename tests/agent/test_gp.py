@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import json
+
 import numpy as np
 import pytest
 from scipy.optimize import approx_fprime
@@ -112,3 +114,79 @@ def test_bad_data_is_refused() -> None:
         GP().condition(np.zeros((0, 1)), np.zeros(0))
     with pytest.raises(GPError, match="no data"):
         GP().predict(np.zeros((1, 1)))
+
+
+# --- the bowl prior mean -------------------------------------------------------------------------
+C_STAR = np.array([0.3, 0.6])
+
+
+def _cone(X: np.ndarray) -> np.ndarray:
+    """A comfort-KPI-like bowl: J grows about linearly with the (anisotropic) distance from C_STAR."""
+    return np.asarray(np.sqrt(np.sum(((X - C_STAR) / np.array([1.0, 0.7])) ** 2, axis=1) + 0.01))
+
+
+def _argmin_on_grid(gp: GP) -> np.ndarray:
+    g = np.linspace(0.0, 1.0, 101)
+    G = np.stack(np.meshgrid(g, g, indexing="ij"), axis=-1).reshape(-1, 2)
+    return np.asarray(G[int(np.argmin(gp.predict(G)[0]))])
+
+
+def test_bowl_locates_a_cone_minimum_from_six_runs() -> None:
+    from scipy.stats import qmc
+
+    dist: dict[str, list[float]] = {"bowl": [], "constant": []}
+    for seed in range(6):
+        X = qmc.LatinHypercube(2, seed=seed).random(6)
+        y = _cone(X) + 0.01 * np.random.default_rng(seed).standard_normal(6)
+        for mean, found in dist.items():
+            gp = GP(GPConfig(mean=mean)).fit(X, y, np.random.default_rng(0))
+            found.append(float(np.linalg.norm(_argmin_on_grid(gp) - C_STAR)))
+    # seed 1: no run within 0.25 of the minimum; the bowl's argmin is within 0.06, the constant mean's 0.2 away
+    assert dist["bowl"][1] < 0.08
+    assert dist["constant"][1] > 0.15
+    assert np.median(dist["bowl"]) < 0.75 * np.median(dist["constant"])
+
+
+def test_bowl_is_a_proper_mixture_with_exact_gradients() -> None:
+    from scipy.stats import qmc
+
+    X = qmc.LatinHypercube(2, seed=1).random(8)
+    y = _cone(X) + 0.01 * np.random.default_rng(1).standard_normal(8)
+    gp = GP(GPConfig(mean="bowl")).fit(X, y, np.random.default_rng(0))
+    assert gp.hyper is not None and gp.hyper.bowl is not None
+    bowl = gp.hyper.bowl
+    assert bowl.weights.sum() == pytest.approx(1.0) and np.all(bowl.weights > 0)
+    assert np.all(bowl.b1 > 0)  # only upward slopes: a bowl, never a dome
+    assert bowl.scale.shape == (2,) and np.exp(np.mean(np.log(bowl.scale))) == pytest.approx(1.0)
+    # the weighted centre is near the true minimum
+    assert np.linalg.norm(bowl.weights @ bowl.centres - C_STAR) < 0.15
+    x0 = np.array([[0.41, 0.27]])
+    _, g = bowl.value_and_grad(x0)
+    fd = approx_fprime(x0[0], lambda x: bowl.value(x[None])[0], 1e-7)
+    np.testing.assert_allclose(g[0], fd, rtol=1e-5, atol=1e-7)
+    _, _, dmu, _ = gp.predict_with_grad(x0)
+    fd_mu = approx_fprime(x0[0], lambda x: gp.predict_std_units(x[None])[0][0], 1e-7)
+    np.testing.assert_allclose(dmu[0], fd_mu, rtol=1e-4, atol=1e-6)
+    # the state survives a JSON round trip: the same predictions
+    h2 = Hyper.from_dict(json.loads(json.dumps(gp.hyper.to_dict())))
+    gp2 = GP(GPConfig(mean="bowl")).condition(X, y, h2)
+    np.testing.assert_allclose(gp2.predict(x0)[0], gp.predict(x0)[0], rtol=1e-12)
+
+
+def test_bowl_never_turns_a_dome_into_a_minimum_and_needs_three_runs() -> None:
+    from scipy.stats import qmc
+
+    X = qmc.LatinHypercube(2, seed=3).random(8)
+    dome = GP(GPConfig(mean="bowl")).fit(X, -_cone(X), np.random.default_rng(0))
+    assert dome.hyper is not None and dome.hyper.bowl is not None
+    assert np.all(dome.hyper.bowl.b1 > 0)  # its centres sit where the dome is low, never on its top
+    assert np.linalg.norm(_argmin_on_grid(dome) - C_STAR) > 0.3
+    two = GP(GPConfig(mean="bowl")).fit(X[:2], _cone(X[:2]), np.random.default_rng(0))
+    assert two.hyper is not None and two.hyper.bowl is None  # two runs: the constant mean
+
+
+def test_gp_config_refuses_unknown_mean() -> None:
+    with pytest.raises(GPError, match="mean must be one of"):
+        GPConfig(mean="cone")
+    with pytest.raises(GPError, match="bowl_tip"):
+        GPConfig(bowl_tip=0.0)

@@ -33,6 +33,7 @@ from rclpy.clock_type import ClockType
 
 from bac_agent.bo.baselines import GridStrategy, RandomStrategy
 from bac_agent.bo.engine import ACQUISITIONS, Engine, EngineConfig
+from bac_agent.bo.gp import MEANS, GPConfig
 from bac_agent.campaign import (
     Action,
     Apply,
@@ -134,6 +135,13 @@ class BoAgentNode(BacNode):
             5.0,
             read_only=True,
         )
+        gp_mean = self.declare_str(
+            "gp_mean",
+            "bowl",
+            "bo: the GP's prior mean (bowl: a bowl-shaped trend for the first runs, then a constant; constant; zero)",
+            choices=MEANS,
+            read_only=True,
+        )
         grid_size = self.declare_int("grid_size", 4, "levels per dimension of the grid strategy", 1, 100, True)
         max_attempts = self.declare_int("max_attempts", 3, "runs per trial before it is given up", 1, 100)
         apply_timeout = self.declare_float("apply_timeout_s", 10.0, "time limit of one apply, s", 0.1, 600.0)
@@ -192,6 +200,7 @@ class BoAgentNode(BacNode):
                     seed=seed,
                     acquisition=acquisition,
                     recommend_beta=recommend_beta,
+                    gp=GPConfig(mean=gp_mean),
                 ),
             )
         cfg = CampaignConfig(
@@ -213,6 +222,8 @@ class BoAgentNode(BacNode):
                 "definition_file": str(definition_file),
                 "acquisition": acquisition,
                 "recommend_beta": recommend_beta,
+                "gp_mean": gp_mean,
+                "bowl_runs": optimizer.bowl_runs if isinstance(optimizer, Engine) else 0,
             },
         )
         self.campaign = Campaign(

@@ -173,6 +173,13 @@ class Journal:
         self.close()
 
 
+def journaled_gp_mean(started: Mapping[str, Any]) -> tuple[str, int]:
+    """The GP prior mean a campaign ran with and the runs up to which a bowl was used, from its
+    ``campaign_started`` record (journals written before the bowl: a constant mean)."""
+    cfg = started.get("config") or {}
+    return str(cfg.get("gp_mean", "constant") or "constant"), int(cfg.get("bowl_runs", 0) or 0)
+
+
 def journaled_recommend_beta(started: Mapping[str, Any]) -> float:
     """The recommendation rule a campaign ran with, from its ``campaign_started`` record (0: the paper's
     argmin of the posterior mean, also for journals written before the rule was configurable)."""

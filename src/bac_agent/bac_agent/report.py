@@ -37,7 +37,7 @@ from typing import Any
 
 import numpy as np
 
-from bac_agent.journal import JOURNAL_NAME, journaled_recommend_beta, read_journal
+from bac_agent.journal import JOURNAL_NAME, journaled_gp_mean, journaled_recommend_beta, read_journal
 from bac_common.console import say
 from bac_common.errors import BacError
 from bac_common.paramspace import CalibrationDefinition
@@ -72,6 +72,8 @@ class Campaign:
     recommendation: dict[str, Any] | None
     seed: int
     recommend_beta: float = 0.0  # the live campaign's recommendation rule (journaled with its start)
+    gp_mean: str = "constant"  # the live campaign's GP prior mean and bowl_runs (journaled with its start)
+    bowl_runs: int = 0
 
     @property
     def names(self) -> tuple[str, ...]:
@@ -138,6 +140,8 @@ def load_campaign(path: str | Path) -> Campaign:
         recommendation=rec,
         seed=int(start.get("seed", 0) or 0),
         recommend_beta=journaled_recommend_beta(start),
+        gp_mean=journaled_gp_mean(start)[0],
+        bowl_runs=journaled_gp_mean(start)[1],
     )
 
 
@@ -269,10 +273,17 @@ def comparison_signals(campaign: Campaign) -> list[Signals]:
 
 def refit_engine(campaign: Campaign) -> Any:
     from bac_agent.bo import Engine, EngineConfig
+    from bac_agent.bo.gp import GPConfig
 
     eng = Engine(
         campaign.definition,
-        EngineConfig(budget=max(1, len(campaign.trials)), seed=campaign.seed, recommend_beta=campaign.recommend_beta),
+        EngineConfig(
+            budget=max(1, len(campaign.trials)),
+            seed=campaign.seed,
+            recommend_beta=campaign.recommend_beta,
+            gp=GPConfig(mean=campaign.gp_mean),
+            bowl_runs=campaign.bowl_runs,
+        ),
     )
     for t in campaign.scored(include_confirmation=True):
         eng.tell(t.params, t.j)

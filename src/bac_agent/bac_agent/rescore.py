@@ -51,7 +51,7 @@ from bac_agent.bagio import (
     read_trials,
     run_starts,
 )
-from bac_agent.journal import JOURNAL_NAME, journaled_recommend_beta, read_journal
+from bac_agent.journal import JOURNAL_NAME, journaled_gp_mean, journaled_recommend_beta, read_journal
 from bac_agent.kpi import KpiConfig, Score, score
 from bac_agent.measure_config import (
     NODE_IMU_INGEST,
@@ -372,6 +372,7 @@ def _segmenter_template(files: Sequence[Path], overrides: Mapping[str, Any] | No
 def refit(campaign_dir: Path, runs: Sequence[RunResult]) -> dict[str, Any]:
     """Fit the campaign's GP on the rescored J of each trial and recommend (argmin of the posterior mean)."""
     from bac_agent.bo import Engine, EngineConfig
+    from bac_agent.bo.gp import GPConfig
     from bac_common.paramspace import CalibrationDefinition
 
     _, started = journal_params(campaign_dir)
@@ -382,6 +383,8 @@ def refit(campaign_dir: Path, runs: Sequence[RunResult]) -> dict[str, Any]:
         budget=max(1, len(runs)),
         seed=int(started.get("seed", 0)),
         recommend_beta=journaled_recommend_beta(started),  # the live campaign's rule
+        gp=GPConfig(mean=journaled_gp_mean(started)[0]),  # and its model
+        bowl_runs=journaled_gp_mean(started)[1],
     )
     eng = Engine(definition, cfg)
     told = 0

@@ -97,7 +97,7 @@ class NoisyEI:
         self.X = gp.X
         self.ls = h.lengthscales
         self.os = h.outputscale
-        self.mean = h.mean
+        self.hyper = h
         n = self.X.shape[0]
         K = matern52_from_r2(sq_dist(self.X, self.X, self.ls), self.os)
         mu_b, _ = gp.predict_std_units(self.X)
@@ -120,13 +120,16 @@ class NoisyEI:
                 jitter *= 10.0
         else:  # pragma: no cover - K + 1e-1*os*I is always positive definite
             raise ValueError("kernel matrix not positive definite")
-        self.A = np.asarray(sla.cho_solve((self._L0, True), F - self.mean, check_finite=False), dtype=float)
+        self.A = np.asarray(
+            sla.cho_solve((self._L0, True), F - h.mean_at(self.X)[:, None], check_finite=False), dtype=float
+        )
         self.log_s = math.log(S)
 
     def __call__(self, Xq: FloatArray) -> FloatArray:
         """log NEI at the rows of ``Xq`` (m, d), standardized units."""
-        Ks = matern52_from_r2(sq_dist(np.atleast_2d(Xq), self.X, self.ls), self.os)
-        mu = self.mean + Ks @ self.A  # (m, S): each draw's noise-free conditional mean
+        Xq = np.atleast_2d(Xq)
+        Ks = matern52_from_r2(sq_dist(Xq, self.X, self.ls), self.os)
+        mu = self.hyper.mean_at(Xq)[:, None] + Ks @ self.A  # (m, S): each draw's noise-free conditional mean
         sd = np.sqrt(latent_var(self._L0, Ks, self.os))  # the same for every draw
         lei = log_ei(mu, sd[:, None], self.best[None, :])
         return np.asarray(logsumexp(lei, axis=1) - self.log_s, dtype=float)
@@ -137,14 +140,15 @@ class NoisyEI:
         m, d = Xq.shape
         r2 = sq_dist(Xq, self.X, self.ls)
         Ks = matern52_from_r2(r2, self.os)
-        mu = self.mean + Ks @ self.A  # (m, S)
+        m0, dm0 = self.hyper.mean_and_grad(Xq)
+        mu = m0[:, None] + Ks @ self.A  # (m, S)
         S = mu.shape[1]
         il2 = 1.0 / self.ls**2
         Fk = matern52_dr2_factor(r2, self.os)  # (m, n)
         FA = Fk @ self.A  # (m, S)
         # sum_n Fk[m, n] A[n, s] X[n, :] as one batched matrix product (m, S, n) @ (n, d)
         FAX = np.matmul((Fk[:, :, None] * self.A[None, :, :]).transpose(0, 2, 1), self.X)
-        dmu = -(Xq[:, None, :] * FA[:, :, None] - FAX) * il2
+        dmu = dm0[:, None, :] - (Xq[:, None, :] * FA[:, :, None] - FAX) * il2
         sd, dsd = latent_sd_with_grad(Xq, self.X, self._L0, Ks, Fk, il2, self.os)
         lei, g = log_ei_with_grad(
             mu.ravel(),

@@ -97,11 +97,17 @@ class EngineConfig:
     recommend_beta: float = 0.0  # recommendation minimizes mean + beta * std (0: the paper's argmin of the mean)
     acquisition: str = "nei"  # "nei": noisy EI (sampled incumbents); "ei": log EI over the best posterior mean
     nei_samples: int = 64  # joint draws at the observed points for "nei"
+    # with gp.mean == "bowl": the bowl is the prior mean while at most this many runs are told, then a constant
+    # (a trend helps while runs are few; later it would only bias a model that the runs can carry); 0 = automatic,
+    # twice the initial design
+    bowl_runs: int = 0
     gp: GPConfig = field(default_factory=GPConfig)
 
     def __post_init__(self) -> None:
         if self.budget < 1:
             raise EngineError(f"budget must be >= 1, got {self.budget}")
+        if self.bowl_runs < 0:
+            raise EngineError(f"bowl_runs must be >= 0 (0 = automatic), got {self.bowl_runs}")
         if self.n_initial < 0:
             raise EngineError(f"n_initial must be >= 0 (0 = automatic), got {self.n_initial}")
         if self.acquisition not in ACQUISITIONS:
@@ -195,6 +201,17 @@ class Engine:
         return self.config.n_initial or default_n_initial(self.space.dim, self.config.budget)
 
     @property
+    def bowl_runs(self) -> int:
+        """Runs told up to which a ``bowl`` prior mean is used (then a constant)."""
+        return self.config.bowl_runs or 2 * self.n_initial
+
+    def _gp_config(self) -> GPConfig:
+        cfg = self.config.gp
+        if cfg.mean == "bowl" and len(self.observations) > self.bowl_runs:
+            return replace(cfg, mean="constant")
+        return cfg
+
+    @property
     def n_trials(self) -> int:
         """Trials finished: told or failed."""
         return len(self.observations) + len(self.failures)
@@ -246,6 +263,10 @@ class Engine:
         if not self.observations:
             raise EngineError("nothing has been told yet: tell() at least one result first")
         key = (len(self.observations), hash(tuple(o.value for o in self.observations)))
+        cfg = self._gp_config()
+        if self._gp.config != cfg:
+            self._gp = GP(cfg, hyper=self._gp.hyper)  # the last fit stays a start of the next one
+            self._gp_key = None
         if self._gp_key != key:
             X = self.space.to_unit(np.array([self.space.to_array(o.params) for o in self.observations]))
             y = np.array([o.value for o in self.observations])
@@ -265,7 +286,7 @@ class Engine:
             Xp = self.space.to_unit(np.array([self.space.to_array(p) for p in self.pending]))
             mp, _ = gp.predict(Xp)
             y_all = np.concatenate([gp.y_mean + gp.y_std * gp._z, mp])
-            model = GP(self.config.gp).condition(np.vstack([X_obs, Xp]), y_all, gp.hyper, scaling=(gp.y_mean, gp.y_std))
+            model = GP(gp.config).condition(np.vstack([X_obs, Xp]), y_all, gp.hyper, scaling=(gp.y_mean, gp.y_std))
             best = float((np.min(model.predict(X_obs)[0]) - model.y_mean) / model.y_std)
         cand = candidates(self.config.n_candidates, d, self.rng)
         # local candidates around the best points by posterior mean

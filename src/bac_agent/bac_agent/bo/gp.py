@@ -11,6 +11,12 @@ every problem:
 * noise σ²: log-normal around ``exp(noise_loc)``, bounded below by ``noise_floor``
   (a learned noise level: runs are noisy, and the GP must not interpolate them).
 
+The prior mean is ``zero``, a learned ``constant`` (its GLS estimate), or a ``bowl``: the
+posterior-weighted mixture, over candidate centres c, of trends b0 + b1·√(|(x − c)/s|² + tip²)
+(a cone with a rounded tip; b0, b1 > 0 by GLS for each c; s the anisotropy of a constant-mean
+fit). A comfort KPI over damping-like parameters is bowl-shaped, and with few runs such a trend
+locates the optimum's basin where a stationary GP alone cannot (see :class:`Bowl`).
+
 The hyperparameters are the maximum a posteriori (the marginal likelihood times
 these priors), found by L-BFGS-B with analytic gradients from several starts
 (the prior mode, the previous fit, draws from the prior). Everything here is
@@ -28,6 +34,7 @@ import scipy.linalg as sla
 from numpy.typing import NDArray
 from scipy.linalg import lapack
 from scipy.optimize import minimize
+from scipy.stats import qmc
 
 from bac_agent.bo.kernel import SQRT5, matern52_dr2_factor, matern52_from_r2, sq_dist
 from bac_common.errors import BacError
@@ -35,6 +42,9 @@ from bac_common.errors import BacError
 FloatArray = NDArray[np.float64]
 
 LOG_2PI = math.log(2.0 * math.pi)
+
+
+MEANS = ("zero", "constant", "bowl")  # GPConfig.mean
 
 
 class GPError(BacError, ValueError):
@@ -58,10 +68,80 @@ class GPConfig:
     noise_scale: float = 1.5
     noise_floor: float = 1e-6  # smallest noise variance (standardized units)
     noise_ceiling: float = 2.0
-    mean: str = "constant"  # prior mean of the standardized outputs: "constant" (a learned constant, GLS) or "zero"
+    # prior mean of the standardized outputs: "bowl" (a mixture of cone-shaped trends, see Bowl), "constant"
+    # (a learned constant, GLS) or "zero"
+    mean: str = "bowl"
+    bowl_centres: int = 512  # candidate centres of the bowl (scrambled Sobol over the unit cube)
+    bowl_tip: float = 0.05  # radius of the bowl's rounded tip (unit cube, after the anisotropy scaling)
+    bowl_temper: float = 0.5  # power of the likelihood in the weights of the centres (1: the plain posterior)
     draws: int = 8  # draws from the prior, screened by their objective
     restarts: int = 1  # best draws optimized, besides the prior mode and the previous fit
     maxiter: int = 200
+
+    def __post_init__(self) -> None:
+        if self.mean not in MEANS:
+            raise GPError(f"GP mean must be one of {', '.join(MEANS)}, got {self.mean!r}")
+        if self.bowl_centres < 1 or not self.bowl_tip > 0.0 or not self.bowl_temper > 0.0:
+            raise GPError(
+                f"bowl_centres must be >= 1 and bowl_tip, bowl_temper > 0, got {self.bowl_centres}, "
+                f"{self.bowl_tip}, {self.bowl_temper}"
+            )
+
+
+@dataclass(frozen=True)
+class Bowl:
+    """A bowl-shaped prior mean: a weighted mixture of rounded cones over candidate centres.
+
+    ``value(x) = Σ_c w_c (b0_c + b1_c · r_c(x))`` with ``r_c(x) = √(|(x − c)/s|² + tip²)``. The
+    weights are the (tempered) marginal likelihoods of the centres, so the trend stays broad while
+    few runs cannot tell the centres apart, instead of betting on one centre (a single fitted
+    centre locked campaigns onto a biased one: docs/agent.md).
+    """
+
+    centres: FloatArray  # (m, d) unit cube
+    b0: FloatArray  # (m,) standardized units
+    b1: FloatArray  # (m,) > 0
+    weights: FloatArray  # (m,) sum 1
+    scale: FloatArray  # (d,) anisotropy, geometric mean 1
+    tip: float
+
+    def _r(self, Xq: FloatArray) -> FloatArray:
+        A = Xq / self.scale
+        B = self.centres / self.scale
+        r2 = np.sum(A * A, axis=1)[:, None] - 2.0 * A @ B.T + np.sum(B * B, axis=1)[None, :]
+        return np.asarray(np.sqrt(np.maximum(r2, 0.0) + self.tip**2), dtype=float)
+
+    def value(self, Xq: FloatArray) -> FloatArray:
+        """The trend at the rows of ``Xq`` (m_q,), standardized units."""
+        return np.asarray((self.b0 + self.b1 * self._r(np.atleast_2d(Xq))) @ self.weights, dtype=float)
+
+    def value_and_grad(self, Xq: FloatArray) -> tuple[FloatArray, FloatArray]:
+        Xq = np.atleast_2d(Xq)
+        r = self._r(Xq)
+        G = (self.weights * self.b1)[None, :] / r  # (m_q, m): d value / d r_c times 1 / r_c
+        grad = (Xq * G.sum(axis=1)[:, None] - G @ self.centres) / self.scale**2
+        return np.asarray((self.b0 + self.b1 * r) @ self.weights, dtype=float), np.asarray(grad, dtype=float)
+
+    def to_dict(self) -> dict[str, Any]:
+        return {
+            "centres": self.centres.tolist(),
+            "b0": self.b0.tolist(),
+            "b1": self.b1.tolist(),
+            "weights": self.weights.tolist(),
+            "scale": self.scale.tolist(),
+            "tip": self.tip,
+        }
+
+    @classmethod
+    def from_dict(cls, d: dict[str, Any]) -> Bowl:
+        return cls(
+            np.asarray(d["centres"], dtype=float).reshape(len(d["centres"]), -1),
+            np.asarray(d["b0"], dtype=float),
+            np.asarray(d["b1"], dtype=float),
+            np.asarray(d["weights"], dtype=float),
+            np.asarray(d["scale"], dtype=float),
+            float(d["tip"]),
+        )
 
 
 @dataclass
@@ -72,6 +152,21 @@ class Hyper:
     outputscale: float
     noise: float
     mean: float = 0.0  # constant prior mean (standardized units; 0 with GPConfig.mean == "zero")
+    bowl: Bowl | None = None  # the bowl trend, added to ``mean`` (GPConfig.mean == "bowl"; None: none fitted)
+
+    def mean_at(self, Xq: FloatArray) -> FloatArray:
+        """The prior mean at the rows of ``Xq`` (standardized units)."""
+        Xq = np.atleast_2d(Xq)
+        if self.bowl is None:
+            return np.full(Xq.shape[0], self.mean)
+        return self.mean + self.bowl.value(Xq)
+
+    def mean_and_grad(self, Xq: FloatArray) -> tuple[FloatArray, FloatArray]:
+        Xq = np.atleast_2d(Xq)
+        if self.bowl is None:
+            return np.full(Xq.shape[0], self.mean), np.zeros_like(Xq)
+        v, g = self.bowl.value_and_grad(Xq)
+        return self.mean + v, g
 
     def to_vector(self) -> FloatArray:
         return np.concatenate([np.log(self.lengthscales), [math.log(self.outputscale), math.log(self.noise)]])
@@ -87,6 +182,7 @@ class Hyper:
             "outputscale": self.outputscale,
             "noise": self.noise,
             "mean": self.mean,
+            "bowl": self.bowl.to_dict() if self.bowl is not None else None,
         }
 
     @classmethod
@@ -96,6 +192,7 @@ class Hyper:
             float(d["outputscale"]),
             float(d["noise"]),
             float(d.get("mean", 0.0)),
+            Bowl.from_dict(d["bowl"]) if d.get("bowl") else None,
         )
 
 
@@ -111,6 +208,7 @@ class GP:
     _L: FloatArray = field(default_factory=lambda: np.zeros((0, 0)))
     _alpha: FloatArray = field(default_factory=lambda: np.zeros(0))
     _z: FloatArray = field(default_factory=lambda: np.zeros(0))
+    _offset: FloatArray | float = 0.0  # a fixed trend subtracted from z while fitting (the bowl's)
 
     # --- priors ------------------------------------------------------------------
     def _prior(self, d: int) -> tuple[FloatArray, FloatArray]:
@@ -158,7 +256,7 @@ class GP:
         ``D2`` is the (n*n, d) matrix of squared coordinate differences of the inputs
         (computed once per fit).
         """
-        X, z = self.X, self._z
+        X, z = self.X, self._z - self._offset
         n, d = X.shape
         if D2 is None:
             D2 = self._d2()
@@ -177,7 +275,7 @@ class GP:
             return 1e10, np.zeros_like(v)
         Kinv, _ = lapack.dpotri(L, lower=1)
         Kinv = np.tril(Kinv) + np.tril(Kinv, -1).T
-        if self.config.mean == "constant":
+        if self.config.mean != "zero":
             # the constant mean profiled out (its GLS estimate); by the envelope theorem the gradient
             # below (at fixed c) is the gradient of the profiled likelihood
             z = z - self._gls_mean(Kinv, z)
@@ -214,10 +312,76 @@ class GP:
 
     # --- fitting -------------------------------------------------------------------------
     def fit(self, X: FloatArray, y: FloatArray, rng: np.random.Generator | None = None) -> GP:
-        """Learn the hyperparameters (MAP, multi-start L-BFGS-B) and condition on (X, y)."""
+        """Learn the hyperparameters (MAP, multi-start L-BFGS-B) and condition on (X, y).
+
+        With the bowl mean: the kernel's hyperparameters with a constant mean, the bowl under that
+        kernel, the hyperparameters again on what the bowl leaves, and the bowl again.
+        """
         self._set_data(X, y)
-        d = self.X.shape[1]
         rng = rng if rng is not None else np.random.default_rng(0)
+        self._offset = 0.0
+        v = self._map_hyper(rng)
+        bowl = None
+        if self.config.mean == "bowl" and self.X.shape[0] >= 3:
+            h0 = Hyper.from_vector(v)
+            ls0 = h0.lengthscales
+            scale = np.clip(ls0 / math.exp(float(np.mean(np.log(ls0)))), 1.0 / 3.0, 3.0)
+            bowl = self._fit_bowl(h0, scale)
+            if bowl is not None:
+                self._offset = bowl.value(self.X)
+                self.hyper = h0  # the next fit starts from it
+                v = self._map_hyper(rng)
+                self._offset = 0.0
+                bowl = self._fit_bowl(Hyper.from_vector(v), scale)
+        self.hyper = Hyper.from_vector(v)
+        if bowl is not None:
+            self.hyper = replace(self.hyper, bowl=bowl)  # its constants b0 carry the mean
+            self._factorize(refit_mean=False)
+        else:
+            self._factorize(refit_mean=True)
+        return self
+
+    def _fit_bowl(self, h: Hyper, scale: FloatArray) -> Bowl | None:
+        """The bowl's mixture under kernel ``h``, or None when no centre gives an upward slope.
+
+        For each candidate centre c the trend's b0, b1 are the GLS estimate with the basis
+        [1, r_c(x)]; its weight is the marginal likelihood with a flat prior on (b0, b1),
+        ``½ bᵀA⁻¹b − ½ log det A`` (A = HᵀK⁻¹H, b = HᵀK⁻¹z), raised to ``bowl_temper``.
+        """
+        c = self.config
+        X, z = self.X, self._z
+        n, d = X.shape
+        K = matern52_from_r2(sq_dist(X, X, h.lengthscales), h.outputscale)
+        K.flat[:: n + 1] += h.noise + 1e-10 * h.outputscale
+        try:
+            Kinv = sla.cho_solve((np.linalg.cholesky(K), True), np.eye(n), check_finite=False)
+        except np.linalg.LinAlgError:
+            return None
+        C = qmc.Sobol(d, scramble=True, seed=n).random(c.bowl_centres)
+        unit = Bowl(C, np.zeros(len(C)), np.ones(len(C)), np.ones(len(C)), scale, c.bowl_tip)
+        R = unit._r(X)  # (n, m)
+        k1 = Kinv.sum(axis=0)
+        a11 = float(k1.sum())
+        b1 = float(k1 @ z)
+        a12 = k1 @ R
+        a22 = np.sum(R * (Kinv @ R), axis=0)
+        b2 = (Kinv @ z) @ R
+        det = a11 * a22 - a12**2
+        ok = det > 1e-12 * a11 * a22
+        safe = np.where(ok, det, 1.0)
+        beta0 = (a22 * b1 - a12 * b2) / safe
+        beta1 = (a11 * b2 - a12 * b1) / safe
+        ok &= beta1 > 0.0
+        if not np.any(ok):
+            return None
+        logw = np.where(ok, c.bowl_temper * (0.5 * (beta0 * b1 + beta1 * b2) - 0.5 * np.log(safe)), -np.inf)
+        w = np.exp(logw - np.max(logw))
+        keep = w > 1e-6
+        return Bowl(C[keep], beta0[keep], beta1[keep], w[keep] / w[keep].sum(), scale, c.bowl_tip)
+
+    def _map_hyper(self, rng: np.random.Generator) -> FloatArray:
+        """MAP log-hyperparameters of the data minus ``_offset`` (multi-start L-BFGS-B)."""
+        d = self.X.shape[1]
         loc, scale = self._prior(d)
         bounds = self._bounds(d)
         lo = np.array([b[0] for b in bounds])
@@ -247,9 +411,7 @@ class GP:
                 continue
             if np.isfinite(res.fun) and res.fun < best_f:
                 best_f, best_v = float(res.fun), np.asarray(res.x)
-        self.hyper = Hyper.from_vector(best_v)
-        self._factorize(refit_mean=True)
-        return self
+        return np.asarray(best_v, dtype=float)
 
     def condition(
         self,
@@ -288,12 +450,15 @@ class GP:
                 jitter *= 100.0
         else:
             raise GPError("kernel matrix is not positive definite even with jitter; duplicate points with no noise?")
-        if self.config.mean == "constant" and refit_mean:
+        if self.config.mean != "zero" and refit_mean:
             ones = sla.cho_solve((self._L, True), np.ones(n), check_finite=False)
-            h = self.hyper = replace(h, mean=float(ones @ self._z / max(float(ones.sum()), 1e-300)))
-        elif self.config.mean != "constant" and h.mean != 0.0:
-            h = self.hyper = replace(h, mean=0.0)
-        self._alpha = np.asarray(sla.cho_solve((self._L, True), self._z - h.mean, check_finite=False), dtype=float)
+            h = self.hyper = replace(h, mean=float(ones @ self._z / max(float(ones.sum()), 1e-300)), bowl=None)
+        elif self.config.mean == "zero" and (h.mean != 0.0 or h.bowl is not None):
+            h = self.hyper = replace(h, mean=0.0, bowl=None)
+        elif self.config.mean != "bowl" and h.bowl is not None:
+            h = self.hyper = replace(h, bowl=None)
+        resid = self._z - h.mean_at(self.X)
+        self._alpha = np.asarray(sla.cho_solve((self._L, True), resid, check_finite=False), dtype=float)
 
     # --- prediction ------------------------------------------------------------------------
     @property
@@ -308,7 +473,7 @@ class GP:
         h = self.hyper
         Xq = np.atleast_2d(np.asarray(Xq, dtype=float))
         Ks = matern52_from_r2(sq_dist(Xq, self.X, h.lengthscales), h.outputscale)
-        mu = h.mean + Ks @ self._alpha
+        mu = h.mean_at(Xq) + Ks @ self._alpha
         return mu, latent_var(self._L, Ks, h.outputscale)
 
     def predict(self, Xq: FloatArray) -> tuple[FloatArray, FloatArray]:
@@ -327,9 +492,10 @@ class GP:
         r2 = sq_dist(Xq, self.X, h.lengthscales)
         Ks = matern52_from_r2(r2, h.outputscale)
         F = matern52_dr2_factor(r2, h.outputscale)
-        mu = h.mean + Ks @ self._alpha
+        m0, dm0 = h.mean_and_grad(Xq)
+        mu = m0 + Ks @ self._alpha
         Fa = F * self._alpha[None, :]
-        dmu = -(Xq * Fa.sum(axis=1)[:, None] - Fa @ self.X) * il2
+        dmu = dm0 - (Xq * Fa.sum(axis=1)[:, None] - Fa @ self.X) * il2
         sd, dsd = latent_sd_with_grad(Xq, self.X, self._L, Ks, F, il2, h.outputscale)
         return mu, sd, dmu, dsd
 
