@@ -22,7 +22,12 @@ from bac_agent.reduction.campaigns import (
 from bac_agent.reduction.objectives import SyntheticObjective
 from bac_agent.reduction.pipeline import PosteriorMean, polish
 
-QUICK = {"gp": {"draws": 0, "restarts": 0, "maxiter": 30}, "n_candidates": 128, "n_local": 64, "acq_restarts": 1}
+QUICK = {
+    "gp": {"draws": 0, "restarts": 0, "maxiter": 30, "mean": "constant"},
+    "n_candidates": 128,
+    "n_local": 64,
+    "acq_restarts": 1,
+}
 
 
 @dataclass(frozen=True)

@@ -17,7 +17,12 @@ from bac_agent.reduction.pipeline import ReduceConfig, run_reduction, start_poin
 from bac_agent.reduction.report import write_outputs
 from bac_common.paramspace import CalibrationDefinition
 
-QUICK = {"gp": {"draws": 0, "restarts": 0, "maxiter": 30}, "n_candidates": 128, "n_local": 64, "acq_restarts": 1}
+QUICK = {
+    "gp": {"draws": 0, "restarts": 0, "maxiter": 30, "mean": "constant"},
+    "n_candidates": 128,
+    "n_local": 64,
+    "acq_restarts": 1,
+}
 LAST = re.compile(r"^reduce_minutes (\d+\.\d+) params_kept (\d+) loss_pct (-?\d+\.\d+)$")
 
 

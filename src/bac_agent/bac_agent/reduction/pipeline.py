@@ -67,7 +67,7 @@ FloatArray = NDArray[np.float64]
 # at most 60 L-BFGS-B iterations; 512 + 256 acquisition candidates, 2 starts). Measured on road_c2, 5 campaigns
 # of 100 trials, 4 asks per step: GP time 16 s CPU instead of 103 s with the agent's prior, true J of the
 # recommendations 0.668 on average instead of 0.678 (docs/reduce.md). (c) the zero prior mean and plain log EI,
-# with which the reduction's figures were measured (the agent's defaults are a learned constant mean and noisy EI).
+# with which the reduction's figures were measured (the agent's defaults are the bowl mean and noisy EI).
 FAST_ENGINE: Mapping[str, Any] = {
     "gp": {
         "draws": 0,
