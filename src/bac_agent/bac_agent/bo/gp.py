@@ -11,11 +11,12 @@ every problem:
 * noise σ²: log-normal around ``exp(noise_loc)``, bounded below by ``noise_floor``
   (a learned noise level: runs are noisy, and the GP must not interpolate them).
 
-The prior mean is ``zero``, a learned ``constant`` (its GLS estimate), or a ``bowl``: the
-posterior-weighted mixture, over candidate centres c, of trends b0 + b1·√(|(x − c)/s|² + tip²)
-(a cone with a rounded tip; b0, b1 > 0 by GLS for each c; s the anisotropy of a constant-mean
-fit). A comfort KPI over damping-like parameters is bowl-shaped, and with few runs such a trend
-locates the optimum's basin where a stationary GP alone cannot (see :class:`Bowl`).
+The prior mean is ``zero``, a learned ``constant`` (its GLS estimate), or a ``bowl``: a mixture,
+over candidate centres c, of trends b0 + b1·√(|(x − c)/s|² + tip²), a cone with a rounded tip.
+For each c, b0 and b1 are the GLS estimate and only b1 > 0 is kept; the weights are the tempered
+marginal likelihoods; s is the anisotropy of a constant-mean fit. A comfort KPI over damping-like
+parameters is bowl-shaped, and with few runs such a trend locates the optimum's basin where a
+stationary GP alone cannot (see :class:`Bowl`).
 
 The hyperparameters are the maximum a posteriori (the marginal likelihood times
 these priors), found by L-BFGS-B with analytic gradients from several starts
@@ -304,7 +305,8 @@ class GP:
         return ((X[:, None, :] - X[None, :, :]) ** 2).reshape(-1, X.shape[1])
 
     def log_marginal_likelihood(self, hyper: Hyper) -> float:
-        """Log marginal likelihood of the standardized data under ``hyper`` (no prior)."""
+        """Log marginal likelihood of the standardized data under ``hyper`` (no prior; the constant mean
+        profiled out unless the mean is "zero", a bowl in ``hyper`` not counted)."""
         v = hyper.to_vector()
         nlp, _ = self.neg_log_posterior(v)
         loc, scale = self._prior(self.X.shape[1])
