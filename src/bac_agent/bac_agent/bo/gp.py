@@ -89,6 +89,14 @@ class GPConfig:
             )
 
 
+def cone_radius(X: FloatArray, centres: FloatArray, scale: FloatArray, tip: float) -> FloatArray:
+    """(n, m) rounded distances √(|(x − c)/s|² + tip²) between the rows of X and the centres."""
+    A = X / scale
+    B = centres / scale
+    r2 = np.sum(A * A, axis=1)[:, None] - 2.0 * A @ B.T + np.sum(B * B, axis=1)[None, :]
+    return np.asarray(np.sqrt(np.maximum(r2, 0.0) + tip**2), dtype=float)
+
+
 @dataclass(frozen=True)
 class Bowl:
     """A bowl-shaped prior mean: a weighted mixture of rounded cones over candidate centres.
@@ -106,19 +114,16 @@ class Bowl:
     scale: FloatArray  # (d,) anisotropy, geometric mean 1
     tip: float
 
-    def _r(self, Xq: FloatArray) -> FloatArray:
-        A = Xq / self.scale
-        B = self.centres / self.scale
-        r2 = np.sum(A * A, axis=1)[:, None] - 2.0 * A @ B.T + np.sum(B * B, axis=1)[None, :]
-        return np.asarray(np.sqrt(np.maximum(r2, 0.0) + self.tip**2), dtype=float)
-
     def value(self, Xq: FloatArray) -> FloatArray:
         """The trend at the rows of ``Xq`` (m_q,), standardized units."""
-        return np.asarray((self.b0 + self.b1 * self._r(np.atleast_2d(Xq))) @ self.weights, dtype=float)
+        return np.asarray(
+            (self.b0 + self.b1 * cone_radius(np.atleast_2d(Xq), self.centres, self.scale, self.tip)) @ self.weights,
+            dtype=float,
+        )
 
     def value_and_grad(self, Xq: FloatArray) -> tuple[FloatArray, FloatArray]:
         Xq = np.atleast_2d(Xq)
-        r = self._r(Xq)
+        r = cone_radius(Xq, self.centres, self.scale, self.tip)
         G = (self.weights * self.b1)[None, :] / r  # (m_q, m): d value / d r_c times 1 / r_c
         grad = (Xq * G.sum(axis=1)[:, None] - G @ self.centres) / self.scale**2
         return np.asarray((self.b0 + self.b1 * r) @ self.weights, dtype=float), np.asarray(grad, dtype=float)
@@ -360,8 +365,7 @@ class GP:
         except np.linalg.LinAlgError:
             return None
         C = qmc.Sobol(d, scramble=True, seed=n).random(c.bowl_centres)
-        unit = Bowl(C, np.zeros(len(C)), np.ones(len(C)), np.ones(len(C)), scale, c.bowl_tip)
-        R = unit._r(X)  # (n, m)
+        R = cone_radius(X, C, scale, c.bowl_tip)  # (n, m)
         k1 = Kinv.sum(axis=0)
         a11 = float(k1.sum())
         b1 = float(k1 @ z)
