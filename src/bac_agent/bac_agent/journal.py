@@ -173,17 +173,17 @@ class Journal:
         self.close()
 
 
-def journaled_gp_mean(started: Mapping[str, Any]) -> tuple[str, int]:
-    """The GP prior mean a campaign ran with and the runs up to which a bowl was used, from its
-    ``campaign_started`` record (journals written before the bowl: a constant mean)."""
+def journaled_engine_options(started: Mapping[str, Any]) -> dict[str, Any]:
+    """The EngineConfig fields an offline refit (``bac report``, ``bac rescore --refit``) needs to model and
+    recommend the way the live campaign did, from its ``campaign_started`` record: ``recommend_beta``
+    (0: the paper's argmin of the posterior mean), the GP's prior mean and ``bowl_runs``. Journals written
+    before these were configurable get what the agent used then: beta 0 and a constant mean."""
     cfg = started.get("config") or {}
-    return str(cfg.get("gp_mean", "constant") or "constant"), int(cfg.get("bowl_runs", 0) or 0)
-
-
-def journaled_recommend_beta(started: Mapping[str, Any]) -> float:
-    """The recommendation rule a campaign ran with, from its ``campaign_started`` record (0: the paper's
-    argmin of the posterior mean, also for journals written before the rule was configurable)."""
-    return float((started.get("config") or {}).get("recommend_beta", 0.0) or 0.0)
+    return {
+        "recommend_beta": float(cfg.get("recommend_beta", 0.0) or 0.0),
+        "gp": {"mean": str(cfg.get("gp_mean", "constant") or "constant")},
+        "bowl_runs": int(cfg.get("bowl_runs", 0) or 0),
+    }
 
 
 def write_json_atomic(path: str | Path, data: Mapping[str, Any]) -> None:

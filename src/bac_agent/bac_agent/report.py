@@ -37,7 +37,7 @@ from typing import Any
 
 import numpy as np
 
-from bac_agent.journal import JOURNAL_NAME, journaled_gp_mean, journaled_recommend_beta, read_journal
+from bac_agent.journal import JOURNAL_NAME, journaled_engine_options, read_journal
 from bac_common.console import say
 from bac_common.errors import BacError
 from bac_common.paramspace import CalibrationDefinition
@@ -71,13 +71,20 @@ class Campaign:
     trials: list[TrialRow]
     recommendation: dict[str, Any] | None
     seed: int
-    recommend_beta: float = 0.0  # the live campaign's recommendation rule (journaled with its start)
-    gp_mean: str = "constant"  # the live campaign's GP prior mean and bowl_runs (journaled with its start)
-    bowl_runs: int = 0
+    # the live campaign's optimizer settings that a refit needs (journal.journaled_engine_options)
+    engine_options: dict[str, Any] = field(default_factory=lambda: journaled_engine_options({}))
 
     @property
     def names(self) -> tuple[str, ...]:
         return self.definition.tuned
+
+    @property
+    def recommend_beta(self) -> float:
+        return float(self.engine_options["recommend_beta"])
+
+    @property
+    def gp_mean(self) -> str:
+        return str(self.engine_options["gp"]["mean"])
 
     def scored(self, include_confirmation: bool = False) -> list[TrialRow]:
         return [
@@ -139,9 +146,7 @@ def load_campaign(path: str | Path) -> Campaign:
         trials=[rows[k] for k in sorted(rows)],
         recommendation=rec,
         seed=int(start.get("seed", 0) or 0),
-        recommend_beta=journaled_recommend_beta(start),
-        gp_mean=journaled_gp_mean(start)[0],
-        bowl_runs=journaled_gp_mean(start)[1],
+        engine_options=journaled_engine_options(start),
     )
 
 
@@ -273,16 +278,11 @@ def comparison_signals(campaign: Campaign) -> list[Signals]:
 
 def refit_engine(campaign: Campaign) -> Any:
     from bac_agent.bo import Engine, EngineConfig
-    from bac_agent.bo.gp import GPConfig
 
     eng = Engine(
         campaign.definition,
-        EngineConfig(
-            budget=max(1, len(campaign.trials)),
-            seed=campaign.seed,
-            recommend_beta=campaign.recommend_beta,
-            gp=GPConfig(mean=campaign.gp_mean),
-            bowl_runs=campaign.bowl_runs,
+        EngineConfig.from_dict(
+            {**campaign.engine_options, "budget": max(1, len(campaign.trials)), "seed": campaign.seed}
         ),
     )
     for t in campaign.scored(include_confirmation=True):

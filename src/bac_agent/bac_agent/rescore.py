@@ -51,7 +51,7 @@ from bac_agent.bagio import (
     read_trials,
     run_starts,
 )
-from bac_agent.journal import JOURNAL_NAME, journaled_gp_mean, journaled_recommend_beta, read_journal
+from bac_agent.journal import JOURNAL_NAME, journaled_engine_options, read_journal
 from bac_agent.kpi import KpiConfig, Score, score
 from bac_agent.measure_config import (
     NODE_IMU_INGEST,
@@ -372,19 +372,15 @@ def _segmenter_template(files: Sequence[Path], overrides: Mapping[str, Any] | No
 def refit(campaign_dir: Path, runs: Sequence[RunResult]) -> dict[str, Any]:
     """Fit the campaign's GP on the rescored J of each trial and recommend (argmin of the posterior mean)."""
     from bac_agent.bo import Engine, EngineConfig
-    from bac_agent.bo.gp import GPConfig
     from bac_common.paramspace import CalibrationDefinition
 
     _, started = journal_params(campaign_dir)
     if started is None or not started.get("definition"):
         raise RescoreError(f"{campaign_dir}: the journal does not say which parameters were tuned")
     definition = CalibrationDefinition.from_dict(started["definition"])
-    cfg = EngineConfig(
-        budget=max(1, len(runs)),
-        seed=int(started.get("seed", 0)),
-        recommend_beta=journaled_recommend_beta(started),  # the live campaign's rule
-        gp=GPConfig(mean=journaled_gp_mean(started)[0]),  # and its model
-        bowl_runs=journaled_gp_mean(started)[1],
+    # the live campaign's model and recommendation rule
+    cfg = EngineConfig.from_dict(
+        {**journaled_engine_options(started), "budget": max(1, len(runs)), "seed": int(started.get("seed", 0))}
     )
     eng = Engine(definition, cfg)
     told = 0
