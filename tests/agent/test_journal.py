@@ -9,7 +9,15 @@ from pathlib import Path
 
 import pytest
 
-from bac_agent.journal import JOURNAL_NAME, Journal, JournalCorruptError, read_journal, write_json_atomic
+from bac_agent.bo import EngineConfig
+from bac_agent.journal import (
+    JOURNAL_NAME,
+    Journal,
+    JournalCorruptError,
+    journaled_engine_options,
+    read_journal,
+    write_json_atomic,
+)
 
 
 def test_append_and_reopen(tmp_path: Path) -> None:
@@ -75,3 +83,12 @@ def test_write_json_atomic(tmp_path: Path) -> None:
     write_json_atomic(tmp_path / "r.json", {"j": float("nan"), "p": {"a": 1.0}})
     assert json.loads((tmp_path / "r.json").read_text()) == {"j": None, "p": {"a": 1.0}}
     assert not (tmp_path / "r.json.tmp").exists()
+
+
+def test_journaled_engine_options_rebuild_the_live_model_and_old_journals_their_own() -> None:
+    live = {"config": {"recommend_beta": 0.5, "gp_mean": "bowl", "bowl_runs": 10, "output_warp": "yeo-johnson"}}
+    cfg = EngineConfig.from_dict({**journaled_engine_options(live), "budget": 12})
+    assert (cfg.recommend_beta, cfg.gp.mean, cfg.bowl_runs, cfg.output_warp) == (0.5, "bowl", 10, "yeo-johnson")
+    # a journal from before these settings existed: what the agent used then
+    old = EngineConfig.from_dict({**journaled_engine_options({"config": {}}), "budget": 12})
+    assert (old.recommend_beta, old.gp.mean, old.bowl_runs, old.output_warp) == (0.0, "constant", 0, "none")

@@ -34,6 +34,7 @@ from rclpy.clock_type import ClockType
 from bac_agent.bo.baselines import GridStrategy, RandomStrategy
 from bac_agent.bo.engine import ACQUISITIONS, Engine, EngineConfig
 from bac_agent.bo.gp import MEANS, GPConfig
+from bac_agent.bo.warp import WARPS
 from bac_agent.campaign import (
     Action,
     Apply,
@@ -142,6 +143,13 @@ class BoAgentNode(BacNode):
             choices=MEANS,
             read_only=True,
         )
+        output_warp = self.declare_str(
+            "output_warp",
+            "yeo-johnson",
+            "bo: the GP sees the runs through a fitted Yeo-Johnson transform (yeo-johnson) or as told (none)",
+            choices=WARPS,
+            read_only=True,
+        )
         grid_size = self.declare_int("grid_size", 4, "levels per dimension of the grid strategy", 1, 100, True)
         max_attempts = self.declare_int("max_attempts", 3, "runs per trial before it is given up", 1, 100)
         apply_timeout = self.declare_float("apply_timeout_s", 10.0, "time limit of one apply, s", 0.1, 600.0)
@@ -200,6 +208,7 @@ class BoAgentNode(BacNode):
                     seed=seed,
                     acquisition=acquisition,
                     recommend_beta=recommend_beta,
+                    output_warp=output_warp,
                     gp=GPConfig(mean=gp_mean),
                 ),
             )
@@ -224,6 +233,7 @@ class BoAgentNode(BacNode):
                 "recommend_beta": recommend_beta,
                 "gp_mean": gp_mean,
                 "bowl_runs": optimizer.bowl_runs if isinstance(optimizer, Engine) else 0,
+                "output_warp": output_warp,
             },
         )
         self.campaign = Campaign(

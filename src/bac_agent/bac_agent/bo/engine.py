@@ -10,8 +10,9 @@ Recommendation(params={...}, predicted_j=..., predicted_std=..., ...)
 
 * the first ``n_initial`` asks are a space-filling design (a Latin hypercube);
 * then a GP (Matérn-5/2 ARD, MAP hyperparameters, learned noise) is fitted to what
-  was told, and the next point maximizes log Expected Improvement over the best
-  *posterior mean* at an observed point (an incumbent that noise cannot fool);
+  was told (through a fitted Yeo-Johnson output warp, bo/warp.py), and the next
+  point maximizes log Expected Improvement over the best *posterior mean* at an
+  observed point (an incumbent that noise cannot fool);
   points asked but not yet told are "fantasized" at their posterior mean, so two
   asks in a row give two different points;
 * the recommendation is the argmin of the posterior mean over the whole domain
@@ -41,6 +42,7 @@ from bac_agent.bo.acquisition import NoisyEI, log_ei, log_ei_with_grad
 from bac_agent.bo.design import candidates, default_n_initial, initial_design
 from bac_agent.bo.gp import GP, GPConfig, Hyper
 from bac_agent.bo.space import SearchSpace
+from bac_agent.bo.warp import WARPS, OutputWarp
 from bac_common.errors import BacError
 
 FloatArray = NDArray[np.float64]
@@ -101,6 +103,8 @@ class EngineConfig:
     # (a trend helps while runs are few; later it would only bias a model that the runs can carry); 0 = automatic,
     # twice the initial design
     bowl_runs: int = 0
+    # "yeo-johnson": the GP is fitted to the runs through a fitted power transform (bo/warp.py); "none": as told
+    output_warp: str = "yeo-johnson"
     gp: GPConfig = field(default_factory=GPConfig)
 
     def __post_init__(self) -> None:
@@ -110,6 +114,8 @@ class EngineConfig:
             raise EngineError(f"bowl_runs must be >= 0 (0 = automatic), got {self.bowl_runs}")
         if self.n_initial < 0:
             raise EngineError(f"n_initial must be >= 0 (0 = automatic), got {self.n_initial}")
+        if self.output_warp not in WARPS:
+            raise EngineError(f"output_warp must be one of {', '.join(WARPS)}, got {self.output_warp!r}")
         if self.acquisition not in ACQUISITIONS:
             raise EngineError(f"acquisition must be one of {', '.join(ACQUISITIONS)}, got {self.acquisition!r}")
 
@@ -193,6 +199,7 @@ class Engine:
         self.rng = np.random.default_rng(self.config.seed)
         self._gp = GP(self.config.gp)
         self._gp_key: tuple[int, int] | None = None
+        self._warp = OutputWarp()  # refitted with the GP; a pure function of the observations
         self._design = initial_design(self.n_initial, self.space.dim, self.config.seed)
 
     # --- facts ------------------------------------------------------------------------
@@ -254,7 +261,7 @@ class Engine:
         params = self.space.to_params(x)
         mean, std = (math.nan, math.nan)
         if len(self.observations) >= 1 and kind == KIND_OPTIMIZED:
-            m, s = self._model().predict(self.space.to_unit(x)[None, :])
+            m, s = self._predict_j(self.space.to_unit(x)[None, :])
             mean, std = float(m[0]), float(s[0])
         return Suggestion(params, kind, mean, std)
 
@@ -270,9 +277,15 @@ class Engine:
         if self._gp_key != key:
             X = self.space.to_unit(np.array([self.space.to_array(o.params) for o in self.observations]))
             y = np.array([o.value for o in self.observations])
-            self._gp.fit(X, y, self.rng)
+            self._warp = OutputWarp.fit(y) if self.config.output_warp == "yeo-johnson" else OutputWarp()
+            self._gp.fit(X, self._warp.forward(y), self.rng)
             self._gp_key = key
         return self._gp
+
+    def _predict_j(self, U: FloatArray) -> tuple[FloatArray, FloatArray]:
+        """Posterior mean and std at unit-cube points, in J (through the output warp's inverse)."""
+        m, s = self._model().predict(U)
+        return self._warp.inverse_mean_std(m, s)
 
     def _maximize_acquisition(self) -> FloatArray:
         gp = self._model()
@@ -364,15 +377,16 @@ class Engine:
 
     # --- the model's view ----------------------------------------------------------------------
     def predict(self, params: Mapping[str, float]) -> tuple[float, float]:
-        """Posterior mean and standard deviation of J at ``params``."""
+        """Posterior mean and standard deviation of J at ``params`` (with the output warp: the J at the
+        warped posterior mean, i.e. the predictive median, and the std through the warp's slope)."""
         x = self.space.to_array(params)
         with _one_blas_thread():
-            m, s = self._model().predict(self.space.to_unit(x)[None, :])
+            m, s = self._predict_j(self.space.to_unit(x)[None, :])
         return float(m[0]), float(s[0])
 
     def predict_unit(self, U: FloatArray) -> tuple[FloatArray, FloatArray]:
         """Posterior mean and std at unit-cube points (m, d), in J units (for plots)."""
-        return self._model().predict(np.atleast_2d(U))
+        return self._predict_j(np.atleast_2d(U))
 
     @property
     def hyper(self) -> Hyper | None:
@@ -405,10 +419,9 @@ class Engine:
             return self._recommend()
 
     def _recommend(self) -> Recommendation:
-        gp = self._model()
         u = self._minimize_bound(self.config.recommend_beta)
         x = self.space.from_unit(u)
-        m, s = gp.predict(self.space.to_unit(x)[None, :])
+        m, s = self._predict_j(self.space.to_unit(x)[None, :])
         best = self.best_observed()
         return Recommendation(
             params=self.space.to_params(x),

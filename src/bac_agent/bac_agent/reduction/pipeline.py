@@ -33,6 +33,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from bac_agent.bo import GP, EngineConfig, Hyper, SearchSpace
+from bac_agent.bo.warp import OutputWarp
 from bac_agent.reduction.analysis import (
     DEFAULT_EPSILON,
     DEFAULT_FLAT_TOL,
@@ -152,7 +153,7 @@ class PosteriorMean:
       every curve. On Controller II this flattening hid most of the sensitivity (docs/reduce.md).
     """
 
-    def __init__(self, models: Sequence[tuple[SearchSpace, GP]], mode: str = "weighted") -> None:
+    def __init__(self, models: Sequence[tuple[SearchSpace, GP, OutputWarp]], mode: str = "weighted") -> None:
         if not models:
             raise ReductionError("J_mu needs at least one campaign")
         if mode not in SURROGATES:
@@ -170,8 +171,10 @@ class PosteriorMean:
             cfg = EngineConfig.from_dict(state["config"])
             if not state.get("hyper"):
                 raise ReductionError(f"campaign {c.index} ended without a fitted GP")
-            gp = GP(cfg.gp).condition(space.to_unit(c.X), c.y, Hyper.from_dict(state["hyper"]))
-            models.append((space, gp))
+            # the campaign's own output warp (a pure function of its runs), so that J_mu is in J
+            warp = OutputWarp.fit(c.y) if cfg.output_warp == "yeo-johnson" else OutputWarp()
+            gp = GP(cfg.gp).condition(space.to_unit(c.X), warp.forward(c.y), Hyper.from_dict(state["hyper"]))
+            models.append((space, gp, warp))
         return cls(models, mode)
 
     def with_mode(self, mode: str) -> PosteriorMean:
@@ -181,8 +184,8 @@ class PosteriorMean:
         """Each campaign's posterior mean and standard deviation at X: two (M, n) arrays."""
         X = np.atleast_2d(np.asarray(X, dtype=float))
         means, stds = [], []
-        for space, gp in self.models:
-            m, sd = gp.predict(space.to_unit(X))
+        for space, gp, warp in self.models:
+            m, sd = warp.inverse_mean_std(*gp.predict(space.to_unit(X)))
             means.append(np.asarray(m, dtype=float))
             stds.append(np.asarray(sd, dtype=float))
         return np.array(means), np.array(stds)
