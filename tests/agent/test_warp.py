@@ -4,10 +4,10 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from scipy.stats import yeojohnson
+from scipy.stats import yeojohnson, yeojohnson_llf, yeojohnson_normmax
 
 from bac_agent.bo import Engine, EngineConfig, EngineError
-from bac_agent.bo.warp import LAMBDA_BOUNDS, OutputWarp
+from bac_agent.bo.warp import LAMBDA_BOUNDS, OutputWarp, _lambda_mle, _log_likelihood
 
 
 @pytest.mark.parametrize("lam", [0.0, 0.35, 1.0, 1.6, 2.0])
@@ -43,6 +43,27 @@ def test_fit_makes_skewed_runs_gaussian_and_keeps_lambda_in_bounds() -> None:
     w = OutputWarp.fit(np.exp(3.0 * rng.standard_normal(80)))
     assert w.lam == LAMBDA_BOUNDS[0]
     assert np.isfinite(w.inverse(np.array([-50.0, 50.0]))).all()
+
+
+def test_lambda_is_scipys_maximum_likelihood_clipped_to_the_bounds() -> None:
+    rng = np.random.default_rng(1)
+    lams = np.array([0.0, 0.4, 1.0, 1.7, 2.0])
+    for k in range(40):
+        n = int(rng.integers(3, 100))
+        y = [
+            rng.gamma(1.5, 1.0, n),
+            -rng.gamma(1.5, 1.0, n),
+            rng.standard_normal(n),
+            np.exp(2.0 * rng.standard_normal(n)),
+        ][k % 4]
+        z = (y - y.mean()) / y.std()
+        np.testing.assert_allclose(_log_likelihood(z, lams), [yeojohnson_llf(v, z) for v in lams], rtol=1e-9, atol=1e-9)
+        with np.errstate(all="ignore"):
+            ref = float(np.clip(yeojohnson_normmax(z), *LAMBDA_BOUNDS))
+        got = _lambda_mle(z)
+        assert LAMBDA_BOUNDS[0] <= got <= LAMBDA_BOUNDS[1]
+        # the same maximum (on a flat likelihood the two lambdas may differ a little, their likelihoods not)
+        assert yeojohnson_llf(got, z) >= yeojohnson_llf(ref, z) - 1e-8
 
 
 def test_fit_is_the_identity_when_nothing_can_be_estimated() -> None:
