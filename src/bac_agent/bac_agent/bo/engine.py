@@ -277,7 +277,7 @@ class Engine:
         if self._gp_key != key:
             X = self.space.to_unit(np.array([self.space.to_array(o.params) for o in self.observations]))
             y = np.array([o.value for o in self.observations])
-            self._warp = OutputWarp.fit(y) if self.config.output_warp == "yeo-johnson" else OutputWarp()
+            self._warp = OutputWarp.for_runs(self.config.output_warp, y)
             self._gp.fit(X, self._warp.forward(y), self.rng)
             self._gp_key = key
         return self._gp

@@ -34,13 +34,15 @@ MIN_RUNS = 3  # fewer runs than this: the identity (no shape can be estimated fr
 WARPS = ("none", "yeo-johnson")  # EngineConfig.output_warp
 
 
-def _psi(z: FloatArray, lam: float) -> FloatArray:
-    out = np.empty_like(z)
-    pos = z >= 0.0
-    zp, zn = z[pos], z[~pos]
-    out[pos] = np.log1p(zp) if abs(lam) < 1e-12 else np.expm1(lam * np.log1p(zp)) / lam
-    out[~pos] = -np.log1p(-zn) if abs(lam - 2.0) < 1e-12 else -np.expm1((2.0 - lam) * np.log1p(-zn)) / (2.0 - lam)
-    return out
+def _psi(z: FloatArray, lam: float | FloatArray) -> FloatArray:
+    """ψ(z; λ), broadcasting z against λ (a scalar, or e.g. a column of λ against a row of runs)."""
+    a = np.log1p(np.abs(z))
+    lam = np.asarray(lam, dtype=float)
+    q = 2.0 - lam
+    with np.errstate(over="ignore", invalid="ignore"):  # the branch not taken may overflow; np.where drops it
+        upper = np.where(np.abs(lam) < 1e-12, a, np.expm1(lam * a) / np.where(np.abs(lam) < 1e-12, 1.0, lam))
+        lower = -np.where(np.abs(q) < 1e-12, a, np.expm1(q * a) / np.where(np.abs(q) < 1e-12, 1.0, q))
+    return np.asarray(np.where(z >= 0.0, upper, lower), dtype=float)
 
 
 def _psi_inv(t: FloatArray, lam: float) -> FloatArray:
@@ -60,16 +62,9 @@ def _psi_grad(z: FloatArray, lam: float) -> FloatArray:
 def _log_likelihood(z: FloatArray, lams: FloatArray) -> FloatArray:
     """The Yeo-Johnson profile log-likelihood of each λ in ``lams`` (the normal's mean and variance profiled
     out), as scipy.stats.yeojohnson_llf, for many λ at once: (len(lams),)."""
-    a = np.log1p(np.abs(z))  # (n,)
-    pos = z >= 0.0
-    lam = lams[:, None]
     with np.errstate(over="ignore", invalid="ignore"):
-        tp = np.where(np.abs(lam) < 1e-12, a, np.expm1(lam * a) / np.where(lam == 0.0, 1.0, lam))
-        q = 2.0 - lam
-        tn = -np.where(np.abs(q) < 1e-12, a, np.expm1(q * a) / np.where(q == 0.0, 1.0, q))
-        t = np.where(pos[None, :], tp, tn)
-        var = np.var(t, axis=1)
-    jac = np.sum(np.where(pos, a, -a))  # Σ sign(z) log(1 + |z|): times (λ − 1), the log-Jacobian
+        var = np.var(_psi(z[None, :], lams[:, None]), axis=1)
+    jac = np.sum(np.sign(z) * np.log1p(np.abs(z)))  # Σ sign(z) log(1 + |z|): times (λ − 1), the log-Jacobian
     return np.asarray(-0.5 * z.size * np.log(var) + (lams - 1.0) * jac, dtype=float)
 
 
@@ -109,6 +104,11 @@ class OutputWarp:
         if not scale > 1e-12 * max(1.0, abs(loc)):  # all runs equal (up to rounding): no shape to fit
             return cls()
         return cls(loc, scale, _lambda_mle((y - loc) / scale))
+
+    @classmethod
+    def for_runs(cls, kind: str, y: FloatArray) -> OutputWarp:
+        """The warp an ``EngineConfig.output_warp`` of ``kind`` gives these runs (``"none"``: the identity)."""
+        return cls.fit(y) if kind == "yeo-johnson" else cls()
 
     @property
     def is_identity(self) -> bool:

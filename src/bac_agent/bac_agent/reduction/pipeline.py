@@ -175,7 +175,7 @@ class PosteriorMean:
             if not state.get("hyper"):
                 raise ReductionError(f"campaign {c.index} ended without a fitted GP")
             # the campaign's own output warp (a pure function of its runs), so that J_mu is in J
-            warp = OutputWarp.fit(c.y) if cfg.output_warp == "yeo-johnson" else OutputWarp()
+            warp = OutputWarp.for_runs(cfg.output_warp, c.y)
             gp = GP(cfg.gp).condition(space.to_unit(c.X), warp.forward(c.y), Hyper.from_dict(state["hyper"]))
             models.append((space, gp, warp))
         return cls(models, mode)
