@@ -112,3 +112,44 @@ def test_bag_bytes_deserialize_with_rclpy(tmp_path: Path) -> None:
     assert back == msg
     with pytest.raises(OSError, match="never overwritten"):
         TrialBagWriter(tmp_path / "b")
+
+
+def test_a_trial_announced_with_its_samples_in_one_batch_gets_them(ros_context: Any, tmp_path: Path) -> None:
+    """The announcement and the run's samples both wait in their readers when the drain comes round (a loaded
+    machine): the trial's bag opens first and takes its samples, not the previous trial's bag (seen in a CI run)."""
+    from rclpy.parameter import Parameter
+    from sensor_msgs.msg import Imu
+
+    from bac_agent.recorder_node import CampaignRecorderNode
+
+    camp = tmp_path / "campaign"
+    # never spun: nothing but the explicit drains below reads its topics
+    rec = CampaignRecorderNode(
+        context=ros_context.context,
+        parameter_overrides=[Parameter("campaign_dir", value=str(camp)), Parameter("close_grace_s", value=30.0)],
+    )
+    try:
+        node = ros_context.node("feeder")
+        p_trial = node.create_publisher(Trial, "bac/trial", QOS_LATCHED)
+        p_raw = node.create_publisher(Imu, "imu/data_raw", QOS_STREAM)
+        for p in (p_trial, p_raw):
+            wait_for(lambda p=p: p.get_subscription_count() > 0, 60, what=f"recorder on {p.topic_name}")
+        p_trial.publish(trial(1, Trial.STATE_READY_TO_DRIVE, 10.0))
+        for i in range(30):
+            p_raw.publish(imu(10.0 + 0.1 * i, 1.0))
+        p_trial.publish(trial(2, Trial.STATE_READY_TO_DRIVE, 20.0))
+        for i in range(20):
+            p_raw.publish(imu(20.0 + 0.1 * i, 2.0))
+
+        def written() -> int:
+            rec._drain()
+            return sum(w.count for w, _ in rec._open_bags.values())
+
+        wait_for(lambda: written() == 52, 30, what="2 announcements and 50 samples routed")
+        assert rec.dropped == 0
+    finally:
+        rec.destroy_node()
+    b1 = read_bag(camp / "bags" / "trial_0001")
+    b2 = read_bag(camp / "bags" / "trial_0002")
+    assert [m.linear_acceleration.z for m in b1["imu/data_raw"]] == [1.0] * 30
+    assert [m.linear_acceleration.z for m in b2["imu/data_raw"]] == [2.0] * 20

@@ -44,6 +44,10 @@ STREAM_DEEP = QoSProfile(
 )
 STREAM_INPUT_DEEP = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=50000, reliability=ReliabilityPolicy.RELIABLE)
 DRAINED_TOPICS = ("imu/data_raw", "imu/vehicle", "vehicle/odom")
+# bac/trial is taken by the same timer, right after the streams: a stream sample taken in a batch was published
+# after its trial's announcement, so the announcement is in its reader by then and the trial's bag opens before
+# the sample is routed (an executor callback for bac/trial could run later than the timer that drains the
+# trial's samples: on a loaded machine a whole run's raw IMU then went to the previous trial's bag)
 
 
 def _msg_class(msgtype: str) -> Any:
@@ -120,8 +124,11 @@ class CampaignRecorderNode(BacNode):
                 callback_group=group,
             )
             for t in topics
-            if t not in DRAINED_TOPICS
+            if t not in DRAINED_TOPICS and t != TOPIC_TRIAL
         ]
+        self._trial_drain = (
+            TopicDrain(self, Trial, TOPIC_TRIAL, QOS_BY_TOPIC[TOPIC_TRIAL]) if TOPIC_TRIAL in topics else None
+        )
         raw_reliability = self.declare_str(
             "imu_raw_reliability",
             "best_effort",
@@ -146,8 +153,12 @@ class CampaignRecorderNode(BacNode):
 
     # --- routing -----------------------------------------------------------------------
     def _drain(self) -> None:
-        for topic, drain in self._drains:
-            for data in drain.take():
+        batches = [(topic, drain.take()) for topic, drain in self._drains]
+        if self._trial_drain is not None:  # after the streams (the note at DRAINED_TOPICS)
+            for data in self._trial_drain.take():
+                self._on_message(TOPIC_TRIAL, data)
+        for topic, batch in batches:
+            for data in batch:
                 self._on_message(topic, data)
 
     def _on_message(self, topic: str, data: bytes) -> None:
@@ -236,6 +247,8 @@ class CampaignRecorderNode(BacNode):
                 self._close(trial_id)
         for _, drain in self._drains:
             drain.destroy()
+        if self._trial_drain is not None:
+            self._trial_drain.destroy()
         super().destroy_node()
 
 
