@@ -347,3 +347,42 @@ def test_distance_run_through_the_node_chain(procs: Any, ros_context: Any, tmp_p
     assert got.kpi == "iso_wk_rms" and got.j == pytest.approx(got.weighted_rms_accel_z + 2 * got.rms_pitch_rate)
     assert segment.mode == 1 and len(segment.accel_z) == 2160 and segment.mean_speed_mps == pytest.approx(60 / 3.6)
     assert got.attempt == 2 and len(got.psd_frequency_hz) > 10
+
+
+def test_the_check_timer_alone_takes_the_trial_before_pruning_its_samples(ros_context: Any) -> None:
+    """The segmenter is never spun: only its check timer's work runs. It takes the trial in the same pass as the
+    samples, so the run starts and the samples from the trial's stamp on stay buffered (a trial callback of its
+    own could wait behind a busy check timer until the pre-buffer had dropped them)."""
+    from rclpy.parameter import Parameter
+    from sensor_msgs.msg import Imu
+
+    from bac_agent.segmenter_node import RunSegmenterNode
+    from bac_common.rosnode import QOS_LATCHED, QOS_STREAM
+    from bac_msgs.msg import Trial
+
+    seg = RunSegmenterNode(context=ros_context.context, parameter_overrides=[Parameter("pre_buffer_s", value=1.0)])
+    try:
+        node = ros_context.node("feeder")
+        p_trial = node.create_publisher(Trial, "bac/trial", QOS_LATCHED)
+        p_imu = node.create_publisher(Imu, "imu/vehicle", QOS_STREAM)
+        for p in (p_trial, p_imu):
+            wait_for(lambda p=p: p.get_subscription_count() > 0, 60, what=f"run_segmenter on {p.topic_name}")
+        start_ns = seg.get_clock().now().nanoseconds  # the node's run timeout counts from the trial's stamp
+        t = Trial(campaign_id="c", trial_id=4, attempt=1, state=Trial.STATE_READY_TO_DRIVE)
+        t.stamp.sec, t.stamp.nanosec = divmod(start_ns, NS)
+        p_trial.publish(t)
+        for i in range(400):  # from 5 s before to 5 s after the trial's stamp at 40 Hz, with the announcement
+            m = Imu()
+            m.header.stamp.sec, m.header.stamp.nanosec = divmod(start_ns - 5 * NS + i * NS // 40, NS)
+            p_imu.publish(m)
+
+        def buffered() -> int:
+            seg._check()
+            return int(seg.imu.arrays()[0].size)
+
+        wait_for(lambda: buffered() >= 240 and seg.run is not None, 30, what="the trial and 6 s of samples taken")
+        assert (seg.run.campaign_id, seg.run.trial_id, seg.run.attempt) == ("c", 4, 1)
+        assert seg.run_start_ns == start_ns
+        assert int(seg.imu.arrays()[0][0]) <= start_ns  # nothing of the run was pruned as idle past
+    finally:
+        seg.destroy_node()

@@ -29,7 +29,7 @@ from rclpy.serialization import deserialize_message
 
 from bac_agent.recording import RECORDED_TOPICS, TrialBagWriter, cdr_stamp_ns, trial_bag_dir
 from bac_common.contracts import TOPIC_CALIBRATION, TOPIC_RUN_SCORE, TOPIC_RUN_SEGMENT, TOPIC_TRIAL
-from bac_common.rosnode import QOS_EVENTS, BacNode, run_node
+from bac_common.rosnode import QOS_EVENTS, QOS_LATCHED_READER, BacNode, run_node
 from bac_imu.topic_drain import TopicDrain
 from bac_msgs.msg import Calibration, RunScore, RunSegment, Trial
 
@@ -64,23 +64,14 @@ def _msg_class(msgtype: str) -> Any:
     }[msgtype]
 
 
-# latched topics read with a deep queue: every state of a trial is recorded, not only the newest one left when the
-# executor comes round (the writers keep one message for late joiners; a deep reader still matches them)
-LATCHED_DEEP = QoSProfile(
-    history=HistoryPolicy.KEEP_LAST,
-    depth=100,
-    reliability=ReliabilityPolicy.RELIABLE,
-    durability=DurabilityPolicy.TRANSIENT_LOCAL,
-)
-
 QOS_BY_TOPIC = {
     "imu/data_raw": SENSOR_DEEP,
     "imu/vehicle": STREAM_DEEP,
     "vehicle/odom": STREAM_INPUT_DEEP,  # may come from a car's odometry driver (volatile)
-    "bac/trial": LATCHED_DEEP,
+    "bac/trial": QOS_LATCHED_READER,
     "bac/run_segment": QOS_EVENTS,
     "bac/run_score": QOS_EVENTS,
-    "bac/calibration": LATCHED_DEEP,
+    "bac/calibration": QOS_LATCHED_READER,
 }
 
 

@@ -71,6 +71,14 @@ QOS_LATCHED = QoSProfile(
     reliability=ReliabilityPolicy.RELIABLE,
     durability=DurabilityPolicy.TRANSIENT_LOCAL,
 )
+# a reader of a latched topic that must see every state, not only the newest one left when it comes round (the
+# writer keeps one message for late joiners; a deep reader still matches it)
+QOS_LATCHED_READER = QoSProfile(
+    history=HistoryPolicy.KEEP_LAST,
+    depth=100,
+    reliability=ReliabilityPolicy.RELIABLE,
+    durability=DurabilityPolicy.TRANSIENT_LOCAL,
+)
 
 
 class BacNode(Node):
