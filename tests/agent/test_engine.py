@@ -156,11 +156,18 @@ def test_initial_design_is_space_filling_and_seeded() -> None:
     pb = [b.ask() for _ in range(8)]
     assert pa == pb
     X = np.array([[p["x"], p["y"], p["z"]] for p in pa])
-    # Latin hypercube: one point in each eighth of every axis
     for k in range(3):
-        assert sorted(np.floor((X[:, k] - 0.02) / 0.96 * 8).astype(int).tolist()) == list(range(8))
+        # a Latin hypercube stretched over [0.25, 0.75] (the default margin): 8 levels per axis, extremes at the margins
+        assert X[:, k].min() == pytest.approx(0.25) and X[:, k].max() == pytest.approx(0.75)
+        assert np.min(np.diff(np.sort(X[:, k]))) > 0.0
     c = Engine({"x": (0, 1), "y": (0, 1), "z": (0, 1)}, budget=30, n_initial=8, seed=4)
     assert [c.ask() for _ in range(8)] != pa
+    # the margin is a setting: 0 spreads the design over the whole range, on another parameter range too
+    d = Engine({"x": (10, 20), "y": (-1, 1)}, EngineConfig(budget=30, n_initial=6, seed=3, design_margin=0.0))
+    Y = np.array([[p["x"], p["y"]] for p in (d.ask() for _ in range(6))])
+    assert Y.min(axis=0) == pytest.approx([10, -1]) and Y.max(axis=0) == pytest.approx([20, 1])
+    with pytest.raises(EngineError, match="design_margin"):
+        EngineConfig(design_margin=0.5)
 
 
 def test_engine_finds_quadratic_minimum_under_noise() -> None:

@@ -41,10 +41,16 @@ def lhs(n: int, dim: int, seed: int) -> FloatArray:
     return np.asarray(qmc.LatinHypercube(d=dim, optimization="random-cd", seed=np.random.default_rng(seed)).random(n))
 
 
-def initial_design(n: int, dim: int, seed: int) -> FloatArray:
-    """The initial design: a Latin hypercube (space filling for any n), points kept off the faces."""
+def initial_design(n: int, dim: int, seed: int, margin: float = 0.02) -> FloatArray:
+    """The initial design: a Latin hypercube (space filling for any n) stretched over [margin, 1 - margin] on
+    every axis, its lowest and highest points on each axis at the two margins."""
+    if not 0.0 <= margin < 0.5:
+        raise ValueError(f"design margin must be in [0, 0.5), got {margin}")
     pts = lhs(n, dim, seed)
-    return 0.02 + 0.96 * pts
+    if n >= 2:
+        lo, hi = pts.min(axis=0), pts.max(axis=0)
+        pts = (pts - lo) / np.where(hi > lo, hi - lo, 1.0)
+    return np.asarray(margin + (1.0 - 2.0 * margin) * pts, dtype=float)
 
 
 def grid(size: int, dim: int) -> FloatArray:

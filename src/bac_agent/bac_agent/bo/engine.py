@@ -92,6 +92,9 @@ class EngineConfig:
 
     budget: int = 15  # trials of the campaign (told + failed)
     n_initial: int = 0  # initial design size; 0 = automatic (see design.default_n_initial)
+    # the initial design spans [design_margin, 1 - design_margin] of every parameter's range: runs at the faces,
+    # where J is steep, tell a few-run model little about where the minimum lies (measured: docs/agent.md)
+    design_margin: float = 0.25
     seed: int = 0
     n_candidates: int = 1024  # space-filling candidates for the acquisition maximizer
     n_local: int = 256  # candidates around the best points
@@ -112,6 +115,8 @@ class EngineConfig:
             raise EngineError(f"budget must be >= 1, got {self.budget}")
         if self.bowl_runs < 0:
             raise EngineError(f"bowl_runs must be >= 0 (0 = automatic), got {self.bowl_runs}")
+        if not 0.0 <= self.design_margin < 0.5:
+            raise EngineError(f"design_margin must be in [0, 0.5), got {self.design_margin}")
         if self.n_initial < 0:
             raise EngineError(f"n_initial must be >= 0 (0 = automatic), got {self.n_initial}")
         if self.output_warp not in WARPS:
@@ -200,7 +205,7 @@ class Engine:
         self._gp = GP(self.config.gp)
         self._gp_key: tuple[int, int] | None = None
         self._warp = OutputWarp()  # refitted with the GP; a pure function of the observations
-        self._design = initial_design(self.n_initial, self.space.dim, self.config.seed)
+        self._design = initial_design(self.n_initial, self.space.dim, self.config.seed, self.config.design_margin)
 
     # --- facts ------------------------------------------------------------------------
     @property
