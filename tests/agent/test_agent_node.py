@@ -81,6 +81,7 @@ def test_campaign_runs_to_done_and_recommends(procs: Any, tmp_path: Path) -> Non
         "recommend_beta:=1.0",
         "gp_mean:=constant",
         "output_warp:=none",
+        "design_margin:=0.1",
     )
     assert wait_exit(agent, 90, "bo_agent to finish") == 0, procs.log("agent")
     ev = jsonl(cdir / "journal.jsonl")
@@ -90,6 +91,7 @@ def test_campaign_runs_to_done_and_recommends(procs: Any, tmp_path: Path) -> Non
     assert load_campaign(cdir).recommend_beta == 1.0
     assert start["config"]["gp_mean"] == "constant" and load_campaign(cdir).gp_mean == "constant"
     assert start["config"]["output_warp"] == "none" and load_campaign(cdir).engine_options["output_warp"] == "none"
+    assert start["config"]["design_margin"] == 0.1
     scored = [e for e in ev if e["event"] == "trial_scored"]
     assert [e["trial_id"] for e in scored] == [1, 2, 3, 4, 5, 6]  # 5 trials + the confirmation run
     assert scored[-1]["kind"] == 2

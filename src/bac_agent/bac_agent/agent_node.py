@@ -150,6 +150,14 @@ class BoAgentNode(BacNode):
             choices=WARPS,
             read_only=True,
         )
+        design_margin = self.declare_float(
+            "design_margin",
+            0.25,
+            "bo: the initial design spans [m, 1 - m] of every parameter's range (0: the whole range)",
+            0.0,
+            0.49,
+            read_only=True,
+        )
         grid_size = self.declare_int("grid_size", 4, "levels per dimension of the grid strategy", 1, 100, True)
         max_attempts = self.declare_int("max_attempts", 3, "runs per trial before it is given up", 1, 100)
         apply_timeout = self.declare_float("apply_timeout_s", 10.0, "time limit of one apply, s", 0.1, 600.0)
@@ -209,6 +217,7 @@ class BoAgentNode(BacNode):
                     acquisition=acquisition,
                     recommend_beta=recommend_beta,
                     output_warp=output_warp,
+                    design_margin=design_margin,
                     gp=GPConfig(mean=gp_mean),
                 ),
             )
@@ -234,6 +243,7 @@ class BoAgentNode(BacNode):
                 "gp_mean": gp_mean,
                 "bowl_runs": optimizer.bowl_runs if isinstance(optimizer, Engine) else 0,
                 "output_warp": output_warp,
+                "design_margin": design_margin,
             },
         )
         self.campaign = Campaign(
