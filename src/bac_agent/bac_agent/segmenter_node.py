@@ -53,7 +53,7 @@ from bac_agent.segmentation import (
 )
 from bac_common.contracts import TOPIC_DIAGNOSTICS, TOPIC_IMU_VEHICLE, TOPIC_ODOM, TOPIC_RUN_SEGMENT, TOPIC_TRIAL
 from bac_common.errors import BacError
-from bac_common.rosnode import QOS_EVENTS, QOS_LATCHED_READER, QOS_STREAM, QOS_STREAM_INPUT, BacNode, run_node
+from bac_common.rosnode import QOS_EVENTS, QOS_LATCHED, QOS_STREAM, QOS_STREAM_INPUT, BacNode, run_node
 from bac_imu import cdr
 from bac_imu.node_params import ParamSpec, declare_config
 from bac_imu.topic_drain import TopicDrain
@@ -181,10 +181,7 @@ class RunSegmenterNode(BacNode):
         # high-rate streams: drained in batches by the check timer (bac_imu.topic_drain)
         self.imu_drain = TopicDrain(self, Imu, TOPIC_IMU_VEHICLE, QOS_STREAM)
         self.odom_drain = TopicDrain(self, Odometry, TOPIC_ODOM, odom_qos)
-        # the trial is taken by the check timer too, right after the streams: a callback of its own could wait
-        # behind a busy check timer (one callback group, a multi-threaded executor) until the pre-buffer has
-        # dropped the run's first samples
-        self.trial_drain = TopicDrain(self, Trial, TOPIC_TRIAL, QOS_LATCHED_READER)
+        self.create_subscription(Trial, TOPIC_TRIAL, self._on_trial, QOS_LATCHED)
         steady = Clock(clock_type=ClockType.STEADY_TIME)
         self.create_timer(period, self._check, clock=steady)
         self.create_timer(diag, self._diagnostics, clock=steady)
@@ -243,8 +240,6 @@ class RunSegmenterNode(BacNode):
 
     def _check(self) -> None:
         self._drain()
-        for raw in self.trial_drain.take():
-            self._on_trial(deserialize_message(raw, Trial))
         now_ns = self.get_clock().now().nanoseconds
         if self.run is None:
             # keep only the recent past while idle
@@ -347,7 +342,6 @@ class RunSegmenterNode(BacNode):
     def destroy_node(self) -> None:
         self.imu_drain.destroy()
         self.odom_drain.destroy()
-        self.trial_drain.destroy()
         super().destroy_node()
 
 
