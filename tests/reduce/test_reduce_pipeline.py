@@ -22,6 +22,7 @@ QUICK = {
     "n_candidates": 128,
     "n_local": 64,
     "acq_restarts": 1,
+    "design_margin": 0.02,  # the whole-range initial design these tests were written for (as the phase's own engine)
 }
 LAST = re.compile(r"^reduce_minutes (\d+\.\d+) params_kept (\d+) loss_pct (-?\d+\.\d+)$")
 
