@@ -276,8 +276,11 @@ class SingleProcessGraph:
         except (KeyboardInterrupt, ExternalShutdownException):
             code = 0
         except Exception:
-            LOG.exception("a node crashed: shutting down the graph")
-            code = 1
+            if ok():
+                LOG.exception("a node crashed: shutting down the graph")
+                code = 1
+            else:  # SIGINT/SIGTERM shut the context down while the executor built its wait set (an RCLError)
+                code = 0
         finally:
             if executor is not None and not drain_executor(executor, STOP_GRACE_S / 2):
                 LOG.warning("a callback was still running at shutdown")
