@@ -8,21 +8,31 @@
   car is moving (commits are refused as busy), simulates the run and publishes it paced in sim time:
   ``imu/data_raw`` (sensor_msgs/Imu, frame ``imu_link``, sensor-data QoS), ``vehicle/odom``
   (nav_msgs/Odometry: ``pose.position.x`` = distance since the run started, ``twist.linear.x`` =
-  speed) and ``/clock``.
-* Publishes ``/clock`` continuously (``idle_realtime_factor`` between runs) so that the graph runs on
-  sim time (``use_sim_time``); runs are published at most ``realtime_factor`` times faster than real
-  time (1 = real time), in small slices so that a best-effort subscriber with a deep history loses
-  nothing.
+  speed) and ``/clock``. Every run is a new drive from its start: the distance starts at 0 again. A
+  run announced while another is being driven waits until that drive is over (a car cannot jump back
+  to the start), then it is driven, if the trial still waits for it.
+* Runs are computed in a worker process (``sim_process``), away from the publishing thread and the
+  executor.
+* Publishes ``/clock``, which follows the simulation as a simulator's clock does: between runs it
+  advances at ``idle_realtime_factor`` (the agent's waits pass in sim time); **no sim time passes
+  while a run is waited for or computed** (nothing is published then), so every sim-time deadline of
+  the graph means what it means on the car however slow the machine; a run is published at most
+  ``realtime_factor`` times faster than real time (1 = real time), in small slices so that a
+  best-effort subscriber with a deep history loses nothing. The rate each run was published at is
+  logged, with a warning and the reason when it falls short of ``realtime_factor`` by more than 20 %.
 """
 
 from __future__ import annotations
 
+import ctypes
 import math
+import multiprocessing
 import queue
+import signal
 import sys
 import threading
 import time
-from concurrent.futures import Future, ThreadPoolExecutor
+from concurrent.futures import Executor, Future, ProcessPoolExecutor, ThreadPoolExecutor
 from dataclasses import dataclass
 from typing import Any
 
@@ -37,13 +47,15 @@ from bac_common.paramspace import CalibrationDefinition
 from bac_common.rosnode import QOS_LATCHED, QOS_STREAM, BacNode, run_node
 from bac_msgs.msg import Trial
 from bac_sim.driver import DriverModel
-from bac_sim.run import ImuSpec, RunRecording, simulate_run
+from bac_sim.run import ImuSpec, RunRecording, simulate_scenario_run
 from bac_sim.scenarios import get_scenario
 
 # the IMU stream: best effort like every IMU driver (sensor-data QoS), a deep writer history so that
 # bursts faster than real time are not dropped on the publishing side
 QOS_IMU_OUT = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=5000, reliability=ReliabilityPolicy.BEST_EFFORT)
 QOS_CLOCK = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=10, reliability=ReliabilityPolicy.RELIABLE)
+PR_SET_PDEATHSIG = 1  # prctl option: a signal when the parent dies
+RATE_WARN_FRACTION = 0.8  # a run published slower than this fraction of realtime_factor is reported with why
 
 
 @dataclass
@@ -61,10 +73,25 @@ class _Playback:
     wall0: float
     i_imu: int = 0
     i_odom: int = 0
+    wall_first: float = math.nan  # wall time of the first message and of the last
+    wall_last: float = math.nan
+    publish_s: float = 0.0  # wall seconds spent publishing
+    loops: int = 0
 
     def __post_init__(self) -> None:
         self.t_imu = self.t0 + self.rec.t
         self.t_odom = self.t0 + self.rec.odom_t
+        # the last message of the run, IMU or odometry: the next drive starts after it
+        self.t_end = max(
+            self.t_imu[-1] if self.t_imu.size else self.t0, self.t_odom[-1] if self.t_odom.size else self.t0
+        )
+
+
+def start_delay(delays: list[float], attempt: int) -> float:
+    """The driver's delay before attempt ``attempt`` (1-based) starts moving: the list's entry, the last repeats."""
+    if not delays:
+        return 0.0
+    return float(delays[min(max(attempt, 1), len(delays)) - 1])
 
 
 def _stamp(msg_stamp: Any, t: float) -> None:
@@ -138,6 +165,29 @@ class VehicleSimNode(BacNode):
             read_only=True,
         )
         self.odom_frame = self.declare_str("odom_frame_id", "odom", "frame of vehicle/odom", read_only=True)
+        self.sim_process = self.declare_bool(
+            "sim_process",
+            True,
+            "compute each run in a worker process (true), away from the publishing thread and the executor, or "
+            "in a thread of this process (false)",
+            read_only=True,
+        )
+        self.compute_delay_s = self.declare_float(
+            "compute_delay_s",
+            0.0,
+            "extra wall seconds added to the computation of every run: emulates a slower machine (tests); sim time "
+            "does not pass meanwhile",
+            0.0,
+            3600.0,
+        )
+        self.start_delays = self.declare_float_list(
+            "driver.start_delay_s",
+            [0.0],
+            "sim seconds the driver takes to reach the start of a run after READY_TO_DRIVE, per attempt of a trial "
+            "(attempt 1, 2, ...; the last value repeats): a driver coming back round",
+        )
+        if not all(math.isfinite(v) and v >= 0 for v in self.start_delays):
+            raise ValueError("node 'vehicle_sim': driver.start_delay_s must hold numbers >= 0")
         self.driver = DriverModel(
             speed_error_std=self.declare_float(
                 "driver.speed_error_kmh", 0.3, "cruise set-point error, km/h (1 sigma)", 0.0, 20.0
@@ -203,7 +253,8 @@ class VehicleSimNode(BacNode):
         from bac_sim.ecu import SimulatedEcu
 
         self.definition = CalibrationDefinition.load(resolve_definition(definition_file))
-        self.scenario = get_scenario(self.scenario_name, speed_kmh or None)
+        self.speed_kmh = speed_kmh or None
+        self.scenario = get_scenario(self.scenario_name, self.speed_kmh)
         settings = BusSettings(
             interface=self.declare_str(
                 "can.interface", "virtual", "python-can interface (virtual in one process)", read_only=True
@@ -235,7 +286,14 @@ class VehicleSimNode(BacNode):
         self._jobs: queue.Queue[_Job] = queue.Queue()
         self._runs = 0
         self.runs_published = 0
-        self._sim = ThreadPoolExecutor(max_workers=1, thread_name_prefix="vehicle_sim_run")
+        self._sim: Executor
+        if self.sim_process:
+            # spawn, not fork: a forked copy of a process with DDS threads is not safe
+            self._sim = ProcessPoolExecutor(
+                max_workers=1, mp_context=multiprocessing.get_context("spawn"), initializer=_worker_init
+            )
+        else:
+            self._sim = ThreadPoolExecutor(max_workers=1, thread_name_prefix="vehicle_sim_run")
         self._stop = threading.Event()
         self._thread = threading.Thread(target=self._loop, name="vehicle_sim_clock", daemon=True)
         self._thread.start()
@@ -252,6 +310,9 @@ class VehicleSimNode(BacNode):
         self.idle_rtf = float(values.get("idle_realtime_factor", self.idle_rtf))
         self.clock_period = float(values.get("clock_period_s", self.clock_period))
         self.seed = int(values.get("seed", self.seed))
+        self.compute_delay_s = float(values.get("compute_delay_s", self.compute_delay_s))
+        if "driver.start_delay_s" in values:
+            self.start_delays = [float(v) for v in values["driver.start_delay_s"]]
         self.run_in = float(values.get("run_in_s", self.run_in))
         self.run_out = float(values.get("run_out_s", self.run_out))
         d = self.driver
@@ -276,10 +337,13 @@ class VehicleSimNode(BacNode):
         self._jobs.put(_Job(key, {}, self.seed + len(self._driven) - 1))
         self.get_logger().info(f"trial {key[1]} attempt {key[2]} of '{key[0]}' is ready to drive")
 
-    def _simulate(self, job: _Job) -> RunRecording:
-        return simulate_run(
+    def _submit(self, job: _Job) -> Future[RunRecording]:
+        return self._sim.submit(
+            _simulate_job,
             job.calibration,
-            self.scenario,
+            self.scenario_name,
+            self.speed_kmh,
+            self.compute_delay_s,
             seed=job.seed,
             definition=self.definition,
             imu=self.imu,
@@ -317,7 +381,7 @@ class VehicleSimNode(BacNode):
     def _loop(self) -> None:
         sim_t = self.start_time
         last_wall = time.monotonic()
-        pending: tuple[_Job, Future[RunRecording]] | None = None
+        pending: tuple[_Job, Future[RunRecording], float] | None = None
         play: _Playback | None = None
         clock = Clock()
         while not self._stop.is_set():
@@ -333,9 +397,9 @@ class VehicleSimNode(BacNode):
                         continue
                     job.calibration = self.ecu.active  # what is in force when the run starts
                     self.ecu.set_driving(True)
-                    pending = (job, self._sim.submit(self._simulate, job))
+                    pending = (job, self._submit(job), now)
                 if pending is not None and pending[1].done():
-                    job, fut = pending
+                    job, fut, wall_submitted = pending
                     pending = None
                     try:
                         rec = fut.result()
@@ -343,31 +407,36 @@ class VehicleSimNode(BacNode):
                         self.ecu.set_driving(False)
                         self.get_logger().error(f"run {job.key} could not be simulated: {exc}")
                     else:
-                        play = _Playback(job, rec, sim_t, now)
+                        delay = start_delay(self.start_delays, job.key[2])
+                        # the first message one odometry period after now: a drive that follows another at once
+                        # never shares a stamp with it
+                        play = _Playback(job, rec, sim_t + delay + 1.0 / self.odom_rate, now)
                         cal = ", ".join(f"{k}={v:g}" for k, v in job.calibration.items())
                         self.get_logger().info(
                             f"driving trial {job.key[1]} attempt {job.key[2]}: {rec.duration:.1f} s, "
                             f"{rec.t.size} IMU samples, mean speed {3.6 * float(np.mean(rec.speed)):.1f} km/h"
                             f"{' (a bad run: too slow)' if rec.bad_run else ''}, true J {rec.j_true:.4f}; "
-                            f"calibration {cal}"
+                            f"calibration {cal}; computed in {now - wall_submitted:.1f} s (sim time stood still)"
+                            + (f"; the driver starts in {delay:g} s" if delay > 0 else "")
                         )
                 if play is not None:
                     # advance by the wall time elapsed, but never by more than two loop periods: after a
                     # stall (a loaded machine) the run goes on at the same pace instead of in a burst
                     step = min(now - last_wall, 2 * self.clock_period) * self.rtf
                     target = sim_t + step
+                    t_pub = time.monotonic()
                     done = self._publish_until(play, target)
-                    sim_t = min(target, play.t0 + play.rec.duration)
+                    play.publish_s += time.monotonic() - t_pub
+                    play.loops += 1
+                    sim_t = min(target, play.t_end)
                     if done:
                         self.ecu.set_driving(False)
                         self.runs_published += 1
-                        self.get_logger().info(
-                            f"run of trial {play.job.key[1]} attempt {play.job.key[2]} published "
-                            f"({play.i_imu} IMU, {play.i_odom} odometry messages)"
-                        )
+                        self._report_rate(play)
                         play = None
-                else:
+                elif pending is None and self._jobs.empty():
                     sim_t += (now - last_wall) * self.idle_rtf
+                # else: a run is waited for or being computed: sim time stands still (nothing is published)
                 _stamp(clock.clock, sim_t)
                 self.pub_clock.publish(clock)
             except Exception as exc:  # never let the clock thread die silently
@@ -376,6 +445,33 @@ class VehicleSimNode(BacNode):
                 self.get_logger().error(f"vehicle_sim loop: {exc}")
             last_wall = now
             self._stop.wait(self.clock_period)
+
+    def _report_rate(self, play: _Playback) -> None:
+        """Log the rate the run was published at; warn, with the reason, when it fell short of realtime_factor."""
+        key = play.job.key
+        head = f"run of trial {key[1]} attempt {key[2]} published ({play.i_imu} IMU, {play.i_odom} odometry messages)"
+        wall = play.wall_last - play.wall_first
+        span = float(play.rec.t[-1] - play.rec.t[0]) if play.rec.t.size > 1 else 0.0
+        if not (wall > 0 and span > 0):
+            self.get_logger().info(head)
+            return
+        rate = span / wall
+        text = f"{head}: {span:.1f} s of driving in {wall:.1f} s of wall time, {rate:.1f}x real time"
+        if rate >= RATE_WARN_FRACTION * self.rtf:
+            self.get_logger().info(f"{text} (requested {self.rtf:g}x)")
+            return
+        busy = play.publish_s / wall
+        if busy > 0.8:
+            why = (
+                f"publishing took {100 * busy:.0f} % of the wall time: this process cannot publish "
+                f"{(play.i_imu + play.i_odom) / span * self.rtf:.0f} messages/s; lower realtime_factor or imu_rate_hz"
+            )
+        else:
+            why = (
+                f"publishing took only {100 * busy:.0f} % of the wall time: the publishing thread was kept waiting "
+                "(the CPU is shared with the other nodes: a loaded machine)"
+            )
+        self.get_logger().warning(f"{text}, below the requested {self.rtf:g}x: {why}")
 
     def _publish_until(self, play: _Playback, target: float) -> bool:
         rec = play.rec
@@ -388,6 +484,9 @@ class VehicleSimNode(BacNode):
                 return True
             if nxt > target:
                 return False
+            play.wall_last = time.monotonic()
+            if play.i_imu == 0 and play.i_odom == 0:
+                play.wall_first = play.wall_last
             if ni <= no:
                 i = play.i_imu
                 m = Imu()
@@ -418,12 +517,37 @@ class VehicleSimNode(BacNode):
     def destroy_node(self) -> None:
         self._stop.set()
         self._thread.join(timeout=2.0)
+        # a run being computed is not waited for: the worker process is ended (its result is of no use)
+        workers = list((getattr(self._sim, "_processes", None) or {}).values())
         self._sim.shutdown(wait=False, cancel_futures=True)
+        for w in workers:
+            if w.is_alive():
+                w.terminate()
         try:
             self.ecu.stop()
         finally:
             self.bus.shutdown()
         super().destroy_node()
+
+
+def _worker_init() -> None:
+    """The worker leaves Ctrl-C to its node (which ends it) and dies with it if the node is killed."""
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    try:
+        libc = ctypes.CDLL("libc.so.6", use_errno=True)
+        libc.prctl(PR_SET_PDEATHSIG, signal.SIGTERM)
+    except OSError:  # not Linux: the worker ends when its pipe to the node closes
+        pass
+
+
+def _simulate_job(
+    calibration: dict[str, float], scenario: str, speed_kmh: float | None, compute_delay_s: float, **kwargs: Any
+) -> RunRecording:
+    """One run, in the worker (a module-level function: what a process pool can call)."""
+    rec = simulate_scenario_run(calibration, scenario, speed_kmh, **kwargs)
+    if compute_delay_s > 0:
+        time.sleep(compute_delay_s)  # an emulated slow machine (compute_delay_s), not a wait for a condition
+    return rec
 
 
 def main(args: list[str] | None = None) -> int:
