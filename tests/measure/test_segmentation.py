@@ -8,7 +8,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from measure_synth import NS, bump_run, road_run
+from measure_synth import NS, SynthRun, bump_run, road_run
 
 from bac_agent.segmentation import (
     MODE_DISTANCE,
@@ -21,6 +21,7 @@ from bac_agent.segmentation import (
     SegmentationError,
     SegmentConfig,
     cut_run,
+    drive_starts,
     invalid_segment,
     normalized_xcorr,
     run_status,
@@ -167,7 +168,9 @@ def test_incomplete_run_waits_then_is_invalid_with_what_is_missing() -> None:
     st = run_status(part, run.odom, EVENT, run.start_ns)
     assert not st.complete and "impact" in st.waiting_for
     seg = cut_run(part, run.odom, EVENT, run.start_ns)
-    assert not seg.valid and seg.reason == "incomplete run: still waiting for the impact (|a_z| >= 1 m/s^2)"
+    assert not seg.valid and seg.reason == (
+        "incomplete run: still waiting for the impact (|a_z| >= 1 m/s^2) with a clean approach"
+    )
     timed_out = invalid_segment(EVENT, RunId("c", 1, 1), run.start_ns, "run timeout after 60 s: no impact")
     assert not timed_out.valid and timed_out.reason == "run timeout after 60 s: no impact"
     assert timed_out.run == RunId("c", 1, 1) and len(timed_out) == 0
@@ -283,3 +286,85 @@ def test_bad_segmentation_configuration_is_refused() -> None:
         SegmentConfig(distance_start_m=100.0, distance_end_m=50.0)
     cfg = SegmentConfig.from_params({"mode": "distance", "max_shift_m": 20, "qos_depth": 5})
     assert cfg.mode == "distance" and cfg.max_shift_m == 20.0
+
+
+# --- drives: a retry is a new drive ------------------------------------------------------------------------
+
+
+def _join(*runs: tuple[ImuSeries, OdomSeries]) -> tuple[ImuSeries, OdomSeries]:
+    imu = ImuSeries(*(np.concatenate([getattr(r[0], f) for r in runs]) for f in ("stamp_ns", "accel_z", "pitch_rate")))
+    odom = OdomSeries(
+        *(np.concatenate([getattr(r[1], f) for r in runs]) for f in ("stamp_ns", "distance_m", "speed_mps"))
+    )
+    return imu, odom
+
+
+def _two_bump_drives() -> tuple[SynthRun, SynthRun]:
+    """Drive A, then drive B 0.5 s after A's last sample (the odometry starts again from 0)."""
+    a = bump_run(seed=1, noise=0.05)
+    b = bump_run(seed=2, noise=0.05, t0_ns=int(a.imu.stamp_ns[-1]) + NS, offset_m=1.0)
+    return a, b
+
+
+def test_a_retry_is_cut_from_a_new_drive_never_from_the_one_in_progress() -> None:
+    a, b = _two_bump_drives()
+    imu, odom = _join((a.imu, a.odom), (b.imu, b.odom))
+    retry_start = a.start_ns + NS  # announced while drive A was on its way to the bump (at 3 s)
+    first = cut_run(imu, odom, EVENT, retry_start, run=RunId("c", 1, 1))
+    assert first.valid and a.start_ns < first.window_start_ns < b.start_ns  # a first attempt: a rolling start
+    retry = cut_run(imu, odom, EVENT, retry_start, run=RunId("c", 1, 2))
+    assert retry.valid and retry.window_start_ns > b.start_ns, retry.reason  # drive B, not A's bump
+    # until drive B comes, the retry waits, saying for what
+    st = run_status(a.imu, a.odom, EVENT, retry_start, retry=True)
+    assert not st.complete and "begun after this retry was announced" in st.waiting_for
+
+
+def test_an_impact_too_soon_after_the_start_is_passed_over_for_a_clean_approach() -> None:
+    a, b = _two_bump_drives()
+    imu, odom = _join((a.imu, a.odom), (b.imu, b.odom))
+    late = a.event_ns - round(0.2 * NS)  # announced 0.2 s before drive A's bump: no room for the window before it
+    seg = cut_run(imu, odom, EVENT, late)
+    assert seg.valid and seg.window_start_ns > b.start_ns, seg.reason
+
+
+def test_a_distance_run_past_the_section_start_waits_for_the_next_drive() -> None:
+    a = road_run(seed=3)
+    b = road_run(seed=4, t0_ns=int(a.imu.stamp_ns[-1]) + NS, offset_m=2.0)
+    imu, odom = _join((a.imu, a.odom), (b.imu, b.odom))
+    mid = a.start_ns + 3 * NS  # drive A is 50 m down the road, past the section start (20 m)
+    st = run_status(a.imu, a.odom, ROAD, mid)
+    assert not st.complete and "passed over" in st.waiting_for and "past the section start" in st.waiting_for
+    seg = cut_run(imu, odom, ROAD, mid)
+    assert seg.valid and seg.window_start_ns > b.start_ns, seg.reason
+
+
+def test_a_cumulative_odometer_starts_a_retry_where_the_car_moves_off_after_stopping() -> None:
+    cfg = replace(ROAD, distance_origin="run_start")
+    a = road_run(seed=3)
+    # a cumulative odometer: standing 2 s after drive A (speed 0), then drive B; the distance never resets
+    stop_t = int(a.odom.stamp_ns[-1]) + np.arange(1, 101) * 20_000_000
+    d_end = float(a.odom.distance_m[-1])
+    b = road_run(seed=4, t0_ns=int(stop_t[-1]) + 20_000_000, offset_m=2.0)
+    odom = OdomSeries(
+        np.concatenate([a.odom.stamp_ns, stop_t, b.odom.stamp_ns]),
+        np.concatenate([a.odom.distance_m, np.full(stop_t.size, d_end), d_end + b.odom.distance_m]),
+        np.concatenate([a.odom.speed_mps, np.zeros(stop_t.size), b.odom.speed_mps]),
+    )
+    imu = _join((a.imu, a.odom), (b.imu, b.odom))[0]
+    retry = cut_run(imu, odom, cfg, a.start_ns + 2 * NS, run=RunId("c", 4, 2))
+    assert retry.valid and retry.window_start_ns > b.start_ns, retry.reason
+    # the drive began where the car moved off: the section is where drive B's own odometry puts it
+    alone = cut_run(b.imu, b.odom, cfg, b.start_ns)
+    assert retry.window_start_ns == alone.window_start_ns
+    np.testing.assert_allclose(retry.accel_z, alone.accel_z, atol=1e-3)  # the spline sees a few more samples
+
+
+def test_drive_starts_at_resets_silences_and_after_slowing_down() -> None:
+    t = np.arange(20, dtype=np.int64) * 100_000_000
+    t[10:] += 2 * NS  # odometry silent for 2 s before sample 10
+    d = np.arange(20, dtype=float)
+    d[5:] -= 5.0  # the counter reset at sample 5
+    v = np.full(20, 10.0)
+    v[14:17] = [3.0, 1.0, 2.0]  # slowed down (a turn), slowest at sample 15, then back above half the target
+    cfg = SegmentConfig(target_speed_mps=10.0)
+    assert drive_starts(t, d, v, cfg).tolist() == [0, 5, 10, 15]

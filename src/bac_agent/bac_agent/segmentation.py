@@ -15,6 +15,18 @@ it and aligns it with a reference run:
   in one IMU sample), so that a run driven a little faster or slower is not
   stretched against the reference.
 
+**A run is one drive.** The odometry is split into drives: a drive begins where the distance
+counter resets, where the odometry was silent for ``odom_gap_s``, or where the vehicle speeds up
+through ``new_drive_speed_fraction`` of the target speed after being slower (a standstill, a turn:
+the drive begins at its slowest point). The run of an attempt is cut from the first drive that
+holds the whole window after the attempt became ready to drive: for a first attempt that may be
+the drive in progress (a rolling start), for a **retry** (``retry=True``) only a drive that began
+after it, so the tail of an earlier run is never taken for the new one. A drive that began past
+the section start, or ended before the window did, is passed over: the cut waits for the next
+drive. In event mode the impact must also have a clean approach (no impact in the
+``pre_trigger_s + max_lag_s`` before it, all within the drive and the attempt), so the second axle
+or the ringing of an earlier impact is never a trigger.
+
 Then the cut is refined by normalized cross-correlation with the reference
 (the first valid run of the campaign, or a stored template) over
 ``+-max_lag_s`` (event) or ``+-max_shift_m`` (distance), to sub-sample lag
@@ -23,7 +35,7 @@ Then the cut is refined by normalized cross-correlation with the reference
 does not cover the window (gaps, NaN: ``min_coverage``), the mean speed is
 off the target by more than ``speed_tolerance``, the alignment correlation
 is below ``min_alignment`` or its peak sits at the edge of the search range,
-or the window is not complete.
+or the window is not complete (what is awaited: :func:`run_status`).
 
 :func:`cut_run` is a pure function of (buffered arrays, run start, config,
 reference): the node calls it as soon as :func:`run_status` says the window
@@ -153,6 +165,9 @@ class SegmentConfig:
     distance_step_m: float = 0.0  # distance grid step, m; 0 = target speed / IMU rate
     max_shift_m: float = 15.0  # alignment search range, +- m (covers the driver's start offset)
     distance_origin: str = "odom"  # "odom": pose.x is the distance since the run started; "run_start": subtract it
+    # drives (a retry is a new drive)
+    new_drive_speed_fraction: float = 0.5  # a drive begins where the speed rises through this fraction of the target
+    odom_gap_s: float = 1.0  # odometry silent this long (stamps): what follows is a new drive
 
     def __post_init__(self) -> None:
         p = []
@@ -186,6 +201,10 @@ class SegmentConfig:
             p.append(f"max_shift_m must be in [0, 1000], got {self.max_shift_m}")
         if self.distance_origin not in DISTANCE_ORIGINS:
             p.append(f"distance_origin must be one of {DISTANCE_ORIGINS}, got {self.distance_origin!r}")
+        if not (0.0 < self.new_drive_speed_fraction < 1.0):
+            p.append(f"new_drive_speed_fraction must be in (0, 1), got {self.new_drive_speed_fraction}")
+        if not (self.odom_gap_s > 0.0):
+            p.append(f"odom_gap_s must be > 0, got {self.odom_gap_s}")
         if p:
             raise SegmentationError("invalid segmentation configuration: " + "; ".join(p))
 
@@ -533,40 +552,77 @@ def _final_score(config: SegmentConfig, az: FloatArray, q: FloatArray, ref: Refe
     return float(np.mean(scores))
 
 
-# --- odometry ----------------------------------------------------------------------------------------
+# --- odometry: drives ---------------------------------------------------------------------------------------
 
 
-def _odom_run(odom: OdomSeries, start_ns: int, config: SegmentConfig) -> tuple[FloatArray, FloatArray, FloatArray]:
-    """The run's odometry: (stamps relative to nothing, ns as float; distance; speed), increasing stamps.
+@dataclass(frozen=True)
+class _Drive:
+    """One drive as the odometry shows it, from where the run may use it."""
 
-    Samples before ``start_ns`` are ignored. With ``distance_origin = odom`` the run is the first
-    stretch without a reset whose distance starts below the section (older samples from the previous
-    run are skipped; a later reset ends it). With ``run_start`` the distance is counted from the
-    first sample of the run.
+    t: FloatArray  # stamps (ns, as float), increasing, none before the run's start
+    d: FloatArray  # distance (m), non-decreasing: the odometer's (origin odom) or since the drive's origin
+    v: FloatArray  # speed (m/s)
+    t_begin: float  # the run may use data from this stamp on (the run's start, or the drive's first sample)
+    ended: bool  # a later drive began: no more data of this one will come
+    rolling: bool  # it began before the run's start (a first attempt may use it from there)
+
+
+def drive_starts(t: IntArray, d: FloatArray, v: FloatArray, config: SegmentConfig) -> IntArray:
+    """Indices (into time-sorted odometry) where a drive begins; 0 is always one.
+
+    A drive begins at a reset of the distance counter, after odometry silent for ``odom_gap_s``, or at the
+    slowest point before the speed rises through ``new_drive_speed_fraction`` of the target speed.
     """
-    keep = odom.stamp_ns >= start_ns
-    t = odom.stamp_ns[keep]
-    d = odom.distance_m[keep]
-    v = odom.speed_mps[keep]
-    order = np.argsort(t, kind="stable")
-    t, d, v = t[order], d[order], v[order]
-    if t.size == 0:
-        return np.zeros(0), np.zeros(0), np.zeros(0)
-    if config.distance_origin == "run_start":
-        d = d - d[0]
-    else:
-        # stretches between resets; the run is the first one that starts before the section / near 0
-        resets = np.flatnonzero(np.diff(d) < -ODOM_RESET_M) + 1
-        bounds = [0, *resets.tolist(), int(t.size)]
-        begin = config.distance_start_m if config.mode == "distance" else ODOM_RESET_M
-        chosen = len(bounds) - 2  # none starts early enough: the last one
-        for i in range(len(bounds) - 1):
-            if d[bounds[i]] <= begin:
-                chosen = i
-                break
-        a, b = bounds[chosen], bounds[chosen + 1]
-        t, d, v = t[a:b], d[a:b], v[a:b]
-    return t.astype(np.float64), np.maximum.accumulate(d), v
+    n = t.size
+    if n == 0:
+        return np.zeros(0, np.int64)
+    starts = {0}
+    dt = np.diff(t)
+    starts.update((np.flatnonzero(np.diff(d) < -ODOM_RESET_M) + 1).tolist())
+    starts.update((np.flatnonzero(dt > config.odom_gap_s * NS) + 1).tolist())
+    thr = config.new_drive_speed_fraction * config.target_speed_mps
+    slow = v < thr
+    rises = np.flatnonzero(slow[:-1] & ~slow[1:]) + 1
+    if rises.size:
+        # the slow stretch before each rise begins after the last fast sample before it
+        fast = np.flatnonzero(~slow)
+        for i in rises.tolist():  # one per slowdown, not per sample
+            k = int(np.searchsorted(fast, i)) - 1
+            j = int(fast[k]) + 1 if k >= 0 else 0
+            seg = v[j:i]
+            starts.add(j + int(seg.size - 1 - np.argmin(seg[::-1])))  # the last of its slowest samples
+    return np.array(sorted(starts), dtype=np.int64)
+
+
+def _drives(odom: OdomSeries, start_ns: int, config: SegmentConfig, retry: bool) -> list[_Drive]:
+    """The drives a run starting at ``start_ns`` may be cut from, in order (see the module doc)."""
+    order = np.argsort(odom.stamp_ns, kind="stable")
+    t, d, v = odom.stamp_ns[order], odom.distance_m[order], odom.speed_mps[order]
+    starts = drive_starts(t, d, v, config)
+    bounds = [*starts.tolist(), int(t.size)]
+    out: list[_Drive] = []
+    for k in range(len(bounds) - 1):
+        a, b = bounds[k], bounds[k + 1]
+        if t[b - 1] < start_ns:
+            continue  # over before the run started
+        rolling = bool(t[a] < start_ns)
+        if rolling and retry:
+            continue  # a retry is a new drive: not the one in progress when it was announced
+        first = int(np.searchsorted(t[a:b], start_ns)) + a if rolling else a
+        dd = d[first:b]
+        if config.distance_origin == "run_start":
+            dd = dd - dd[0]
+        out.append(
+            _Drive(
+                t=t[first:b].astype(np.float64),
+                d=np.maximum.accumulate(dd),
+                v=v[first:b],
+                t_begin=float(start_ns) if rolling else float(t[a]),
+                ended=b < t.size,
+                rolling=rolling,
+            )
+        )
+    return out
 
 
 def _distance_to_time(t: FloatArray, d: FloatArray, s: FloatArray) -> FloatArray:
@@ -580,11 +636,12 @@ def _distance_to_time(t: FloatArray, d: FloatArray, s: FloatArray) -> FloatArray
 
 @dataclass
 class _Plan:
-    """What the cut needs, or what is missing."""
+    """What the cut needs, or what is missing, or why this drive cannot be the run (``skip``)."""
 
     missing: str = ""
     reasons: list[str] = field(default_factory=list)
     segment: Segment | None = None
+    skip: str = ""
 
 
 def _speed_reason(config: SegmentConfig, mean_speed: float) -> str:
@@ -621,24 +678,39 @@ def _coverage(g: _Grid, lo: float, hi: float) -> tuple[float, str]:
     )
 
 
-def _cut_event(
-    g: _Grid, odom: tuple[FloatArray, FloatArray, FloatArray], config: SegmentConfig, ref: Reference | None
-) -> _Plan:
+def _cut_event(g: _Grid, drive: _Drive, config: SegmentConfig, ref: Reference | None) -> _Plan:
     fs = g.rate_hz
     n = round(config.window_s * fs)
     pre = round(config.pre_trigger_s * fs)
     lag_max = round(config.max_lag_s * fs) if ref is not None else 0
-    ot, od, _ = odom
+    approach = pre + lag_max  # samples before the impact the window needs: they must be quiet and in the drive
+    ot, od = drive.t, drive.d
+    p_begin = max(float(g.pos(drive.t_begin)), 0.0)
+    p_stop = float(g.pos(ot[-1])) if drive.ended else math.inf
     hits = np.abs(np.nan_to_num(g.az, nan=0.0)) >= config.trigger_threshold_mps2
-    if config.trigger_after_m > 0:
-        if ot.size == 0:
-            return _Plan(missing="odometry (to place the impact search after trigger_after_m)")
-        d_at = np.interp(g.t0_ns + np.arange(g.n) * float(g.step_ns), ot, od, left=-math.inf, right=-math.inf)
-        hits &= d_at >= config.trigger_after_m
+    k = np.arange(g.n, dtype=np.float64)
+    hits &= (k >= p_begin) & (k <= p_stop)
     trig = np.flatnonzero(hits)
-    if trig.size == 0:
-        return _Plan(missing=f"the impact (|a_z| >= {config.trigger_threshold_mps2:g} m/s^2)")
-    i_trig = int(trig[0])
+    # a clean approach: no impact in the `approach` samples before it, all of them within the drive
+    prev = np.concatenate([[-np.inf], trig[:-1].astype(np.float64)])
+    clean = (trig - prev > approach) & (trig - approach >= p_begin)
+    if config.trigger_after_m > 0 and trig.size:
+        d_at = np.interp(g.t0_ns + trig * float(g.step_ns), ot, od, left=-math.inf, right=-math.inf)
+        clean &= d_at >= config.trigger_after_m
+    good = trig[clean]
+    if good.size == 0:
+        covered = g.n - 1 >= p_stop
+        what = f"the impact (|a_z| >= {config.trigger_threshold_mps2:g} m/s^2) with a clean approach"
+        if trig.size:
+            what += (
+                f" (the impact at t = {g.time_ns(int(trig[0])) / NS:.3f} s came too soon after the drive began or "
+                "after another impact: the window needs "
+                f"{config.pre_trigger_s + config.max_lag_s:.2f} s before it)"
+            )
+        if drive.ended and covered:
+            return _Plan(skip=f"the drive ended without {what}")
+        return _Plan(missing=what)
+    i_trig = int(good[0])
     # sub-sample crossing of the threshold (linear between the samples around it)
     frac = 0.0
     if i_trig > 0:
@@ -646,17 +718,12 @@ def _cut_event(
         if a1 > a0:
             frac = min(max((config.trigger_threshold_mps2 - a0) / (a1 - a0), 0.0), 1.0) - 1.0
     i0 = i_trig + frac - pre  # fractional grid position of the nominal window start
-    if i0 - lag_max < 0:
-        return _Plan(
-            reasons=[
-                f"impact at t = {g.time_ns(i_trig) / NS:.3f} s came too soon after the run started: "
-                f"the window needs {config.pre_trigger_s + config.max_lag_s:.2f} s of data before it"
-            ]
-        )
     need = math.ceil(i0) + n + lag_max + SPLINE_MARGIN + 2
+    t_end_needed = g.t0_ns + (i0 + n + lag_max) * float(g.step_ns)
+    if drive.ended and ot[-1] < t_end_needed:
+        return _Plan(skip=f"the drive ended {(t_end_needed - ot[-1]) / NS:.2f} s before the end of the window")
     if g.n < need:
         return _Plan(missing=f"IMU data up to t = {g.time_ns(need) / NS:.3f} s (end of the window)")
-    t_end_needed = g.t0_ns + (i0 + n + lag_max) * float(g.step_ns)
     if ot.size == 0 or ot[-1] < t_end_needed:
         return _Plan(missing=f"odometry up to t = {t_end_needed / NS:.3f} s (end of the window)")
     reasons: list[str] = []
@@ -670,16 +737,16 @@ def _cut_event(
             config,
             [(_linear(g.az, span), ref.accel_z), (_linear(g.q, span), ref.pitch_rate)],
         )
-        k, edge = _peak(curve)
-        if not math.isfinite(k):
+        kk, edge = _peak(curve)
+        if not math.isfinite(kk):
             reasons.append("alignment failed: the signals are flat or missing")
-            k = float(lag_max)
+            kk = float(lag_max)
         elif edge and lag_max > 0:
             reasons.append(
                 f"alignment peak at the edge of the +-{config.max_lag_s:g} s search range: the run does not "
                 "match the reference (increase max_lag_s if the impact detection is that uncertain)"
             )
-        lag = k - lag_max
+        lag = kk - lag_max
     start = i0 + lag
     cov, hole = _coverage(g, start, start + n - 1)
     if cov < config.min_coverage:
@@ -727,27 +794,24 @@ def distance_step(config: SegmentConfig, imu_rate_hz: float) -> float:
     return config.distance_step_m or config.target_speed_mps / imu_rate_hz
 
 
-def _cut_distance(
-    g: _Grid, odom: tuple[FloatArray, FloatArray, FloatArray], config: SegmentConfig, ref: Reference | None
-) -> _Plan:
+def _cut_distance(g: _Grid, drive: _Drive, config: SegmentConfig, ref: Reference | None) -> _Plan:
     ds = distance_step(config, g.rate_hz)
     fs_eq = config.target_speed_mps / ds
     n = round((config.distance_end_m - config.distance_start_m) / ds)
     m = round(config.max_shift_m / ds) if ref is not None else 0
-    ot, od, _ = odom
+    ot, od = drive.t, drive.d
     s0 = config.distance_start_m
-    if ot.size < 2:
-        return _Plan(missing="odometry")
     if od[0] > s0 - m * ds:
         return _Plan(
-            reasons=[
-                f"the run's odometry starts at {od[0]:.1f} m, after the section start {s0 - m * ds:.1f} m "
-                "(distance_start_m - max_shift_m): the run started too late"
-            ]
+            skip=f"the drive {'in progress' if drive.rolling else 'that began'} at odometry {od[0]:.1f} m is past "
+            f"the section start {s0 - m * ds:.1f} m (distance_start_m - max_shift_m)"
         )
     s_need = s0 + (n + m) * ds
-    if od[-1] < s_need:
-        return _Plan(missing=f"odometry up to {s_need:.1f} m (now {od[-1]:.1f} m)")
+    if ot.size < 2 or od[-1] < s_need:
+        now = f"{od[-1]:.1f} m" if ot.size else "none yet"
+        if drive.ended:
+            return _Plan(skip=f"the drive ended at odometry {now}, before {s_need:.1f} m (the section end)")
+        return _Plan(missing=f"odometry up to {s_need:.1f} m (now {now})")
     t_need = _distance_to_time(ot, od, np.array([s_need]))[0]
     p_need = (t_need - g.t0_ns) / g.step_ns + SPLINE_MARGIN + 2
     if g.n < p_need:
@@ -819,7 +883,12 @@ def _cut_distance(
 
 
 def _plan(
-    imu: ImuSeries, odom: OdomSeries, config: SegmentConfig, start_ns: int | None, ref: Reference | None
+    imu: ImuSeries,
+    odom: OdomSeries,
+    config: SegmentConfig,
+    start_ns: int | None,
+    ref: Reference | None,
+    retry: bool = False,
 ) -> _Plan:
     if start_ns is not None:
         keep = imu.stamp_ns >= start_ns
@@ -830,10 +899,25 @@ def _plan(
     if np.any(np.diff(imu.stamp_ns) < 0):
         return _Plan(reasons=["IMU stamps went backwards during the run (clock jump)"])
     g = _grid(imu, imu_rate(imu, config.imu_rate_hz))
-    o = _odom_run(odom, imu.stamp_ns[0] if start_ns is None else start_ns, config)
-    if config.mode == "event":
-        return _cut_event(g, o, config, ref)
-    return _cut_distance(g, o, config, ref)
+    t0 = int(imu.stamp_ns[0]) if start_ns is None else start_ns
+    drives = _drives(odom, t0, config, retry)
+    passed: list[str] = []
+    for drive in drives:
+        plan = _cut_event(g, drive, config, ref) if config.mode == "event" else _cut_distance(g, drive, config, ref)
+        if not plan.skip:
+            return plan
+        passed.append(plan.skip)
+    if config.mode == "distance":
+        what = "odometry of a drive from before the section start"
+    else:
+        what = f"the impact (|a_z| >= {config.trigger_threshold_mps2:g} m/s^2) in a drive"
+    if retry:
+        what += " begun after this retry was announced (the tail of an earlier run is not used)"
+    if passed:
+        what += f"; passed over: {passed[-1]}"
+    elif not drives:
+        what += "; no odometry of such a drive yet"
+    return _Plan(missing=what)
 
 
 def run_status(
@@ -842,9 +926,13 @@ def run_status(
     config: SegmentConfig,
     start_ns: int | None = None,
     reference: Reference | None = None,
+    retry: bool = False,
 ) -> Progress:
-    """Whether the buffered run holds all the data :func:`cut_run` needs (then cut it: nothing more changes it)."""
-    plan = _plan(imu, odom, config, start_ns, reference)
+    """Whether the buffered run holds all the data :func:`cut_run` needs (then cut it: nothing more changes it).
+
+    ``retry``: the run is a retry of a trial (attempt > 1): it must come from a drive that began after
+    ``start_ns``."""
+    plan = _plan(imu, odom, config, start_ns, reference, retry)
     return Progress(complete=not plan.missing, waiting_for=plan.missing)
 
 
@@ -855,14 +943,19 @@ def cut_run(
     start_ns: int | None = None,
     reference: Reference | None = None,
     run: RunId | None = None,
+    retry: bool | None = None,
 ) -> Segment:
     """Cut and align one run (see the module docstring). Never raises for bad data: the segment says why.
 
-    ``start_ns``: the run start (the trial became ready to drive); samples before it are ignored.
+    ``start_ns``: the run start (the trial became ready to drive); samples before it are ignored, except
+    that the odometry before it tells whether a drive was already in progress.
     ``reference``: align with it (None: this run is not aligned, lag 0, alignment score 1).
+    ``retry``: the run must come from a drive that began after ``start_ns`` (default: ``run.attempt > 1``).
     Raises :class:`SegmentationError` only when ``reference`` does not fit ``config``.
     """
-    plan = _plan(imu, odom, config, start_ns, reference)
+    if retry is None:
+        retry = run is not None and run.attempt > 1
+    plan = _plan(imu, odom, config, start_ns, reference, retry)
     rid = run or RunId()
     if plan.segment is not None:
         return _with_run(plan.segment, rid)

@@ -2,17 +2,23 @@
 
 A run starts when ``bac/trial`` (latched) enters READY_TO_DRIVE for a new
 (campaign_id, trial_id, attempt); from its stamp on, ``imu/vehicle`` and
-``vehicle/odom`` are buffered (plus ``pre_buffer_s`` kept all the time, for
-samples stamped after the trial's stamp that arrived before it); both are
-taken in batches from their DDS readers (:mod:`bac_imu.topic_drain`), so a
-simulator running many times faster than real time is followed. Every
-``check_period_s`` the pure core (:func:`bac_agent.segmentation.run_status`)
-says whether the window is complete; then :func:`~bac_agent.segmentation.cut_run`
-cuts and aligns it and one RunSegment is published, valid or invalid with
-its reason. A run also ends, invalid, when it takes longer than
-``run_timeout_s`` (ROS time since the trial's stamp), when no IMU sample
-arrives for ``no_data_timeout_s`` (wall), when another run starts, or when the
-trial leaves READY_TO_DRIVE first.
+``vehicle/odom`` are buffered (plus what arrived in the last ``pre_buffer_s``
+of wall time, for samples stamped after the trial's stamp that arrived before
+it, and the last odometry sample before that, so that a drive in progress is
+told from a new one); both are taken in batches from their DDS readers
+(:mod:`bac_imu.topic_drain`), so a simulator running many times faster than
+real time is followed. Every ``check_period_s`` the pure core
+(:func:`bac_agent.segmentation.run_status`) says whether the window is
+complete; then :func:`~bac_agent.segmentation.cut_run` cuts and aligns it and
+one RunSegment is published, valid or invalid with its reason. A retry
+(attempt > 1) is cut only from a drive that began after it was announced: the
+segmenter waits for the vehicle to come back (``waiting_for`` on
+``/diagnostics`` says so). A run also ends, invalid, when it takes longer than
+``run_timeout_s`` (ROS time since the trial's stamp; 0 = derived from the
+segment: ``approach_time_s`` plus the section or window at the target speed),
+when no IMU sample arrives for ``no_data_timeout_s`` (ROS time, so a paused
+simulation clock never fires it), when another run starts, or when the trial
+leaves READY_TO_DRIVE first.
 
 The reference is the first valid run of each campaign, kept in memory and in
 ``reference_file`` (``{campaign_id}`` is replaced) or, by default, in
@@ -87,19 +93,28 @@ SEGMENT_PARAMS = {
         "odom: pose.x is the distance since the run started; run_start: subtract its value at the run start",
         choices=("odom", "run_start"),
     ),
+    "new_drive_speed_fraction": ParamSpec(
+        "a new drive begins where the speed rises through this fraction of the target speed (after a stop or a "
+        "turn; also at a reset of the distance and after silent odometry): a retry needs a new drive",
+        0.01,
+        0.99,
+    ),
+    "odom_gap_s": ParamSpec("odometry silent this long (stamps, s) starts a new drive", 1e-3, 3600.0),
 }
 
 
 class _Stream:
-    """Samples of one topic: batches appended, consolidated into arrays on demand."""
+    """Samples of one topic: batches appended with their arrival (wall) time, consolidated into arrays on demand."""
 
     def __init__(self) -> None:
         self.parts: list[tuple[np.ndarray, np.ndarray, np.ndarray]] = []
         self.arr: tuple[np.ndarray, np.ndarray, np.ndarray] = (np.zeros(0, np.int64), np.zeros(0), np.zeros(0))
+        self.arrival = np.zeros(0)  # wall time each sample was taken from the reader
 
-    def add(self, t: np.ndarray, a: np.ndarray, b: np.ndarray) -> None:
+    def add(self, t: np.ndarray, a: np.ndarray, b: np.ndarray, wall: float) -> None:
         if t.size:
             self.parts.append((t, a, b))
+            self.arrival = np.concatenate([self.arrival, np.full(t.size, wall)])
 
     def arrays(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         if self.parts:
@@ -111,33 +126,52 @@ class _Stream:
             self.parts = []
         return self.arr
 
-    def drop_before(self, t_ns: int) -> None:
+    def drop_arrived_before(self, wall: float, keep_last: int = 0) -> None:
+        """Forget the samples taken before ``wall`` (monotonic), except the ``keep_last`` newest of them by stamp."""
         t, a, b = self.arrays()
-        keep = t >= t_ns
+        keep = self.arrival >= wall
+        if keep_last and not np.all(keep):
+            old = np.flatnonzero(~keep)
+            keep[old[np.argsort(t[old], kind="stable")[-keep_last:]]] = True
         if not np.all(keep):
             self.arr = (t[keep], a[keep], b[keep])
-
-    def last(self) -> int | None:
-        t = self.arrays()[0]
-        return int(t[-1]) if t.size else None
+            self.arrival = self.arrival[keep]
 
 
 class RunSegmenterNode(BacNode):
     def __init__(self, **kwargs: Any) -> None:
         super().__init__("run_segmenter", **kwargs)
         self.config: SegmentConfig = declare_config(self, SegmentConfig, SEGMENT_PARAMS)
-        self.run_timeout_s = self.declare_float(
+        run_timeout = self.declare_float(
             "run_timeout_s",
-            300.0,
-            "a run not complete this long after READY_TO_DRIVE (ROS time) is invalid, s",
+            0.0,
+            "a run not complete this long after READY_TO_DRIVE (ROS time) is invalid, s; 0 = derived from the "
+            "segment: approach_time_s + the section (or the window) at the target speed, with margins",
+            0.0,
+            1e6,
+        )
+        self.approach_time_s = self.declare_float(
+            "approach_time_s",
+            60.0,
+            "with run_timeout_s 0: time the driver has to reach the segment after READY_TO_DRIVE (ROS time), s",
+            0.0,
+            1e6,
+        )
+        self.run_timeout_s = run_timeout or derived_run_timeout(self.config, self.approach_time_s)
+        self.no_data_timeout_s = self.declare_float(
+            "no_data_timeout_s",
+            30.0,
+            "a run without any IMU sample for this long (ROS time: a paused simulation clock never fires it) is "
+            "invalid, s",
             0.1,
             1e6,
         )
-        self.no_data_timeout_s = self.declare_float(
-            "no_data_timeout_s", 30.0, "a run without any IMU sample for this long (wall) is invalid, s", 0.1, 1e6
-        )
         self.pre_buffer_s = self.declare_float(
-            "pre_buffer_s", 5.0, "IMU/odometry kept from before the trial message arrived, s", 0.0, 600.0
+            "pre_buffer_s",
+            10.0,
+            "IMU/odometry that arrived this long (wall) before the trial message are kept for its run, s",
+            0.0,
+            600.0,
         )
         period = self.declare_float("check_period_s", 0.1, "how often a buffered run is checked, wall s", 0.005, 10.0)
         diag = self.declare_float("diagnostics_period_s", 1.0, "period of /diagnostics, wall s", 0.05, 60.0)
@@ -167,7 +201,7 @@ class RunSegmenterNode(BacNode):
         self.run: RunId | None = None
         self.run_start_ns = 0
         self.run_wall_start = 0.0
-        self.last_imu_wall = 0.0
+        self.last_imu_ros_ns = 0
         self.emitted: set[tuple[str, int, int]] = set()
         self.waiting_for = ""
         self.last_result = ""
@@ -187,12 +221,14 @@ class RunSegmenterNode(BacNode):
         self.create_timer(diag, self._diagnostics, clock=steady)
         where = self.references.path or "memory"
         self.get_logger().info(
-            f"{self.config.mode} mode at {self.config.target_speed_mps * 3.6:.1f} km/h; reference runs kept in {where}"
+            f"{self.config.mode} mode at {self.config.target_speed_mps * 3.6:.1f} km/h; run timeout "
+            f"{self.run_timeout_s:.0f} s{' (derived)' if not run_timeout else ''}; reference runs kept in {where}"
             + (f"; template {template}" if template else "")
         )
 
     # --- inputs -------------------------------------------------------------------------------------
     def _drain(self) -> None:
+        wall = time.monotonic()
         raws = self.imu_drain.take()
         if raws:
             d = cdr.imu(raws)
@@ -203,8 +239,8 @@ class RunSegmenterNode(BacNode):
                 q = np.array([m.angular_velocity.y for m in msgs])
             else:
                 t, az, q = d[0], d[1][:, 2].copy(), d[2][:, 1].copy()
-            self.imu.add(t, az, q)
-            self.last_imu_wall = time.monotonic()
+            self.imu.add(t, az, q, wall)
+            self.last_imu_ros_ns = self.get_clock().now().nanoseconds
         raws = self.odom_drain.take()
         if raws:
             o = cdr.odometry(raws)
@@ -215,7 +251,7 @@ class RunSegmenterNode(BacNode):
                     np.array([m.pose.pose.position.x for m in msgs]),
                     np.array([m.twist.twist.linear.x for m in msgs]),
                 )
-            self.odom.add(*o)
+            self.odom.add(*o, wall)
 
     def _on_trial(self, msg: Trial) -> None:
         key = (str(msg.campaign_id), int(msg.trial_id), int(msg.attempt))
@@ -228,8 +264,12 @@ class RunSegmenterNode(BacNode):
             self.run = RunId(*key)
             self.run_start_ns = msg.stamp.sec * 1_000_000_000 + msg.stamp.nanosec
             self.run_wall_start = time.monotonic()
-            self.last_imu_wall = max(self.last_imu_wall, self.run_wall_start)
-            self.get_logger().info(f"run {self.run} started: buffering ({self.config.mode} mode)")
+            self.last_imu_ros_ns = max(self.last_imu_ros_ns, self.get_clock().now().nanoseconds)
+            self.get_logger().info(
+                f"run {self.run} started: buffering ({self.config.mode} mode"
+                + (", a retry: waiting for a new drive" if self.run.attempt > 1 else "")
+                + ")"
+            )
             self._diagnostics()
         elif key == current:
             self._finish_invalid(f"cancelled: the trial entered state {msg.state} before the run was complete")
@@ -242,20 +282,16 @@ class RunSegmenterNode(BacNode):
         self._drain()
         now_ns = self.get_clock().now().nanoseconds
         if self.run is None:
-            # keep only the recent past while idle
-            newest = self.imu.last()
-            if newest is not None:
-                cutoff = newest - round(self.pre_buffer_s * 1e9)
-                self.imu.drop_before(cutoff)
-                self.odom.drop_before(cutoff)
+            self._forget_old()
             return
         imu, odom = self._series()
+        retry = self.run.attempt > 1
         try:
             ref = self.references.get(self.run.campaign_id)
-            status = run_status(imu, odom, self.config, self.run_start_ns, ref)
+            status = run_status(imu, odom, self.config, self.run_start_ns, ref, retry)
             self.waiting_for = status.waiting_for
             if status.complete:
-                self._emit(cut_run(imu, odom, self.config, self.run_start_ns, ref, self.run))
+                self._emit(cut_run(imu, odom, self.config, self.run_start_ns, ref, self.run, retry))
                 return
         except BacError as exc:  # an unusable reference: every run would fail the same way
             self.get_logger().error(f"run {self.run}: {exc}")
@@ -267,10 +303,15 @@ class RunSegmenterNode(BacNode):
             return
         elapsed = (now_ns - self.run_start_ns) / 1e9
         if elapsed > self.run_timeout_s:
-            seg = cut_run(imu, odom, self.config, self.run_start_ns, None, self.run)
-            self._finish_invalid(f"run timeout after {elapsed:.1f} s: {seg.reason or status.waiting_for}")
-        elif time.monotonic() - self.last_imu_wall > self.no_data_timeout_s:
+            self._finish_invalid(f"run timeout after {elapsed:.1f} s: still waiting for {status.waiting_for}")
+        elif (now_ns - max(self.last_imu_ros_ns, self.run_start_ns)) / 1e9 > self.no_data_timeout_s:
             self._finish_invalid(f"no IMU data (imu/vehicle) for {self.no_data_timeout_s:g} s during the run")
+
+    def _forget_old(self) -> None:
+        """While idle, keep what arrived in the last pre_buffer_s (wall) and the last odometry sample before it."""
+        cutoff = time.monotonic() - self.pre_buffer_s
+        self.imu.drop_arrived_before(cutoff)
+        self.odom.drop_arrived_before(cutoff, keep_last=1)
 
     def _finish_invalid(self, reason: str) -> None:
         assert self.run is not None
@@ -298,11 +339,7 @@ class RunSegmenterNode(BacNode):
         self.last_result = f"run {run}: " + ("valid" if seg.valid else f"invalid: {seg.reason}")
         self.run = None
         self.waiting_for = ""
-        newest = self.imu.last()
-        if newest is not None:
-            cutoff = newest - round(self.pre_buffer_s * 1e9)
-            self.imu.drop_before(cutoff)
-            self.odom.drop_before(cutoff)
+        self._forget_old()
         self._diagnostics()
 
     def _diagnostics(self) -> None:
@@ -343,6 +380,16 @@ class RunSegmenterNode(BacNode):
         self.imu_drain.destroy()
         self.odom_drain.destroy()
         super().destroy_node()
+
+
+def derived_run_timeout(config: SegmentConfig, approach_time_s: float) -> float:
+    """The run timeout when none is set: the approach, then the segment driven at the slowest accepted speed."""
+    slowest = config.target_speed_mps * (1.0 - config.speed_tolerance)
+    if config.mode == "distance":
+        drive = (config.distance_end_m + config.max_shift_m) / slowest
+    else:
+        drive = config.trigger_after_m / slowest + config.window_s + config.max_lag_s
+    return approach_time_s + 1.25 * drive + 5.0
 
 
 def to_msg(seg: Segment) -> RunSegment:
