@@ -7,7 +7,7 @@ import math
 import numpy as np
 import pytest
 
-from bac_common.progress import FOUND_GAP, ProgressError, found, gap, median_j, runs_to_optimum
+from bac_common.progress import FOUND_GAP, ProgressError, found, gap, median_j, runs_to_optimum, runs_to_stay_found
 
 
 def test_gap_values() -> None:
@@ -21,6 +21,13 @@ def test_gap_values() -> None:
 def test_runs_to_optimum_is_first_hit() -> None:
     assert runs_to_optimum([0.9, 0.3, 0.04, 0.2, 0.01]) == 3.0
     assert runs_to_optimum([0.9, 0.3]) == math.inf
+
+
+def test_runs_to_stay_found_ignores_a_lucky_early_recommendation() -> None:
+    assert runs_to_stay_found([0.04, 0.3, 0.2, 0.01, 0.0]) == 4.0  # the first run's hit was luck
+    assert runs_to_stay_found([0.01, 0.02]) == 1.0
+    assert runs_to_stay_found([0.01, 0.2]) == math.inf
+    assert runs_to_stay_found([]) == math.inf
 
 
 def test_median_j_of_a_known_function() -> None:

@@ -103,3 +103,126 @@ def test_car_profile_reaches_the_ecu_and_the_driver(
     assert read.returncode == 0, read.stdout + read.stderr
     values = {k.strip(): float(v) for k, v in (line.split("=") for line in read.stdout.splitlines() if " = " in line)}
     assert values == {"damping_front": 0.5, "damping_rear": 0.5}
+
+
+class RecordedCar:
+    """Plays a car's IMU (200 Hz, best effort) and cumulative odometry (50 Hz, reliable) in real time from a
+    timeline of standstills and recorded (simulated) bump runs, stamped with the wall clock as a driver would."""
+
+    def __init__(self, node: Any) -> None:
+        from nav_msgs.msg import Odometry
+        from sensor_msgs.msg import Imu
+
+        from bac_common.rosnode import QOS_STREAM_INPUT
+
+        self.Imu, self.Odometry = Imu, Odometry
+        self.node = node
+        self.imu_pub = node.create_publisher(Imu, "imu/data_raw", QOS_SENSOR)
+        self.odom_pub = node.create_publisher(Odometry, "vehicle/odom", QOS_STREAM_INPUT)
+        self.rng = np.random.default_rng(3)
+        self.distance = 0.0
+        self.drives: list[tuple[int, float]] = []  # (stamp of a drive's first sample, its true J)
+
+    def _imu(self, t: int, acc: np.ndarray, gyr: np.ndarray) -> None:
+        m = self.Imu()
+        m.header.stamp.sec, m.header.stamp.nanosec = divmod(t, 1_000_000_000)
+        m.header.frame_id = "imu_link"
+        m.linear_acceleration.x, m.linear_acceleration.y, m.linear_acceleration.z = (float(v) for v in acc)
+        m.angular_velocity.x, m.angular_velocity.y, m.angular_velocity.z = (float(v) for v in gyr)
+        self.imu_pub.publish(m)
+
+    def _odom(self, t: int, distance: float, speed: float) -> None:
+        o = self.Odometry()
+        o.header.stamp.sec, o.header.stamp.nanosec = divmod(t, 1_000_000_000)
+        o.header.frame_id = "odom"
+        o.pose.pose.position.x = distance
+        o.twist.twist.linear.x = speed
+        self.odom_pub.publish(o)
+
+    def _play(self, t_rel: np.ndarray, acc: np.ndarray, gyr: np.ndarray, o_rel: np.ndarray, dist: np.ndarray,
+              speed: np.ndarray) -> int:  # fmt: skip
+        """Publish the samples at their times (s, from now), paced by the wall clock; return the start stamp."""
+        import time
+
+        t0 = self.node.get_clock().now().nanoseconds
+        w0 = time.monotonic()
+        i = k = 0
+        while i < t_rel.size or k < o_rel.size:
+            now = time.monotonic() - w0
+            while i < t_rel.size and t_rel[i] <= now:
+                self._imu(t0 + round(t_rel[i] * 1e9), acc[i], gyr[i])
+                i += 1
+            while k < o_rel.size and o_rel[k] <= now:
+                self._odom(t0 + round(o_rel[k] * 1e9), float(dist[k]), float(speed[k]))
+                k += 1
+            time.sleep(0.002)  # pacing of the player, not a wait for a condition
+        return t0
+
+    def stand(self, seconds: float) -> None:
+        n = round(seconds * 200)
+        acc = np.tile([0.0, 0.0, 9.80665], (n, 1)) + self.rng.normal(0, 0.01, (n, 3))
+        gyr = self.rng.normal(0, 0.001, (n, 3))
+        m = round(seconds * 50)
+        self._play(np.arange(n) / 200, acc, gyr, np.arange(m) / 50, np.full(m, self.distance), np.zeros(m))
+
+    def drive(self, damping: float, seed: int) -> None:
+        from bac_sim.run import ImuSpec, simulate_run
+
+        imu = ImuSpec(rate_hz=200.0, mount_rpy_deg=(0.0, 0.0, 0.0), accel_bias=(0, 0, 0), gyro_bias=(0, 0, 0))
+        rec = simulate_run({"damping_front": damping, "damping_rear": damping}, "bump", seed=seed, imu=imu,
+                           run_in_s=2.0, run_out_s=1.0, odom_rate_hz=50.0)  # fmt: skip
+        t0 = self._play(rec.t - rec.t[0], rec.accel, rec.gyro, rec.odom_t, self.distance + rec.distance, rec.speed)
+        self.drives.append((t0, rec.j_true))
+        self.distance += float(rec.distance[-1])
+
+
+def test_car_profile_retry_waits_for_a_new_drive(
+    procs: Any, ros_context: Any, ros_env: dict[str, str], tmp_path: Path
+) -> None:
+    """The driver needs longer than the run timeout to come back round: attempt 1 times out while the car is on
+    its way to the bump, and the recorded drive goes on after attempt 2 was announced (its data arrives after
+    the timeout). Attempt 2 must not be scored on it: the car stops, moves off again, and that drive is scored."""
+    import json
+
+    channel = "239.74.163.11"
+    procs.python("ecu", ["-m", "bac_sim.ecu", "--interface", "udp_multicast", "--channel", channel,
+                         "--definition", str(DEFINITION)])  # fmt: skip
+    camp = tmp_path / "camp"
+    launcher = procs.python("car", ["-m", "bac_bringup.cli", "launch", "car", "--campaign-dir", str(camp),
+                                    "-p", "ecu_bridge.can.interface:=udp_multicast",
+                                    "-p", f"ecu_bridge.can.channel:={channel}",
+                                    "-p", "bo_agent.budget:=1", "-p", "bo_agent.confirmation_run:=false",
+                                    "-p", "run_segmenter.run_timeout_s:=12.0",
+                                    "-p", "run_segmenter.distance_origin:=run_start"])  # fmt: skip
+    node = ros_context.node("car_driver")
+    trials: list[Trial] = []
+    node.create_subscription(Trial, "bac/trial", trials.append, QOS_LATCHED)
+    car = RecordedCar(node)
+    wait_for(lambda: car.imu_pub.get_subscription_count() > 0, 60, what="imu_ingest subscribing imu/data_raw")
+
+    def ready(attempt: int) -> bool:
+        return any(t.state == Trial.STATE_READY_TO_DRIVE and t.attempt == attempt for t in trials)
+
+    def standing() -> bool:
+        car.stand(0.2)
+        return ready(1)
+
+    wait_for(standing, 90, interval=0.0, what="trial 1 ready to drive (the car standing still)")
+    car.stand(10.3)  # the driver is late: attempt 1 times out 12 s after it was announced, 1.5 s into drive 1
+    car.drive(0.1, seed=1)  # soft: its bump comes 0.8 s after attempt 2 was announced
+    assert ready(2), "attempt 1 did not time out during the first drive"
+    retry = next(t for t in trials if t.attempt == 2 and t.state == Trial.STATE_READY_TO_DRIVE)
+    assert "Go back before the start" in retry.instruction
+    car.stand(1.0)  # back at the start, stopped
+    car.drive(0.9, seed=2)  # firm: a very different J
+    car.stand(1.0)
+    assert launcher.wait(timeout=60) == 0, procs.log("car")
+
+    events = [json.loads(x) for x in (camp / "journal.jsonl").read_text().splitlines()]
+    rejected = [e for e in events if e["event"] == "run_rejected"]
+    assert [(e["attempt"], "run timeout" in e["reason"]) for e in rejected] == [(1, True)], rejected
+    (scored,) = [e for e in events if e["event"] == "trial_scored"]
+    assert scored["attempt"] == 2
+    (_, j1), (_, j2) = car.drives
+    assert abs(j1 - j2) > 0.1 * j1  # the two drives are told apart by their J (measured: 1.01 and 1.19)
+    assert scored["j"] == pytest.approx(j2, rel=0.03) and abs(scored["j"] - j1) > 0.1 * j1

@@ -56,6 +56,7 @@ from bac_msgs.msg import Calibration, RunScore, Trial
 from bac_msgs.srv import ApplyCalibration
 
 STRATEGIES = ("bo", "grid", "random")
+BACKSTOP_RUN_TIMEOUT_S = 3600.0  # run_timeout_s 0: the segmenter's verdict decides; this only guards a dead chain
 
 
 def resolve_definition(value: str) -> Path:
@@ -158,6 +159,15 @@ class BoAgentNode(BacNode):
             0.49,
             read_only=True,
         )
+        start_from = self.declare_str(
+            "start_from",
+            "guess",
+            "bo: guess = the first trial is the definition's best_guess when it has one (the simulation phase's "
+            "optimum, written by bac reduce; the paper's best-guess initialization), then the initial design; "
+            "design = the initial design alone",
+            choices=("guess", "design"),
+            read_only=True,
+        )
         grid_size = self.declare_int("grid_size", 4, "levels per dimension of the grid strategy", 1, 100, True)
         max_attempts = self.declare_int("max_attempts", 3, "runs per trial before it is given up", 1, 100)
         apply_timeout = self.declare_float("apply_timeout_s", 10.0, "time limit of one apply, s", 0.1, 600.0)
@@ -177,7 +187,13 @@ class BoAgentNode(BacNode):
             "service_wait_s", 15.0, "how long to wait for the ECU bridge's service to appear, s", 0.1, 3600.0
         )
         run_timeout = self.declare_float(
-            "run_timeout_s", 300.0, "ROS time from READY_TO_DRIVE to a score before the run counts invalid, s", 1.0, 1e6
+            "run_timeout_s",
+            0.0,
+            "ROS time from READY_TO_DRIVE to a score before the run counts invalid, s; 0 = the measurement chain "
+            f"decides (run_segmenter's run timeout, derived from the segment) and the agent waits at most "
+            f"{BACKSTOP_RUN_TIMEOUT_S:g} s (a dead chain)",
+            0.0,
+            1e6,
         )
         confirmation = self.declare_bool("confirmation_run", False, "drive the recommendation once more before DONE")
         max_failures = self.declare_int(
@@ -200,6 +216,9 @@ class BoAgentNode(BacNode):
         if len(journal) and not resume:
             journal.close()
             raise BacError(f"{cdir} already holds a campaign journal and resume is false: choose a new campaign_dir")
+        initial_points = (
+            (dict(self.definition.best_guess),) if start_from == "guess" and self.definition.best_guess else ()
+        )
         optimizer: Optimizer
         if self.strategy == "grid":
             grid = GridStrategy(self.definition, grid_size, seed)
@@ -218,6 +237,7 @@ class BoAgentNode(BacNode):
                     recommend_beta=recommend_beta,
                     output_warp=output_warp,
                     design_margin=design_margin,
+                    initial_points=initial_points,
                     gp=GPConfig(mean=gp_mean),
                 ),
             )
@@ -229,7 +249,7 @@ class BoAgentNode(BacNode):
             max_attempts=max_attempts,
             apply_retries=apply_retries,
             apply_timeout_s=apply_timeout,
-            run_timeout_s=run_timeout,
+            run_timeout_s=run_timeout or BACKSTOP_RUN_TIMEOUT_S,
             confirmation_run=confirmation,
             max_consecutive_failures=max_failures,
             busy_retry_s=busy_retry,
@@ -244,6 +264,8 @@ class BoAgentNode(BacNode):
                 "bowl_runs": optimizer.bowl_runs if isinstance(optimizer, Engine) else 0,
                 "output_warp": output_warp,
                 "design_margin": design_margin,
+                "start_from": start_from,
+                "initial_points": [dict(p) for p in initial_points],
             },
         )
         self.campaign = Campaign(

@@ -34,7 +34,7 @@ from enum import IntEnum
 from pathlib import Path
 from typing import Any, Protocol
 
-from bac_agent.bo.engine import KIND_GRID, KIND_INITIAL, KIND_OPTIMIZED, Recommendation, Suggestion
+from bac_agent.bo.engine import KIND_GRID, KIND_GUESS, KIND_INITIAL, KIND_OPTIMIZED, Recommendation, Suggestion
 from bac_agent.journal import SCHEMA_VERSION, Journal, JournalError, write_json_atomic
 from bac_common.errors import BacError
 
@@ -69,7 +69,12 @@ class Kind(IntEnum):
     MANUAL = 4
 
 
-_KIND_OF_SUGGESTION = {KIND_INITIAL: Kind.INITIAL, KIND_OPTIMIZED: Kind.OPTIMIZED, KIND_GRID: Kind.GRID}
+_KIND_OF_SUGGESTION = {
+    KIND_INITIAL: Kind.INITIAL,
+    KIND_GUESS: Kind.INITIAL,
+    KIND_OPTIMIZED: Kind.OPTIMIZED,
+    KIND_GRID: Kind.GRID,
+}
 
 
 class Optimizer(Protocol):
@@ -95,7 +100,7 @@ class CampaignConfig:
     max_attempts: int = 3  # runs per trial (invalid runs are repeated up to this count)
     apply_retries: int = 2  # further apply tries after a failed one
     apply_timeout_s: float = 10.0  # per apply try (given to the bridge too)
-    run_timeout_s: float = 120.0  # ROS time from READY_TO_DRIVE to a score
+    run_timeout_s: float = 3600.0  # ROS time from READY_TO_DRIVE to a score (a backstop: the segmenter decides)
     confirmation_run: bool = False
     max_consecutive_failures: int = 3
     busy_retry_s: float = 2.0  # an ECU that answers "busy" (vehicle moving) is asked again after this long
@@ -505,12 +510,15 @@ class Campaign:
         t.phase = State.READY_TO_DRIVE
         self._j("run_ready", trial_id=t.trial_id, attempt=t.attempt)
         what = "confirmation run of the recommendation" if t.kind == Kind.CONFIRMATION else f"trial {t.trial_id}"
+        if t.attempt > 1:
+            text = (
+                f"Go back before the start of the segment, then drive it again at the target speed ({what}, run "
+                f"{t.attempt}): only a new drive counts, the rest of the last run is not used."
+            )
+        else:
+            text = f"Drive the segment now at the target speed ({what}, run {t.attempt})."
         return [
-            self._status(
-                State.READY_TO_DRIVE,
-                f"Drive the segment now at the target speed ({what}, run {t.attempt}).",
-                t.last_reason,
-            ),
+            self._status(State.READY_TO_DRIVE, text, t.last_reason),
             AwaitRun(t.trial_id, t.attempt, self.cfg.run_timeout_s),
         ]
 
@@ -587,7 +595,7 @@ class Campaign:
         self._j("run_rejected", trial_id=t.trial_id, attempt=t.attempt, reason=reason)
         acts: list[Action] = [
             Log("warn", f"trial {t.trial_id} run {t.attempt} rejected: {reason}"),
-            self._status(State.REJECTED, f"Run rejected: {reason}. Drive the same segment again.", reason),
+            self._status(State.REJECTED, f"Run rejected: {reason}. The same calibration is driven again.", reason),
         ]
         if t.rejections >= self.cfg.max_attempts:
             return acts + self._fail(t, f"{t.rejections} invalid runs, the last: {reason}")

@@ -328,10 +328,24 @@ def plot_contour(campaign: Campaign, out: Path, truth: Any | None, baseline: Cam
             mean[i, k] = eng.predict(p)[0]
     panels = 2 if truth is not None and len(dims) == 2 else 1
     fig, axes = plt.subplots(1, panels, figsize=(6.2 * panels, 5.2), squeeze=False)
-    levels = np.linspace(np.nanmin(mean), np.nanmax(mean), 21)
     ax = axes[0, 0]
-    cs = ax.contourf(g0, g1, mean, levels=levels, cmap="viridis")
-    fig.colorbar(cs, ax=ax, label="posterior mean of J")
+    lo, hi = float(np.nanmin(mean)), float(np.nanmax(mean))
+    if np.isfinite(lo) and np.isfinite(hi) and hi - lo > 1e-12 * max(1.0, abs(hi)):
+        cs = ax.contourf(g0, g1, mean, levels=np.linspace(lo, hi, 21), cmap="viridis")
+        fig.colorbar(cs, ax=ax, label="posterior mean of J")
+    else:  # one run (or runs that agree exactly): the model is flat, there is nothing to shade
+        ax.set_facecolor("#eeeeee")
+        ax.text(
+            0.5,
+            0.5,
+            f"posterior mean flat (J = {lo:.4g}):\nthe model needs runs at two or more calibrations",
+            transform=ax.transAxes,
+            ha="center",
+            va="center",
+            fontsize=9,
+        )
+        ax.set_xlim(d0.lower, d0.upper)
+        ax.set_ylim(d1.lower, d1.upper)
     _draw_trials(ax, campaign, d0.name, d1.name)
     if baseline is not None:
         bx = [t.params[d0.name] for t in baseline.scored()]
@@ -502,12 +516,56 @@ def plot_signals(signals: Sequence[Signals], out: Path) -> tuple[Path | None, Pa
 # --- summary, HTML --------------------------------------------------------------------------------------------
 
 
+def campaign_status(campaign: Campaign) -> str:
+    """One sentence on how the campaign ended, for the top of the page."""
+    scored = campaign.scored()
+    trials = [t for t in campaign.trials if t.kind != 2]
+    failed = [t for t in trials if t.status == "failed"]
+    open_ = [t for t in campaign.trials if t.status == "proposed"]
+    if not scored:
+        if failed:
+            last = failed[-1].reason or "no reason given"
+            return f"No valid run: all {len(failed)} trials failed (the last: {last}). Nothing to model."
+        return "No valid run yet: nothing to model."
+    text = f"{len(scored)} of {len(trials)} trials scored"
+    if failed:
+        text += f", {len(failed)} failed"
+    if len(scored) == 1:
+        text += ". One valid run: the model is flat, no optimum can be located from it"
+    if campaign.recommendation is None:
+        text += "; no recommendation yet" + (" (a trial is in progress)" if open_ else "")
+    return text + "."
+
+
+def progress_by_run(campaign: Campaign, truth: Any) -> list[float]:
+    """The true gap of the recommendation the engine makes after each scored run (in trial order)."""
+    from bac_agent.bo import Engine, EngineConfig
+
+    scored = campaign.scored()
+    if campaign.strategy != "bo" or not scored:
+        return []
+    names = list(truth.names)
+    eng = Engine(
+        campaign.definition,
+        EngineConfig.from_dict(
+            {**campaign.engine_options, "budget": max(1, len(campaign.trials)), "seed": campaign.seed}
+        ),
+    )
+    recs = []
+    for t in scored:
+        eng.tell(t.params, t.j)
+        recs.append([eng.recommend().params[n] for n in names])
+    return [float(g) for g in truth.gap(truth.true_j(np.array(recs, dtype=float)))]
+
+
 def summary(campaign: Campaign, truth: Any | None) -> dict[str, Any]:
     scored = campaign.scored()
     s: dict[str, Any] = {
         "campaign_id": campaign.campaign_id,
         "strategy": campaign.strategy,
+        "status": campaign_status(campaign),
         "trials": len([t for t in campaign.trials if t.kind != 2]),
+        "scored_trials": len(scored),
         "runs_driven": sum(max(t.attempts, 1 if t.status == "scored" else 0) for t in campaign.trials),
         "failed_trials": sum(t.status == "failed" for t in campaign.trials),
         "best_observed_j": min((t.j for t in scored), default=math.nan),
@@ -525,6 +583,14 @@ def summary(campaign: Campaign, truth: Any | None) -> dict[str, Any]:
             jb = float(truth.true_j(np.array([[best.params[n] for n in names]]))[0])
             s["true_j_of_best_observed"] = jb
             s["gap_of_best_observed"] = float(truth.gap(jb))
+    if truth is not None and scored:
+        from bac_common.progress import runs_to_optimum, runs_to_stay_found
+
+        gaps = progress_by_run(campaign, truth)
+        if gaps:
+            s["gap_after_each_run"] = gaps
+            s["runs_to_optimum"] = runs_to_optimum(gaps)
+            s["runs_to_stay_found"] = runs_to_stay_found(gaps)
     return s
 
 
@@ -566,7 +632,7 @@ def write_html(
             ["trials", str(s["trials"])],
             ["runs driven", str(s["runs_driven"])],
             ["failed trials", str(s["failed_trials"])],
-            ["best observed J", f"{s['best_observed_j']:.5f}"],
+            ["best observed J", f"{s['best_observed_j']:.5f}" if math.isfinite(s["best_observed_j"]) else "none"],
         ]
         if rec:
             out_rows.append(["recommendation", html.escape(_fmt_params(rec.get("params", {}), 8))])
@@ -586,6 +652,15 @@ def write_html(
             out_rows.append(["gap of the recommendation", f"{100 * s['gap']:.2f} %"])
         if "true_j_of_best_observed" in s:
             out_rows.append(["gap of the best observed trial", f"{100 * s['gap_of_best_observed']:.2f} %"])
+        if "runs_to_optimum" in s:
+            r, r2 = s["runs_to_optimum"], s["runs_to_stay_found"]
+            out_rows.append(
+                [
+                    "optimum found (recommendation's gap <= 5 %)",
+                    (f"first after {r:.0f} runs" if math.isfinite(r) else "not within these runs")
+                    + (f", for good after {r2:.0f}" if math.isfinite(r2) else ""),
+                ]
+            )
         return out_rows
 
     parts = [
@@ -593,7 +668,8 @@ def write_html(
         f"<title>bac campaign {html.escape(campaign.campaign_id)}</title>",
         "<style>body{font-family:sans-serif;max-width:1300px;margin:auto;padding:1em}"
         "table{border-collapse:collapse;margin:1em 0}td,th{border:1px solid #bbb;padding:3px 8px;font-size:13px}"
-        "th{background:#eee}img{max-width:100%;border:1px solid #ddd;margin:0.5em 0}</style></head><body>",
+        "th{background:#eee}img{max-width:100%;border:1px solid #ddd;margin:0.5em 0}"
+        ".status{font-size:1.1em;font-weight:bold}</style></head><body>",
         f"<h1>Calibration campaign {html.escape(campaign.campaign_id)}</h1>",
         f"<p>{html.escape(campaign.definition.description or campaign.definition.name)}; folder "
         f"<code>{html.escape(str(campaign.path))}</code></p>",
@@ -607,6 +683,7 @@ def write_html(
         _ = keys
     else:
         parts.append("<h2>Summary</h2>")
+        parts.append(f"<p class='status'>{html.escape(summ.get('status', ''))}</p>")
         parts.append(_table(summary_rows(summ), ["", ""]))
     for f in figures:
         parts.append(f"<h3>{html.escape(f.stem.replace('_', ' '))}</h3><img src='{html.escape(f.name)}'>")

@@ -85,6 +85,8 @@ class JournalFollower:
                 2: "confirmation of the recommendation",
                 3: "grid point",
             }.get(int(e.get("kind", 1)), "")
+            if e.get("reason") == "guess":
+                what = "best guess: the simulation phase's optimum"
             out(f"  trial {tid}/{self.budget}: driving {_fmt(e.get('params', {}))}  ({what})")
         elif kind == "trial_scored":
             j = float(e["j"])
@@ -146,6 +148,17 @@ def run_campaign(
             raise
     follower.poll()
     return int(proc.returncode)
+
+
+def published_rates(log: Path) -> list[float]:
+    """The real-time factor each run was published at, from vehicle_sim's log."""
+    import re
+
+    try:
+        text = log.read_text(errors="replace")
+    except OSError:
+        return []
+    return [float(x) for x in re.findall(r"of wall time, (\d+(?:\.\d+)?)x real time", text)]
 
 
 def show_failure(campaign_dir: Path) -> None:
@@ -232,8 +245,18 @@ def main(argv: Sequence[str] | None = None) -> int:
     if rc != 0 or not (camp / "recommendation.json").exists():
         out(f"bac demo: the campaign failed (launcher exit code {rc}); node logs in {camp / 'logs'}")
         show_failure(camp)
+        page = _failure_report(camp, problem_name, truth)
+        if page:
+            out(f"report of what was driven: {page}")
         return rc or 1
     out(f"campaign done in {wall:.0f} s of wall time")
+    rates = published_rates(camp / "logs" / "vehicle_sim.log")
+    if rates:
+        median = sorted(rates)[len(rates) // 2]
+        out(
+            f"  runs published at {min(rates):.1f}-{max(rates):.1f}x real time (median {median:.1f}x; "
+            "vehicle_sim.log says why when a run fell short of the requested rate by more than 20 %)"
+        )
 
     baseline = None
     if args.with_grid:
@@ -279,9 +302,32 @@ def main(argv: Sequence[str] | None = None) -> int:
             f"grid baseline: {b['trials']} trials, best observed J {b['best_observed_j']:.4f}, "
             f"gap of its best point {100 * b.get('gap_of_best_observed', math.nan):.1f} %"
         )
+    if "runs_to_optimum" in s:
+        r, r2 = s["runs_to_optimum"], s["runs_to_stay_found"]
+        out(
+            "  the recommendation came within gap 0.05 of the optimum "
+            + (f"first after {r:.0f} runs" if math.isfinite(r) else "after none of the runs (not found)")
+            + (f", for good after {r2:.0f} runs" if math.isfinite(r2) else "")
+        )
     out(f"report: {result['html']}")
     out(f"recommendation_gap_pct {100 * s['gap']:.2f}")
     return 0
+
+
+def _failure_report(camp: Path, problem_name: str, truth: Any) -> str | None:
+    """The report of a campaign that failed: what it drove, why it ended (never a traceback)."""
+    from bac_agent.report import make_report
+    from bac_common.errors import BacError
+
+    if not (camp / "journal.jsonl").exists():
+        return None
+    try:
+        result = make_report(camp, truth_name=None if truth is not None else problem_name, truth=truth)
+    except (BacError, OSError, ValueError) as exc:
+        out(f"bac demo: no report either: {exc}")
+        return None
+    out(f"  {result['summary'].get('status', '')}")
+    return str(result["html"])
 
 
 if __name__ == "__main__":

@@ -49,6 +49,19 @@ def runs_to_optimum(gaps: Sequence[float] | NDArray[np.float64], threshold: floa
     return float(hit[0] + 1) if hit.size else float("inf")
 
 
+def runs_to_stay_found(gaps: Sequence[float] | NDArray[np.float64], threshold: float = FOUND_GAP) -> float:
+    """Number of runs after which every later recommendation had gap <= threshold (found for good).
+
+    A recommendation after one or two runs can land near the optimum by chance (a flat model's argmin);
+    this one cannot. Returns ``inf`` when the last recommendation is not within the threshold.
+    """
+    ok = found(np.asarray(gaps, dtype=float), threshold)
+    if ok.size == 0 or not ok[-1]:
+        return float("inf")
+    bad = np.flatnonzero(~ok)
+    return float(bad[-1] + 2) if bad.size else 1.0
+
+
 def median_j(
     true_j: Callable[[NDArray[np.float64]], NDArray[np.float64]],
     bounds: ArrayLike,
