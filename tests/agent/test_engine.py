@@ -205,6 +205,25 @@ def test_bowl_mean_only_for_the_first_runs() -> None:
         EngineConfig(bowl_runs=-1)
 
 
+def test_best_guesses_are_asked_first_and_the_design_still_spans_the_space() -> None:
+    space = {"a": (0.0, 1.0), "b": (0.0, 1.0)}
+    plain = Engine(space, EngineConfig(n_initial=5, seed=4))
+    guessed = Engine(space, EngineConfig(n_initial=5, seed=4, initial_points=({"a": 0.0, "b": 1.0},)))
+    plain_pts = [plain.ask_with_info() for _ in range(5)]
+    asks = [guessed.ask_with_info() for _ in range(5)]
+    assert asks[0].params == {"a": 0.0, "b": 1.0} and asks[0].kind == "guess"
+    assert all(s.kind == "initial" for s in asks[1:])
+    # the guess took the place of the design point nearest to it; the other four are the plain design's
+    rest = [tuple(s.params.values()) for s in asks[1:]]
+    kept = [tuple(s.params.values()) for s in plain_pts]
+    assert len(set(rest) & set(kept)) == 4
+    nearest = min(kept, key=lambda p: (p[0] - 0.0) ** 2 + (p[1] - 1.0) ** 2)
+    assert nearest not in rest
+    # the configuration carries the guesses through JSON
+    again = Engine.from_json(guessed.to_json())
+    assert again.config.initial_points == ({"a": 0.0, "b": 1.0},)
+
+
 def test_two_asks_without_tell_differ_and_tell_clears_pending() -> None:
     eng = Engine({"a": (0.0, 1.0), "b": (0.0, 1.0)}, budget=10, n_initial=3, seed=0)
     for _ in range(3):

@@ -55,3 +55,28 @@ def test_a_meta_parameter_campaign_runs_through_the_graph(ros_env: dict[str, str
     assert float(m.group(1)) == pytest.approx(100 * summary["gap"], abs=0.006)
     assert summary["true_j_of_recommendation"] >= summary["j_star"] - 1e-9
     assert "J* " in proc.stdout and "noise-free simulator" in proc.stdout
+
+
+def test_the_controller_ii_meta_parameter_file_runs_through_the_graph(ros_env: dict[str, str], tmp_path: Path) -> None:
+    """The paper's experimental phase: Controller II on the test road through the shipped meta-parameter file
+    (the bridge expands two meta-parameters into 20 raw parameters). The first trial is the file's best guess;
+    no trial fails, the report is drawn and the recommendation is the reduced problem's optimum."""
+    camp = tmp_path / "c2"
+    definition = ROOT / "ros_ws" / "config" / "calibrations" / "controller_ii_reduced.yaml"
+    proc = subprocess.run(
+        [sys.executable, "-m", "bac_bringup.cli", "demo", "--scenario", "road", "--definition", str(definition),
+         "--budget", "2", "--campaign-dir", str(camp), "--timeout", "400"],
+        env=ros_env, capture_output=True, text=True, timeout=600, check=False,
+    )  # fmt: skip
+    assert proc.returncode == 0, proc.stdout[-3000:] + proc.stderr[-3000:]
+    assert "Traceback" not in proc.stdout + proc.stderr
+    events = [json.loads(x) for x in (camp / "journal.jsonl").read_text().splitlines()]
+    proposed = [e for e in events if e["event"] == "trial_proposed"]
+    assert proposed[0]["reason"] == "guess" and proposed[0]["params"] == {"m1": 0.0, "m2": 1000.0}
+    assert not [e for e in events if e["event"] in ("trial_failed", "run_rejected")]
+    applied = [e for e in events if e["event"] == "apply_result" and e["success"]]
+    assert applied and all(len(e["applied"]) == 20 for e in applied)  # every raw parameter confirmed
+    summary = json.loads((camp / "report" / "summary.json").read_text())["summary"]
+    assert summary["failed_trials"] == 0 and summary["gap"] <= 0.05
+    assert (camp / "report" / "gp_contour.png").exists()
+    assert "best guess: the simulation phase's optimum" in proc.stdout

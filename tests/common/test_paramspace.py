@@ -95,3 +95,16 @@ def test_yaml_round_trip(tmp_path: Path) -> None:
     d = controller_ii(tuned=("m1", "p08"), meta=(MetaParameter("m1", ("p05", "p06", "p07"), 0.0, 1000.0),))
     d.save(tmp_path / "d.yaml")
     assert CalibrationDefinition.load(tmp_path / "d.yaml") == d
+
+
+def test_best_guess_is_kept_checked_and_round_trips(tmp_path: Path) -> None:
+    meta = (MetaParameter("m1", ("p05", "p06"), 0.0, 1000.0),)
+    d = controller_ii(tuned=("m1", "p08"), meta=meta, best_guess={"m1": 0.0, "p08": 750.0})
+    d.save(tmp_path / "d.yaml")
+    assert CalibrationDefinition.load(tmp_path / "d.yaml").best_guess == {"m1": 0.0, "p08": 750.0}
+    with pytest.raises(DefinitionError, match="every tuned dimension"):
+        controller_ii(tuned=("m1", "p08"), meta=meta, best_guess={"m1": 0.0})
+    with pytest.raises(DefinitionError, match="outside"):
+        controller_ii(tuned=("m1", "p08"), meta=meta, best_guess={"m1": 1200.0, "p08": 1.0})
+    shipped = CalibrationDefinition.load(CALIB / "controller_ii_reduced.yaml")
+    assert set(shipped.best_guess) == set(shipped.tuned)

@@ -27,6 +27,7 @@ The YAML form (see ``ros_ws/config/calibrations/``)::
     meta:                                               # optional
       - {name: m1, members: [p05, p06, p07], lower: 0, upper: 1000}
     fixed: {p01: 500.0}                                 # raw values held fixed, default: nominal
+    best_guess: {m1: 0.0}                               # optional: where the optimum is expected (bac reduce)
 """
 
 from __future__ import annotations
@@ -127,6 +128,9 @@ class CalibrationDefinition:
     fixed: Mapping[str, float] = field(default_factory=dict)
     baseline: Mapping[str, float] = field(default_factory=dict)
     description: str = ""
+    # a best guess of the optimum over the tuned dimensions (e.g. the simulation phase's reduced optimum, written
+    # by `bac reduce`): the agent may drive it first (the paper's "best guess policy" of the initialization)
+    best_guess: Mapping[str, float] = field(default_factory=dict)
 
     def __post_init__(self) -> None:
         names = [p.name for p in self.parameters]
@@ -173,6 +177,21 @@ class CalibrationDefinition:
                     raise DefinitionError(f"parameters both fixed and tuned: {sorted(clash)}")
         object.__setattr__(self, "fixed", dict(self.fixed))
         object.__setattr__(self, "baseline", dict(self.baseline))
+        guess = {str(k): float(v) for k, v in self.best_guess.items()}
+        if guess:
+            if set(guess) != set(tuned):
+                raise DefinitionError(
+                    f"definition '{self.name}': best_guess must give every tuned dimension ({', '.join(tuned)}), "
+                    f"got {', '.join(sorted(guess))}"
+                )
+            for dim in self.dimensions:
+                v = guess[dim.name]
+                if not (dim.lower <= v <= dim.upper):
+                    raise DefinitionError(
+                        f"definition '{self.name}': best_guess {dim.name} = {v:g} is outside [{dim.lower:g}, "
+                        f"{dim.upper:g}]"
+                    )
+        object.__setattr__(self, "best_guess", guess)
 
     # --- look-ups ------------------------------------------------------------------
     @property
@@ -277,6 +296,8 @@ class CalibrationDefinition:
             "fixed": dict(self.fixed),
             "baseline": dict(self.baseline),
         }
+        if self.best_guess:
+            out["best_guess"] = dict(self.best_guess)
         return out
 
     @classmethod
@@ -313,6 +334,7 @@ class CalibrationDefinition:
                 meta=meta,
                 fixed={str(k): float(v) for k, v in (data.get("fixed") or {}).items()},
                 baseline={str(k): float(v) for k, v in (data.get("baseline") or {}).items()},
+                best_guess={str(k): float(v) for k, v in (data.get("best_guess") or {}).items()},
             )
         except (KeyError, TypeError) as exc:
             raise DefinitionError(f"malformed calibration definition: missing or wrong field {exc}") from exc

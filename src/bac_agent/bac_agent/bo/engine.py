@@ -49,6 +49,7 @@ FloatArray = NDArray[np.float64]
 
 STATE_VERSION = 1
 KIND_INITIAL = "initial"
+KIND_GUESS = "guess"  # a best guess given with the configuration (initial_points), asked first
 KIND_OPTIMIZED = "optimized"
 KIND_RANDOM = "random"
 KIND_GRID = "grid"
@@ -108,6 +109,9 @@ class EngineConfig:
     bowl_runs: int = 0
     # "yeo-johnson": the GP is fitted to the runs through a fitted power transform (bo/warp.py); "none": as told
     output_warp: str = "yeo-johnson"
+    # best guesses (tuned values by name) asked first, in place of the first points of the initial design (the
+    # paper's "best guess policy"): e.g. the simulation phase's optimum of a meta-parameter file
+    initial_points: tuple[Mapping[str, float], ...] = ()
     gp: GPConfig = field(default_factory=GPConfig)
 
     def __post_init__(self) -> None:
@@ -127,11 +131,15 @@ class EngineConfig:
     def to_dict(self) -> dict[str, Any]:
         d = asdict(self)
         d["gp"] = asdict(self.gp)
+        d["initial_points"] = [dict(p) for p in self.initial_points]
         return d
 
     @classmethod
     def from_dict(cls, d: Mapping[str, Any]) -> EngineConfig:
         data = dict(d)
+        data["initial_points"] = tuple(
+            {str(k): float(v) for k, v in p.items()} for p in data.get("initial_points") or ()
+        )
         gp = dict(data.pop("gp", {}) or {})
         for k in ("ls_bounds", "os_bounds"):
             if k in gp:
@@ -206,6 +214,16 @@ class Engine:
         self._gp_key: tuple[int, int] | None = None
         self._warp = OutputWarp()  # refitted with the GP; a pure function of the observations
         self._design = initial_design(self.n_initial, self.space.dim, self.config.seed, self.config.design_margin)
+        self._n_guess = 0
+        if self.config.initial_points:
+            guesses = self.space.to_unit(np.array([self.space.to_array(p) for p in self.config.initial_points]))
+            n_g = min(guesses.shape[0], self._design.shape[0])
+            # the guesses first; each takes the place of the design point nearest to it, the rest still spans
+            remaining = list(range(self._design.shape[0]))
+            for g in guesses[:n_g]:
+                remaining.remove(min(remaining, key=lambda i: float(np.sum((self._design[i] - g) ** 2))))
+            self._design = np.vstack([guesses[:n_g], self._design[remaining]])
+            self._n_guess = n_g
 
     # --- facts ------------------------------------------------------------------------
     @property
@@ -253,7 +271,7 @@ class Engine:
         k = self.n_trials + len(self.pending)
         if k < self.n_initial and k < self._design.shape[0]:
             u = self._design[k]
-            s = self._suggest(u, KIND_INITIAL)
+            s = self._suggest(u, KIND_GUESS if k < self._n_guess else KIND_INITIAL)
         elif len(self.observations) < 2 or float(np.ptp([o.value for o in self.observations])) == 0.0:
             s = self._suggest(self.rng.random(self.space.dim), KIND_RANDOM)
         else:

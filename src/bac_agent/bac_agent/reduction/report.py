@@ -4,13 +4,14 @@ from __future__ import annotations
 
 import json
 import math
+from dataclasses import replace
 from datetime import UTC, datetime
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
-from bac_agent.reduction.pipeline import ReductionResult
+from bac_agent.reduction.pipeline import ReductionResult, start_point
 
 
 def format_report(result: ReductionResult) -> str:
@@ -160,7 +161,22 @@ def definition_text(result: ReductionResult) -> str:
             f"(best full optimum found {v.j_full_best:.5f}: {v.loss_pct:+.2f} %)"
         )
     head.append("# Load it with definition_file: <this path> (ecu_bridge, bo_agent, vehicle_sim).")
-    return "\n".join(head) + "\n" + yaml.safe_dump(result.definition.to_dict(), sort_keys=False)
+    head.append(
+        "# best_guess: the simulation phase's optimum of the reduced problem; bo_agent drives it first "
+        "(start_from: guess)"
+    )
+    return "\n".join(head) + "\n" + yaml.safe_dump(with_best_guess(result).to_dict(), sort_keys=False)
+
+
+def with_best_guess(result: ReductionResult) -> Any:
+    """The reduced definition carrying the phase's optimum as its best guess (validation's, else θ̄ through it)."""
+    v = result.validation
+    guess = dict(v.reduced_optimum) if v is not None and v.reduced_optimum else start_point(result)
+    dims = {d.name: d for d in result.definition.dimensions}
+    if set(guess) != set(dims):
+        return result.definition
+    guess = {n: min(max(float(x), dims[n].lower), dims[n].upper) for n, x in guess.items()}
+    return replace(result.definition, best_guess=guess)
 
 
 def _finite(x: Any) -> Any:
