@@ -6,12 +6,12 @@ bac_sim is not installed), its IMU at 500 Hz, is written to an mcap bag.
 Measured in the same process, median of ``--repeat`` repetitions:
 
 * ``read_bag``: reading the IMU and odometry back from the bag into arrays
-  (``bac_agent.bagio``, vectorized CDR), beside the baseline of deserializing
+  (``bac_measure.bagio``, vectorized CDR), beside the baseline of deserializing
   each message with rosbags;
 * ``ingest``: the raw stream to the vehicle-frame stream at 500 Hz (``bac_imu.ingest``);
 * ``segment``: cut and align the run against a reference run (distance grid, +-20 m
-  cross-correlation search, cubic re-sampling; ``bac_agent.segmentation.cut_run``);
-* ``score``: J, Wk-weighted RMS, VDV and Welch spectra (``bac_agent.kpi.score``).
+  cross-correlation search, cubic re-sampling; ``bac_measure.segmentation.cut_run``);
+* ``score``: J, Wk-weighted RMS, VDV and Welch spectra (``bac_measure.kpi.score``).
 
 Ratios are against the bag read measured in the same run and against the run's
 own 90 s. LAST line: ``segment_and_score_s <x>`` (goal: x <= 0.3).
@@ -32,10 +32,10 @@ from typing import Any
 
 import numpy as np
 
-from bac_agent.bagio import ImuArrays, OdomArrays, read_run, write_bag
-from bac_agent.kpi import KpiConfig, score
-from bac_agent.segmentation import ImuSeries, OdomSeries, Reference, SegmentConfig, cut_run
 from bac_imu.ingest import GRAVITY, IngestConfig, ingest_all
+from bac_measure.bagio import ImuArrays, OdomArrays, read_run, write_bag
+from bac_measure.kpi import KpiConfig, score
+from bac_measure.segmentation import ImuSeries, OdomSeries, Reference, SegmentConfig, cut_run
 
 NS = 1_000_000_000
 T0 = 1_700_000_000 * NS
@@ -166,7 +166,7 @@ def main(argv: list[str] | None = None) -> int:
 def _deserialize_all(bag: Path) -> int:
     from rosbags.highlevel import AnyReader
 
-    from bac_agent.recording import bac_typestore
+    from bac_measure.recording import bac_typestore
 
     n = 0
     with AnyReader([bag], default_typestore=bac_typestore()) as r:

@@ -30,10 +30,10 @@ import numpy as np
 
 from bac_agent.bo import Engine, EngineConfig
 from bac_agent.bo.baselines import RandomStrategy
-from bac_agent.reduction.objectives import SimulatedCar
-from bac_agent.reduction.truth import definition_truth
 from bac_common.paramspace import CalibrationDefinition
 from bac_common.progress import FOUND_GAP, gap, runs_to_optimum, runs_to_stay_found
+from bac_reduce.objectives import SimulatedCar
+from bac_reduce.truth import definition_truth
 
 
 def run(

@@ -15,7 +15,7 @@ ROOT=$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)
 cd "$ROOT"
 VENV="$ROOT/.venv"
 STAMPS="$VENV/.bac"
-PY_PKGS=(bac_common bac_ecu_bridge bac_imu bac_sim bac_agent bac_bringup)
+PY_PKGS=(bac_common bac_ecu_bridge bac_imu bac_measure bac_sim bac_agent bac_reduce bac_campaign bac_bringup)
 WITH_BENCH=0
 for arg in "$@"; do
   case "$arg" in
@@ -105,7 +105,7 @@ fi
 # --- the bac_* Python packages (ament_python), editable -----------------------------
 pkg_files=()
 for p in "${PY_PKGS[@]}"; do pkg_files+=("src/$p/setup.py" "src/$p/setup.cfg" "src/$p/package.xml"); done
-pkgs_hash=$(hash_files "${pkg_files[@]}")
+pkgs_hash=$(hash_files "${pkg_files[@]}" scripts/setup.sh)
 if ! stamp_ok packages "$pkgs_hash"; then
   say "installing the bac packages (editable): ${PY_PKGS[*]}"
   args=()
@@ -115,6 +115,11 @@ if ! stamp_ok packages "$pkgs_hash"; then
   for p in "${PY_PKGS[@]}"; do
     install -D -m 644 "src/$p/resource/$p" "$VENV/share/ament_index/resource_index/packages/$p"
     install -D -m 644 "src/$p/package.xml" "$VENV/share/$p/package.xml"
+  done
+  # the packages' data in share/, linked to the source folders (as colcon build --symlink-install would)
+  for d in bac_common/calibrations bac_bringup/profiles bac_bringup/params bac_ecu_bridge/bac_ecu_bridge/dbc; do
+    p=${d%%/*}
+    ln -sfn "$ROOT/src/$d" "$VENV/share/$p/$(basename "$d")"
   done
   stamp_set packages "$pkgs_hash"
 fi

@@ -16,15 +16,12 @@ setup(
     maintainer="bac developers",
     maintainer_email="bac@example.org",
     description=(
-        "Algorithm 1 of bac: run segmentation (cut and align), KPI scoring, the Bayesian- "
-        "optimization engine and agent node with its campaign journal, the simulation-phase "
-        "parameter reduction, rescoring and reports."
+        "The Bayesian-optimization agent of bac (paper algorithm 1): the ask/tell engine, the campaign state "
+        "machine and its journal, the bo_agent node."
     ),
     license="Apache-2.0",
     entry_points={
         "console_scripts": [
-            "run_segmenter = bac_agent.segmenter_node:main",
-            "kpi_scorer = bac_agent.scorer_node:main",
             "bo_agent = bac_agent.agent_node:main",
         ],
     },

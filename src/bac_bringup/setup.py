@@ -1,3 +1,5 @@
+from glob import glob
+
 from setuptools import find_packages, setup
 
 package_name = "bac_bringup"
@@ -9,6 +11,8 @@ setup(
     data_files=[
         ("share/ament_index/resource_index/packages", ["resource/" + package_name]),
         ("share/" + package_name, ["package.xml"]),
+        ("share/" + package_name + "/profiles", sorted(glob("profiles/*.yaml"))),
+        ("share/" + package_name + "/params", sorted(glob("params/*.yaml"))),
     ],
     package_data={package_name: ["py.typed"]},
     install_requires=["setuptools"],

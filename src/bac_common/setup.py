@@ -1,3 +1,5 @@
+from glob import glob
+
 from setuptools import find_packages, setup
 
 package_name = "bac_common"
@@ -9,6 +11,7 @@ setup(
     data_files=[
         ("share/ament_index/resource_index/packages", ["resource/" + package_name]),
         ("share/" + package_name, ["package.xml"]),
+        ("share/" + package_name + "/calibrations", sorted(glob("calibrations/*.yaml"))),
     ],
     package_data={package_name: ["py.typed"]},
     install_requires=["setuptools"],

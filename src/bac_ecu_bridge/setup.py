@@ -1,3 +1,5 @@
+from glob import glob
+
 from setuptools import find_packages, setup
 
 package_name = "bac_ecu_bridge"
@@ -9,6 +11,7 @@ setup(
     data_files=[
         ("share/ament_index/resource_index/packages", ["resource/" + package_name]),
         ("share/" + package_name, ["package.xml"]),
+        ("share/" + package_name + "/dbc", sorted(glob("bac_ecu_bridge/dbc/*.dbc"))),
     ],
     package_data={package_name: ["py.typed", "dbc/*.dbc"]},
     install_requires=["setuptools"],

@@ -11,7 +11,7 @@ from typing import Any
 
 import pytest
 
-from bac_agent.report import load_campaign
+from bac_campaign.report import load_campaign
 
 from conftest import wait_for
 

@@ -19,13 +19,13 @@ import pytest
 from rosbags.highlevel import AnyReader
 
 from bac_agent.journal import read_journal
-from bac_agent.recording import bac_typestore
-from bac_agent.rescore import rescore
+from bac_campaign.rescore import rescore
+from bac_measure.recording import bac_typestore
 
 from conftest import ROOT
 
 pytestmark = [pytest.mark.integration, pytest.mark.slow]
-REAL_BAG = ROOT.parent / "shared" / "data" / "real_imu" / "robot_localization_test2.bag"
+REAL_BAG = ROOT / "src" / "bac_measure" / "test" / "data" / "robot_localization_test2.bag"
 BUDGET = 8
 
 
@@ -99,7 +99,9 @@ def test_replay_into_the_live_chain_gives_the_same_j(campaign: Path, ros_env: di
         assert abs(r["replayed_j"] - r["recorded_j"]) <= 1e-9, r
 
 
-def test_the_recommendation_beats_the_best_initial_trial(campaign: Path) -> None:
+def test_the_recommendation_is_the_optimum_and_no_worse_than_the_best_initial_trial(campaign: Path) -> None:
+    """Found (true gap <= 0.05) after 8 runs, and not worse than the best run of the initial design by more than
+    1 % of the J range (when that run is itself next to the optimum, the two differ by less than the noise)."""
     from bac_sim.problems import get_problem
 
     events = read_journal(campaign / "journal.jsonl").events
@@ -110,11 +112,12 @@ def test_the_recommendation_beats_the_best_initial_trial(campaign: Path) -> None
     p = get_problem("bump_c1")
     names = list(p.names)
     j_rec, j_init = p.true_j(np.array([[rec[n] for n in names], [best_initial["params"][n] for n in names]]))
-    assert j_rec < j_init, (rec, best_initial["params"], j_rec, j_init)
+    g_rec, g_init = float(p.gap(j_rec)), float(p.gap(j_init))
+    assert g_rec <= 0.05 and g_rec <= g_init + 0.01, (rec, best_initial["params"], g_rec, g_init)
 
 
 def test_the_report_is_made(campaign: Path) -> None:
-    from bac_agent.report import make_report
+    from bac_campaign.report import make_report
 
     result = make_report(campaign, truth_name="bump_c1")
     names = {Path(f).name for f in result["figures"]}

@@ -9,8 +9,8 @@ from typing import Any
 import pytest
 from rosbags.highlevel import AnyReader
 
-from bac_agent.recording import bac_typestore
 from bac_common.rosnode import QOS_EVENTS, QOS_LATCHED, QOS_STREAM
+from bac_measure.recording import bac_typestore
 from bac_msgs.msg import RunScore, Trial
 
 from conftest import wait_for
@@ -58,7 +58,7 @@ def test_one_bag_per_trial(procs: Any, ros_context: Any, tmp_path: Path) -> None
     camp = tmp_path / "campaign"
     procs.python(
         "recorder",
-        ["-m", "bac_agent.recorder_node", "--ros-args", "-p", f"campaign_dir:={camp}", "-p", "close_grace_s:=5.0"],
+        ["-m", "bac_campaign.recorder_node", "--ros-args", "-p", f"campaign_dir:={camp}", "-p", "close_grace_s:=5.0"],
     )
     node = ros_context.node("feeder")
     p_trial = node.create_publisher(Trial, "bac/trial", QOS_LATCHED)
@@ -100,7 +100,7 @@ def test_one_bag_per_trial(procs: Any, ros_context: Any, tmp_path: Path) -> None
 def test_bag_bytes_deserialize_with_rclpy(tmp_path: Path) -> None:
     from rclpy.serialization import deserialize_message, serialize_message
 
-    from bac_agent.recording import TrialBagWriter
+    from bac_measure.recording import TrialBagWriter
 
     msg = RunScore(campaign_id="x", trial_id=3, attempt=2, j=0.75, psd_accel_z=[1.0, 2.0], valid=True)
     with TrialBagWriter(tmp_path / "b", storage="mcap") as w:
@@ -120,7 +120,7 @@ def test_a_trial_announced_with_its_samples_in_one_batch_gets_them(ros_context: 
     from rclpy.parameter import Parameter
     from sensor_msgs.msg import Imu
 
-    from bac_agent.recorder_node import CampaignRecorderNode
+    from bac_campaign.recorder_node import CampaignRecorderNode
 
     camp = tmp_path / "campaign"
     # never spun: nothing but the explicit drains below reads its topics

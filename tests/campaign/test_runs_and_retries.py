@@ -22,7 +22,7 @@ import pytest
 from rosbags.highlevel import AnyReader
 
 from bac_agent.journal import read_journal
-from bac_agent.recording import bac_typestore
+from bac_measure.recording import bac_typestore
 
 pytestmark = pytest.mark.integration
 

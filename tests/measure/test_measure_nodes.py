@@ -18,11 +18,11 @@ from typing import Any
 
 import numpy as np
 import pytest
-from measure_synth import NS, bump_run, road_run
 
-from bac_agent.kpi import KpiConfig, score
-from bac_agent.segmentation import ImuSeries, OdomSeries, SegmentConfig, cut_run
 from bac_imu.ingest import GRAVITY, IngestConfig, ingest_all
+from bac_measure.kpi import KpiConfig, score
+from bac_measure.segmentation import ImuSeries, OdomSeries, SegmentConfig, cut_run
+from bac_measure.synthetic import NS, bump_run, road_run
 
 from conftest import wait_for
 
@@ -214,8 +214,8 @@ def start_chain(procs: Any, segmenter: dict[str, Any], ingest: dict[str, Any], k
         return out
 
     procs.python("imu_ingest", ["-m", "bac_imu.ingest_node", *args({"input_reliability": "reliable", **ingest})])
-    procs.python("run_segmenter", ["-m", "bac_agent.segmenter_node", *args(segmenter)])
-    procs.python("kpi_scorer", ["-m", "bac_agent.scorer_node", *args(kpi)])
+    procs.python("run_segmenter", ["-m", "bac_measure.segmenter_node", *args(segmenter)])
+    procs.python("kpi_scorer", ["-m", "bac_measure.scorer_node", *args(kpi)])
 
 
 def test_event_runs_through_the_node_chain(procs: Any, ros_context: Any, tmp_path: Path) -> None:

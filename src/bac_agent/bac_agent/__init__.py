@@ -1,4 +1,3 @@
-"""Algorithm 1 of bac: run segmentation (cut and align), KPI scoring, the Bayesian-optimization engine
-and agent node with its campaign journal, the simulation-phase parameter reduction, rescoring and
-reports.
+"""The Bayesian-optimization agent of bac (paper algorithm 1): the ask/tell engine, the campaign state machine
+and its journal, the bo_agent node.
 """

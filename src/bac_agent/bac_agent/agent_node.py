@@ -18,7 +18,6 @@ event at a time.
 from __future__ import annotations
 
 import math
-import os
 import sys
 import threading
 import time
@@ -51,32 +50,13 @@ from bac_agent.journal import Journal
 from bac_common.contracts import SRV_APPLY_CALIBRATION, TOPIC_RUN_SCORE, TOPIC_TRIAL
 from bac_common.errors import BacError
 from bac_common.paramspace import CalibrationDefinition
+from bac_common.paths import resolve_definition
 from bac_common.rosnode import QOS_EVENTS, QOS_LATCHED, BacNode, run_node
 from bac_msgs.msg import Calibration, RunScore, Trial
 from bac_msgs.srv import ApplyCalibration
 
 STRATEGIES = ("bo", "grid", "random")
 BACKSTOP_RUN_TIMEOUT_S = 3600.0  # run_timeout_s 0: the segmenter's verdict decides; this only guards a dead chain
-
-
-def resolve_definition(value: str) -> Path:
-    """A definition file as given, else by name in ros_ws/config/calibrations/ ($BAC_WS or found upwards)."""
-    p = Path(value).expanduser()
-    if p.is_file():
-        return p
-    roots: list[Path] = []
-    if os.environ.get("BAC_WS"):
-        roots.append(Path(os.environ["BAC_WS"]))
-    for start in (Path.cwd(), Path(__file__).resolve()):
-        roots.extend(d / "ros_ws" for d in (start, *start.parents) if (d / "ros_ws").is_dir())
-    for root in roots:
-        for cand in (root / "config" / "calibrations" / p.name, root / "config" / "calibrations" / f"{p.name}.yaml"):
-            if cand.is_file():
-                return cand
-    raise BacError(
-        f"calibration definition '{value}' not found (looked as a path and in ros_ws/config/calibrations/); "
-        "set definition_file to a YAML file"
-    )
 
 
 def make_verifier(defn: CalibrationDefinition) -> Any:
@@ -105,7 +85,7 @@ class BoAgentNode(BacNode):
         definition_file = self.declare_str(
             "definition_file",
             "controller_i",
-            "calibration definition (YAML path, or a name in ros_ws/config/calibrations/)",
+            "calibration definition (YAML path, or the name of a shipped definition)",
             read_only=True,
         )
         campaign_dir = self.declare_str(

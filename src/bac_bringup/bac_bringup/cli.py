@@ -26,10 +26,10 @@ SUBCOMMANDS: dict[str, tuple[str, str, str]] = {
     "launch": ("bac_bringup.cli", "launch_main", "run a node graph profile (sim, car, replay)"),
     "demo": ("bac_bringup.demo", "main", "the main job: a whole calibration campaign on the simulated vehicle"),
     "netns": ("bac_bringup.netns", "main", "run a command inside a private network namespace"),
-    "rescore": ("bac_agent.rescore", "main", "re-cut and re-score a campaign's bags (or any IMU bag) offline"),
-    "replay": ("bac_agent.replay", "cli", "play bags into the live graph on /clock (the replay profile)"),
-    "report": ("bac_agent.report", "main", "make a campaign's report (PNG + HTML)"),
-    "reduce": ("bac_agent.reduce", "main", "simulation phase: find the parameters that matter (paper sec. III-D)"),
+    "rescore": ("bac_bringup.tools", "rescore_main", "re-cut and re-score a campaign's bags (or any IMU bag) offline"),
+    "replay": ("bac_bringup.tools", "replay_main", "play bags into the live graph on /clock (the replay profile)"),
+    "report": ("bac_campaign.report", "main", "make a campaign's report (PNG + HTML)"),
+    "reduce": ("bac_reduce.cli", "main", "simulation phase: find the parameters that matter (paper sec. III-D)"),
     "ground-truth": ("bac_sim.ground_truth", "main", "recompute the simulator's true optima by dense grids"),
 }
 

@@ -204,9 +204,9 @@ def main(argv: Sequence[str] | None = None) -> int:
     definition_overrides: list[str] = []
     controller = "Controller I"
     if args.definition is not None:
-        from bac_agent.reduction.truth import definition_truth
         from bac_common.errors import BacError
         from bac_common.paramspace import CalibrationDefinition
+        from bac_reduce.truth import definition_truth
 
         try:
             definition = CalibrationDefinition.load(args.definition.resolve())
@@ -285,7 +285,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         else:
             out(f"grid baseline done in {time.monotonic() - t1:.0f} s")
 
-    from bac_agent.report import make_report
+    from bac_campaign.report import make_report
 
     result = make_report(camp, truth_name=problem_name, baseline_dir=baseline, truth=truth)
     s = result["summary"]
@@ -316,7 +316,7 @@ def main(argv: Sequence[str] | None = None) -> int:
 
 def _failure_report(camp: Path, problem_name: str, truth: Any) -> str | None:
     """The report of a campaign that failed: what it drove, why it ended (never a traceback)."""
-    from bac_agent.report import make_report
+    from bac_campaign.report import make_report
     from bac_common.errors import BacError
 
     if not (camp / "journal.jsonl").exists():

@@ -1,4 +1,4 @@
-"""Graph profiles: which nodes run, with which parameters (ros_ws/profiles/*.yaml).
+"""Graph profiles: which nodes run, with which parameters (``share/bac_bringup/profiles/*.yaml``; ros_ws/profiles).
 
 A profile is the bac equivalent of a launch file::
 
@@ -140,15 +140,23 @@ class Profile:
 
 
 def workspace_dir() -> Path:
-    """The ros_ws/ folder: $BAC_WS, else found above the working directory or this package."""
-    env = os.environ.get("BAC_WS")
-    if env:
-        return Path(env).resolve()
-    for start in (Path.cwd(), Path(__file__).resolve()):
-        for d in (start, *start.parents):
-            if (d / "ros_ws" / "profiles").is_dir():
-                return d / "ros_ws"
-    raise ProfileError("cannot find the ros_ws/ workspace: set BAC_WS to its path")
+    """The folder holding ``profiles/`` and ``params/``: $BAC_WS when it has them, else bac_bringup's share
+    (found through the ament index: an install space or the development install), else this package's source."""
+    from bac_common.paths import package_share
+
+    env = os.environ.get("BAC_WS", "").strip()
+    candidates = [Path(env).expanduser()] if env else []
+    share = package_share("bac_bringup")
+    if share is not None:
+        candidates.append(share)
+    candidates.append(Path(__file__).resolve().parents[1])
+    for c in candidates:
+        if (c / "profiles").is_dir():
+            return c.resolve()
+    raise ProfileError(
+        "cannot find the graph profiles: bac_bringup's share/ has no profiles/ (is the install space sourced?); "
+        "set BAC_WS to a folder with profiles/ and params/"
+    )
 
 
 def resolve_profile_path(name_or_path: str | Path) -> Path:

@@ -43,12 +43,12 @@ from bac_common.contracts import (
 )
 from bac_common.errors import BacError, DefinitionError, OutOfBoundsError, UnknownParameterError
 from bac_common.paramspace import CalibrationDefinition
+from bac_common.paths import resolve_definition
 from bac_common.rosnode import QOS_LATCHED, BacNode, run_node
 from bac_ecu_bridge.canbus import BusSettings, TracedBus, open_bus
 from bac_ecu_bridge.client import ApplyResult, CalibrationClient, ClientConfig
 from bac_ecu_bridge.errors import BridgeError, BusError, ErrorCode, InvalidRequestError
 from bac_ecu_bridge.faults import FaultConfig, FaultyBus
-from bac_ecu_bridge.paths import resolve_definition
 from bac_ecu_bridge.protocol import DEFAULT_REQUEST_ID, DEFAULT_RESPONSE_ID, CalibrationCodec, CanIds, resolve_request
 from bac_msgs.msg import Calibration
 from bac_msgs.srv import ApplyCalibration, ReadCalibration
@@ -64,7 +64,7 @@ class EcuBridgeNode(BacNode):
         definition_file = self.declare_str(
             "definition_file",
             "controller_i",
-            "calibration definition (YAML path, or a name in ros_ws/config/calibrations/)",
+            "calibration definition (YAML path, or the name of a shipped definition)",
             read_only=True,
         )
         self.settings = BusSettings(

@@ -33,10 +33,10 @@ from pathlib import Path
 from bac_common.console import say
 from bac_common.errors import BacError, OutOfBoundsError, UnknownParameterError
 from bac_common.paramspace import CalibrationDefinition
+from bac_common.paths import resolve_definition
 from bac_ecu_bridge.canbus import BusSettings, TracedBus, open_bus
 from bac_ecu_bridge.client import CalibrationClient, ClientConfig
 from bac_ecu_bridge.errors import BridgeError, ErrorCode
-from bac_ecu_bridge.paths import resolve_definition
 from bac_ecu_bridge.protocol import DEFAULT_REQUEST_ID, DEFAULT_RESPONSE_ID, CalibrationCodec, CanIds, resolve_request
 
 
@@ -67,7 +67,9 @@ def _parser() -> argparse.ArgumentParser:
     ap = argparse.ArgumentParser(prog="python -m bac_ecu_bridge", description=__doc__.split("\n")[0])
     sub = ap.add_subparsers(dest="cmd", required=True)
     p = sub.add_parser("dbc", help="write the DBC of a calibration definition")
-    p.add_argument("--definition", required=True, help="definition YAML, or a name in ros_ws/config/calibrations")
+    p.add_argument(
+        "--definition", required=True, help="definition YAML, or a shipped definition's name (controller_i, ...)"
+    )
     p.add_argument("-o", "--output", type=Path, help="file to write (default: stdout)")
     _add_ids(p)
     p = sub.add_parser("decode", help="decode a CAN trace with the DBC")

@@ -824,6 +824,10 @@ def diagnose(
         level = max(level, WARN)
     if now.samples_in == 0:
         level, message = STALE, "waiting for IMU data"
+    elif silent_s > stale_after_s and level == ERROR:
+        # faults since the last report are never swallowed by a silence that follows them (they are counted
+        # against this report only): the faults first, the silence said beside them, STALE from the next report
+        message = "since last report: " + ", ".join(problems) + f"; then no IMU data for {silent_s:.1f} s"
     elif silent_s > stale_after_s:
         level, message = STALE, f"no IMU data for {silent_s:.1f} s"
     elif not now.started:

@@ -4,7 +4,7 @@ Subscribes ``imu/data_raw`` (sensor_msgs/Imu, best effort with a deep history:
 ``qos_depth``; ``input_reliability: reliable`` for a simulator that publishes
 reliably, so that nothing is lost even on a saturated CPU), takes what arrived
 every ``process_period_s`` of wall time as one batch (raw bytes drained from the DDS reader and decoded vectorized,
-:mod:`bac_imu.topic_drain`: thousands of messages per second, far beyond what
+:mod:`bac_common.topic_drain`: thousands of messages per second, far beyond what
 one executor callback per message allows), feeds it to
 :class:`bac_imu.ingest.ImuIngestor`, and publishes
 
@@ -36,12 +36,12 @@ from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy
 from rclpy.serialization import deserialize_message
 from sensor_msgs.msg import Imu
 
+from bac_common import cdr
 from bac_common.contracts import TOPIC_DIAGNOSTICS, TOPIC_IMU_RAW, TOPIC_IMU_VEHICLE
+from bac_common.node_params import ParamSpec, declare_config
 from bac_common.rosnode import QOS_STREAM, BacNode, run_node
-from bac_imu import cdr
+from bac_common.topic_drain import TopicDrain
 from bac_imu.ingest import ImuIngestor, IngestConfig, IngestOutput, StreamHealth, diagnose
-from bac_imu.node_params import ParamSpec, declare_config
-from bac_imu.topic_drain import TopicDrain
 
 INGEST_PARAMS = {
     "output_rate_hz": ParamSpec("rate of imu/vehicle, Hz", 1.0, 10_000.0),

@@ -19,25 +19,23 @@ from __future__ import annotations
 
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
-from pathlib import Path
 from typing import Any, Protocol
 
 import numpy as np
 
 from bac_common.paramspace import CalibrationDefinition, RawParameter, uniform_parameters
+from bac_common.paths import calibration_file
 from bac_sim.errors import ControllerError
 from bac_sim.vehicle import N_CORNERS, VehicleParams
 
 FloatArray = np.ndarray[Any, Any]
 
-REPO_CALIBRATIONS = Path(__file__).resolve().parents[3] / "ros_ws" / "config" / "calibrations"
-
 
 # --- definitions ----------------------------------------------------------------------------
 def controller_i_definition() -> CalibrationDefinition:
-    """Controller I's definition (ros_ws/config/calibrations/controller_i.yaml when present)."""
-    path = REPO_CALIBRATIONS / "controller_i.yaml"
-    if path.is_file():
+    """Controller I's definition (the shipped controller_i.yaml when installed)."""
+    path = calibration_file("controller_i")
+    if path is not None:
         return CalibrationDefinition.load(path)
     params = (
         RawParameter("damping_front", 0, 0.0, 1.0, 0.5, 0.0001, "1", "constant damping command of both front dampers"),
@@ -49,9 +47,9 @@ def controller_i_definition() -> CalibrationDefinition:
 
 
 def controller_ii_definition() -> CalibrationDefinition:
-    """Controller II's definition (ros_ws/config/calibrations/controller_ii.yaml when present)."""
-    path = REPO_CALIBRATIONS / "controller_ii.yaml"
-    if path.is_file():
+    """Controller II's definition (the shipped controller_ii.yaml when installed)."""
+    path = calibration_file("controller_ii")
+    if path is not None:
         return CalibrationDefinition.load(path)
     return CalibrationDefinition(
         "controller_ii", uniform_parameters("p", 20, 0.0, 1000.0, 500.0, 0.01), description="Semi-active logic"

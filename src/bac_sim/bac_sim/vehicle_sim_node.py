@@ -15,7 +15,9 @@
   executor.
 * Publishes ``/clock``, which follows the simulation as a simulator's clock does: between runs it
   advances at ``idle_realtime_factor`` (the agent's waits pass in sim time); **no sim time passes
-  while a run is waited for or computed** (nothing is published then), so every sim-time deadline of
+  while a run is waited for or computed** (nothing is published then), nor while the agent proposes
+  or applies a calibration (up to ``applying_pause_s``: a READY_TO_DRIVE delivered late finds the
+  clock where the agent left it), so every sim-time deadline of
   the graph means what it means on the car however slow the machine; a run is published at most
   ``realtime_factor`` times faster than real time (1 = real time), in small slices so that a
   best-effort subscriber with a deep history loses nothing. The rate each run was published at is
@@ -114,7 +116,7 @@ class VehicleSimNode(BacNode):
         definition_file = self.declare_str(
             "definition_file",
             "controller_i",
-            "calibration definition of the ECU's controller (YAML path, or a name in ros_ws/config/calibrations/)",
+            "calibration definition of the ECU's controller (YAML path, or the name of a shipped definition)",
             read_only=True,
         )
         speed_kmh = self.declare_float(
@@ -135,6 +137,15 @@ class VehicleSimNode(BacNode):
         )
         self.clock_period = self.declare_float(
             "clock_period_s", 0.005, "wall period of the publishing loop, s", 0.001, 0.1
+        )
+        self.applying_pause_s = self.declare_float(
+            "applying_pause_s",
+            30.0,
+            "while the agent proposes or applies a calibration (bac/trial PROPOSED / APPLYING), sim time stands still "
+            "for up to this long (wall, s), so that the READY_TO_DRIVE that follows, however late it arrives, finds "
+            "the clock where the agent left it; 0: the clock runs on at idle_realtime_factor",
+            0.0,
+            3600.0,
         )
         self.start_time = self.declare_float("start_time_s", 1.0, "sim time at start, s", 0.0, 1e9, read_only=True)
         self.run_in = self.declare_float("run_in_s", 6.0, "driving before the scored window, s", 1.0, 120.0)
@@ -248,8 +259,8 @@ class VehicleSimNode(BacNode):
                 "imu.gyro_lsb", math.radians(1000.0) / 65536, "gyro resolution, rad/s", 0.0, 1.0, read_only=True
             ),
         )
+        from bac_common.paths import resolve_definition
         from bac_ecu_bridge.canbus import BusSettings, open_bus
-        from bac_ecu_bridge.paths import resolve_definition
         from bac_sim.ecu import SimulatedEcu
 
         self.definition = CalibrationDefinition.load(resolve_definition(definition_file))
@@ -283,6 +294,7 @@ class VehicleSimNode(BacNode):
         self.create_subscription(Trial, TOPIC_TRIAL, self._on_trial, QOS_LATCHED)
         self._driven: set[tuple[str, int, int]] = set()
         self._latest: tuple[tuple[str, int, int], int] | None = None  # last trial seen and its state
+        self._state_since = time.monotonic()  # wall time the latest trial state was first seen
         self._jobs: queue.Queue[_Job] = queue.Queue()
         self._runs = 0
         self.runs_published = 0
@@ -309,6 +321,7 @@ class VehicleSimNode(BacNode):
         self.rtf = float(values.get("realtime_factor", self.rtf))
         self.idle_rtf = float(values.get("idle_realtime_factor", self.idle_rtf))
         self.clock_period = float(values.get("clock_period_s", self.clock_period))
+        self.applying_pause_s = float(values.get("applying_pause_s", self.applying_pause_s))
         self.seed = int(values.get("seed", self.seed))
         self.compute_delay_s = float(values.get("compute_delay_s", self.compute_delay_s))
         if "driver.start_delay_s" in values:
@@ -328,6 +341,8 @@ class VehicleSimNode(BacNode):
     # --- trials ---------------------------------------------------------------------------------
     def _on_trial(self, msg: Trial) -> None:
         key = (str(msg.campaign_id), int(msg.trial_id), int(msg.attempt))
+        if self._latest is None or self._latest[1] != int(msg.state):
+            self._state_since = time.monotonic()
         self._latest = (key, int(msg.state))
         if msg.state != Trial.STATE_READY_TO_DRIVE:
             return
@@ -434,9 +449,10 @@ class VehicleSimNode(BacNode):
                         self.runs_published += 1
                         self._report_rate(play)
                         play = None
-                elif pending is None and self._jobs.empty():
+                elif pending is None and self._jobs.empty() and not self._agent_applying(now):
                     sim_t += (now - last_wall) * self.idle_rtf
-                # else: a run is waited for or being computed: sim time stands still (nothing is published)
+                # else: a run is waited for or being computed, or the agent is applying a calibration: sim time
+                # stands still (nothing is published)
                 _stamp(clock.clock, sim_t)
                 self.pub_clock.publish(clock)
             except Exception as exc:  # never let the clock thread die silently
@@ -445,6 +461,13 @@ class VehicleSimNode(BacNode):
                 self.get_logger().error(f"vehicle_sim loop: {exc}")
             last_wall = now
             self._stop.wait(self.clock_period)
+
+    def _agent_applying(self, now: float) -> bool:
+        """The agent proposes or applies a calibration (a READY_TO_DRIVE is expected), for at most applying_pause_s."""
+        latest = self._latest
+        if latest is None or latest[1] not in (Trial.STATE_PROPOSED, Trial.STATE_APPLYING):
+            return False
+        return now - self._state_since < self.applying_pause_s
 
     def _report_rate(self, play: _Playback) -> None:
         """Log the rate the run was published at; warn, with the reason, when it fell short of realtime_factor."""

@@ -1,0 +1,54 @@
+"""``bac rescore`` and ``bac replay``: the campaign tools with what only the bringup knows (profiles and their
+parameter files)."""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from collections.abc import Sequence
+from pathlib import Path
+
+from bac_bringup.launcher import run_graph
+from bac_bringup.profile import load_profile
+from bac_campaign import rescore
+from bac_campaign.bagplay import BagReadError, expand_bag_paths
+
+
+def profile_params(name: str) -> list[Path]:
+    """The parameter files of a graph profile (``sim``, ``car``, ``replay``)."""
+    return list(load_profile(name).params_files)
+
+
+def rescore_main(argv: Sequence[str]) -> int:
+    return rescore.main(argv, profile_params=profile_params)
+
+
+def replay_main(argv: Sequence[str]) -> int:
+    """``bac replay``: the replay profile with the given bags."""
+    ap = argparse.ArgumentParser(prog="bac replay", description=__doc__, formatter_class=argparse.RawTextHelpFormatter)
+    ap.add_argument("bags", nargs="+", help="campaign folders and/or bags (rosbag2 folder/mcap/db3, ROS 1 .bag)")
+    ap.add_argument("--rate", type=float, default=10.0, help="playback speed, multiple of real time")
+    ap.add_argument(
+        "--topic-map",
+        action="append",
+        default=[],
+        metavar="FROM:=TO",
+        help="remap a bag topic, e.g. /imu/data:=imu/data_raw (repeatable)",
+    )
+    ap.add_argument("--output", type=Path, help="write recorded vs replayed J as JSON")
+    ap.add_argument("--single-process", action="store_true", help="run the replay graph in one process")
+    ap.add_argument("--params-file", action="append", default=[], help="extra ROS parameter YAML (repeatable)")
+    args = ap.parse_args(list(argv))
+    try:
+        paths = expand_bag_paths(args.bags)
+    except BagReadError as exc:
+        sys.stderr.write(f"bac replay: {exc}\n")
+        return 2
+    player = {
+        "bags": [str(p.resolve()) for p in paths],
+        "rate": args.rate,
+        "topic_map": args.topic_map,
+        "output": str(args.output.resolve()) if args.output else "",
+    }
+    profile = load_profile("replay").with_overrides(params={"bag_player": player}, extra_params_files=args.params_file)
+    return run_graph(profile, single_process=args.single_process)

@@ -1,0 +1,119 @@
+"""Reading bags for replay: every message of chosen topics, in time order, as CDR bytes for ROS 2.
+
+Pure Python (``rosbags``, no ROS runtime). Accepts a campaign folder (its
+``bags/trial_*``), rosbag2 folders or files (mcap, sqlite3) and ROS 1 bags;
+ROS 1 messages are converted to their ROS 2 Jazzy form (a Header loses its
+``seq``) and serialized as CDR, so a live ROS 2 graph can take them.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from collections.abc import Iterator, Mapping, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, cast
+
+from rosbags.highlevel import AnyReader
+from rosbags.typesys.store import Typestore
+
+from bac_common.errors import BacError
+from bac_measure.recording import bac_typestore
+
+
+class BagReadError(BacError, OSError):
+    """A bag is missing, truncated or not a bag."""
+
+
+@dataclass(frozen=True)
+class BagMessage:
+    topic: str  # topic to publish on (after remapping)
+    msgtype: str  # ROS 2 type, e.g. sensor_msgs/msg/Imu
+    time_ns: int  # bag (receive) time
+    cdr: bytes  # ROS 2 CDR serialization
+
+
+def expand_bag_paths(paths: Sequence[str | Path]) -> list[Path]:
+    """Campaign folders become their trial bags (sorted); anything else is taken as a bag."""
+    out: list[Path] = []
+    for raw in paths:
+        p = Path(raw)
+        if not p.exists():
+            raise BagReadError(f"no such bag or campaign folder: {p}")
+        if p.is_dir() and (p / "bags").is_dir():
+            trials = sorted(d for d in (p / "bags").iterdir() if d.is_dir())
+            if not trials:
+                raise BagReadError(f"campaign folder {p} holds no trial bags")
+            out.extend(trials)
+        else:
+            out.append(p)
+    return out
+
+
+def parse_topic_map(items: Sequence[str]) -> dict[str, str]:
+    """``["/imu/data:=imu/data_raw", ...]`` -> {"/imu/data": "imu/data_raw"}."""
+    out = {}
+    for item in items:
+        if ":=" not in item:
+            raise BagReadError(f"topic map entry {item!r} must read FROM:=TO")
+        src, dst = item.split(":=", 1)
+        out[src.strip()] = dst.strip()
+    return out
+
+
+def _norm(topic: str) -> str:
+    return topic.lstrip("/")
+
+
+def to_store(msg: Any, store: Typestore) -> Any:
+    """Rebuild a deserialized message as the same-named type of ``store`` (drops unknown fields)."""
+    if not dataclasses.is_dataclass(msg) or isinstance(msg, type):
+        if isinstance(msg, list):
+            return [to_store(m, store) for m in msg]
+        return msg
+    cls = store.types[msg.__msgtype__]  # type: ignore[attr-defined]
+    kwargs = {}
+    for f in dataclasses.fields(cast(Any, cls)):
+        if hasattr(msg, f.name):
+            kwargs[f.name] = to_store(getattr(msg, f.name), store)
+        else:  # a field ROS 1 did not have: its zero value
+            kwargs[f.name] = _zero(f.type)
+    return cls(**kwargs)
+
+
+def _zero(typ: Any) -> Any:
+    return {"str": "", "bool": False, "float": 0.0, "int": 0}.get(str(typ), 0)
+
+
+def iter_bag_messages(
+    bag: str | Path,
+    topics: Sequence[str],
+    topic_map: Mapping[str, str] | None = None,
+) -> Iterator[BagMessage]:
+    """Messages of ``topics`` (names after remapping, without leading '/') in time order."""
+    path = Path(bag)
+    store = bac_typestore()
+    mapping = {_norm(k): _norm(v) for k, v in (topic_map or {}).items()}
+    wanted = {_norm(t) for t in topics}
+    try:
+        reader = AnyReader([path], default_typestore=store)
+        reader.open()
+    except Exception as exc:  # rosbags raises several types for a bad bag
+        raise BagReadError(f"cannot open bag {path}: {exc}") from exc
+    try:
+        conns = [c for c in reader.connections if mapping.get(_norm(c.topic), _norm(c.topic)) in wanted]
+        ros1 = reader.is2 is False
+        for conn, t_ns, raw in reader.messages(connections=conns):
+            topic = mapping.get(_norm(conn.topic), _norm(conn.topic))
+            if ros1 or conn.msgtype not in store.types:
+                msg = to_store(reader.deserialize(raw, conn.msgtype), store)
+                cdr = bytes(store.serialize_cdr(msg, conn.msgtype))
+            else:
+                cdr = bytes(raw)
+            yield BagMessage(topic, conn.msgtype, int(t_ns), cdr)
+    except BagReadError:
+        raise
+    except Exception as exc:
+        raise BagReadError(f"bag {path} is truncated or damaged: {exc}") from exc
+    finally:
+        reader.close()

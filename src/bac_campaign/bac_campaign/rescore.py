@@ -1,0 +1,554 @@
+"""Rescoring: re-cut and re-score recorded runs offline, with the live configuration or a changed one.
+
+No ROS runtime: bags are read with ``rosbags`` (:mod:`bac_measure.bagio`), the
+runs go through the same pure cores as the live nodes (ingestion,
+:func:`~bac_measure.segmentation.cut_run`, :func:`~bac_measure.kpi.score`).
+
+* A **campaign folder** (``bags/trial_*``, ``journal.jsonl``, ``config/``):
+  every run of every trial is cut and scored again with the parameter files
+  the campaign was launched with (``config/launch.json``), or with others /
+  overrides; the table shows the live J beside the new one. By default the
+  recorded ``imu/vehicle`` stream (what the live segmenter got) is re-cut, so
+  the same configuration reproduces the live J exactly; ``--reingest`` runs
+  ingestion again from ``imu/data_raw`` (to change ingestion parameters).
+  The reference run for alignment is rebuilt as live: the campaign's first
+  valid run (under the configuration in use).
+* **Any bag** with sensor_msgs/Imu (rosbag2 mcap/sqlite3, ROS 1): its IMU is
+  ingested; with ``--window whole`` the whole recording is scored as one run,
+  otherwise it is cut like a bac run starting at its first sample (event or
+  distance mode from the parameters; distance mode needs odometry).
+
+``--refit`` fits the campaign's GP again on the rescored J values and prints
+the new recommendation.
+
+    bac rescore CAMPAIGN_DIR [--params-file F ...] [-p node.param=value ...] [--reingest] [--refit] [--json out.json]
+    bac rescore any.bag --window whole [--imu-topic /imu/data] [-p imu_ingest.output_rate_hz=50]
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import json
+import math
+import sys
+from collections.abc import Callable, Mapping, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+
+from bac_agent.journal import JOURNAL_NAME, journaled_engine_options, read_journal
+from bac_common.errors import BacError
+from bac_imu.ingest import IngestConfig, ingest_all
+from bac_measure.bagio import (
+    BagError,
+    ImuArrays,
+    OdomArrays,
+    bag_topics,
+    read_imu,
+    read_messages,
+    read_odom,
+    read_trials,
+    run_starts,
+)
+from bac_measure.kpi import KpiConfig, Score, score
+from bac_measure.measure_config import (
+    NODE_IMU_INGEST,
+    NODE_KPI_SCORER,
+    NODE_RUN_SEGMENTER,
+    ingest_config,
+    kpi_config,
+    segment_config,
+)
+from bac_measure.segmentation import (
+    ImuSeries,
+    OdomSeries,
+    Reference,
+    ReferenceStore,
+    RunId,
+    Segment,
+    SegmentConfig,
+    cut_run,
+    window_segment,
+)
+
+RunKey = tuple[str, int, int]
+VEHICLE_TOPIC = "/imu/vehicle"
+RAW_TOPIC = "/imu/data_raw"
+NS = 1_000_000_000
+
+
+class RescoreError(BacError, ValueError):
+    """Nothing to rescore, or a configuration that cannot be used."""
+
+
+@dataclass(frozen=True)
+class RunResult:
+    run: RunId
+    params: Mapping[str, float] | None  # the trial's calibration (from the journal), when known
+    live_j: float | None  # J the live graph scored (NaN: scored invalid), None when not recorded
+    live_reason: str
+    segment: Segment
+    score: Score
+
+    @property
+    def key(self) -> RunKey:
+        return (self.run.campaign_id, self.run.trial_id, self.run.attempt)
+
+    @property
+    def j(self) -> float:
+        return self.score.j if self.score.valid else math.nan
+
+    @property
+    def diff(self) -> float:
+        if self.live_j is None or math.isnan(self.live_j) or math.isnan(self.j):
+            return math.nan
+        return self.j - self.live_j
+
+
+@dataclass
+class RescoreResult:
+    runs: list[RunResult]
+    files: list[Path]
+    source: str  # "imu/vehicle (recorded)" or "imu/data_raw (re-ingested)"
+    notes: list[str] = field(default_factory=list)
+    recommendation: dict[str, Any] | None = None
+
+    def max_abs_diff(self) -> float:
+        d = [abs(r.diff) for r in self.runs if not math.isnan(r.diff)]
+        return max(d) if d else math.nan
+
+
+# --- reading ------------------------------------------------------------------------------------------
+
+
+def campaign_bags(campaign_dir: Path) -> list[Path]:
+    bags = (
+        sorted(d for d in (campaign_dir / "bags").iterdir() if d.is_dir()) if (campaign_dir / "bags").is_dir() else []
+    )
+    if not bags:
+        raise RescoreError(f"{campaign_dir} holds no trial bags (bags/trial_*)")
+    return bags
+
+
+def default_params_files(campaign_dir: Path | None) -> list[Path]:
+    """The parameter files a campaign was launched with (its ``config/``); none otherwise: the nodes' defaults,
+    unless the caller gives files (``bac rescore`` gives the car profile's for a foreign bag)."""
+    if campaign_dir is not None and (campaign_dir / "config" / "launch.json").exists():
+        rec = json.loads((campaign_dir / "config" / "launch.json").read_text())
+        return [campaign_dir / "config" / name for name in rec["params_files"]]
+    return []
+
+
+def _merge_order(stamps: list[NDArray[np.int64]]) -> tuple[NDArray[np.int64], NDArray[np.intp]]:
+    """Stamps of several recordings merged in time order, a message recorded in two bags counted once:
+    (the merged stamps, the index of each into the concatenated parts)."""
+    stamp = np.concatenate(stamps)
+    order = np.argsort(stamp, kind="stable")
+    keep = np.ones(order.shape, bool)
+    keep[1:] = np.diff(stamp[order]) != 0
+    idx = order[keep]
+    return stamp[idx], idx
+
+
+def _concat_imu(parts: list[ImuArrays]) -> ImuArrays:
+    stamp, idx = _merge_order([p.stamp_ns for p in parts])
+    return ImuArrays(
+        topic=parts[0].topic,
+        frame_id=parts[0].frame_id,
+        stamp_ns=stamp,
+        recv_ns=np.concatenate([p.recv_ns for p in parts])[idx],
+        accel=np.concatenate([p.accel for p in parts])[idx],
+        gyro=np.concatenate([p.gyro for p in parts])[idx],
+    )
+
+
+def _concat_odom(parts: list[OdomArrays]) -> OdomArrays:
+    stamp, idx = _merge_order([p.stamp_ns for p in parts])
+    return OdomArrays(
+        topic=parts[0].topic,
+        frame_id=parts[0].frame_id,
+        stamp_ns=stamp,
+        recv_ns=np.concatenate([p.recv_ns for p in parts])[idx],
+        distance_m=np.concatenate([p.distance_m for p in parts])[idx],
+        speed_mps=np.concatenate([p.speed_mps for p in parts])[idx],
+    )
+
+
+@dataclass
+class _Recording:
+    imu_vehicle: ImuArrays | None
+    imu_raw: ImuArrays | None
+    odom: OdomArrays | None
+    starts: list[Any]  # TrialEvent of each run's READY_TO_DRIVE
+    live: dict[RunKey, tuple[float, str]]  # live J (NaN when invalid) and reason
+
+
+def read_recording(bags: Sequence[Path], imu_topic: str | None, odom_topic: str | None) -> _Recording:
+    veh: list[ImuArrays] = []
+    raw: list[ImuArrays] = []
+    odo: list[OdomArrays] = []
+    trials: list[Any] = []
+    live: dict[RunKey, tuple[float, str]] = {}
+    for bag in bags:
+        topics = {"/" + t.lstrip("/") for t in bag_topics(bag)}
+        if imu_topic is not None:
+            raw.append(read_imu(bag, imu_topic))
+        else:
+            if VEHICLE_TOPIC in topics:
+                veh.append(read_imu(bag, VEHICLE_TOPIC))
+            if RAW_TOPIC in topics:
+                raw.append(read_imu(bag, RAW_TOPIC))
+            elif VEHICLE_TOPIC not in topics:
+                raw.append(read_imu(bag))  # the bag's only IMU topic
+        try:
+            odo.append(read_odom(bag, odom_topic))
+        except BagError:
+            if odom_topic is not None:
+                raise
+        if "/bac/trial" in topics:
+            trials.extend(read_trials(bag))
+        if "/bac/run_score" in topics:
+            for _, m in read_messages(bag, "bac/run_score"):
+                live[(str(m.campaign_id), int(m.trial_id), int(m.attempt))] = (
+                    float(m.j) if m.valid else math.nan,
+                    str(m.reason),
+                )
+    return _Recording(
+        imu_vehicle=_concat_imu(veh) if veh else None,
+        imu_raw=_concat_imu(raw) if raw else None,
+        odom=_concat_odom(odo) if odo else None,
+        starts=run_starts(trials),
+        live=live,
+    )
+
+
+def journal_params(campaign_dir: Path | None) -> tuple[dict[int, dict[str, float]], dict[str, Any] | None]:
+    """Each trial's calibration and the campaign_started event, from the journal (if any)."""
+    if campaign_dir is None or not (campaign_dir / JOURNAL_NAME).exists():
+        return {}, None
+    events = read_journal(campaign_dir / JOURNAL_NAME).events
+    params: dict[int, dict[str, float]] = {}
+    started = None
+    for e in events:
+        if e.get("event") == "campaign_started":
+            started = e
+        if e.get("event") == "trial_proposed" and isinstance(e.get("params"), dict):
+            params[int(e["trial_id"])] = {str(k): float(v) for k, v in e["params"].items()}
+    return params, started
+
+
+# --- rescoring -------------------------------------------------------------------------------------------
+
+
+def rescore(
+    paths: Sequence[str | Path],
+    files: Sequence[str | Path] | None = None,
+    overrides: Mapping[str, Mapping[str, Any]] | None = None,
+    reingest: bool = False,
+    window: str = "run",
+    imu_topic: str | None = None,
+    odom_topic: str | None = None,
+) -> RescoreResult:
+    """Cut and score every run of a campaign (or bags) again; see the module doc."""
+    if window not in ("run", "whole"):
+        raise RescoreError(f"window must be 'run' or 'whole', got {window!r}")
+    ps = [Path(p) for p in paths]
+    for p in ps:
+        if not p.exists():
+            raise RescoreError(f"no such campaign folder or bag: {p}")
+    campaign_dir = ps[0] if len(ps) == 1 and (ps[0] / "bags").is_dir() else None
+    bags = campaign_bags(campaign_dir) if campaign_dir is not None else ps
+    files = [Path(f) for f in files] if files else default_params_files(campaign_dir)
+    ov = {k: dict(v) for k, v in (overrides or {}).items()}
+    ing_cfg = ingest_config(files, ov.get(NODE_IMU_INGEST))
+    seg_cfg = segment_config(files, ov.get(NODE_RUN_SEGMENTER))
+    kpi_cfg = kpi_config(files, ov.get(NODE_KPI_SCORER))
+    rec = read_recording(bags, imu_topic, odom_topic)
+    notes: list[str] = []
+
+    if rec.imu_vehicle is not None and not reingest:
+        source = "imu/vehicle (recorded)"
+        v = rec.imu_vehicle
+        imu = ImuSeries(v.stamp_ns, v.accel[:, 2].copy(), v.gyro[:, 1].copy())
+    else:
+        if rec.imu_raw is None:
+            raise RescoreError("the bags hold no raw IMU stream to ingest (imu/data_raw or --imu-topic)")
+        r = rec.imu_raw
+        source = f"{r.topic} (re-ingested)"
+        ing_cfg, seg_cfg = _fit_rates(r, ing_cfg, seg_cfg, ov, notes)
+        out, health = ingest_all(r.stamp_ns, r.accel, r.gyro, ing_cfg)
+        imu = ImuSeries(out.stamp_ns, out.accel_z, out.pitch_rate)
+        notes.append(
+            f"ingestion: {health.samples_in} samples at {health.rate_hz:.1f} Hz, {health.gaps} gaps, "
+            f"{health.nonfinite} NaN/inf, {health.restarts} stream restarts, {health.clock_jumps} clock jumps"
+        )
+    odom = (
+        OdomSeries(rec.odom.stamp_ns, rec.odom.distance_m, rec.odom.speed_mps)
+        if rec.odom is not None
+        else OdomSeries.empty()
+    )
+    jparams, _ = journal_params(campaign_dir)
+
+    runs: list[RunResult] = []
+    if window == "whole":
+        rid = RunId("rescore", 1, 1)
+        seg = window_segment(imu, imu_rate_hz=seg_cfg.imu_rate_hz, run=rid)
+        runs.append(RunResult(rid, None, None, "", seg, score(seg, kpi_cfg)))
+        return RescoreResult(runs, list(files), source, notes)
+
+    starts = [(s.campaign_id, s.trial_id, s.attempt, s.stamp_ns) for s in rec.starts]
+    if not starts:
+        notes.append("no bac/trial in the bags: one run per recording, from its first IMU sample")
+        starts = [("rescore", 1, 1, int(imu.stamp_ns[0]) if len(imu) else 0)]
+    template = _segmenter_template(files, ov.get(NODE_RUN_SEGMENTER))
+    store = ReferenceStore(template=Reference.load(template) if template else None)
+    for cid, tid, att, start_ns in starts:
+        rid = RunId(cid, tid, att)
+        ref = store.get(cid)
+        seg = cut_run(imu, odom, seg_cfg, start_ns, ref, rid)
+        store.offer(seg, seg_cfg)
+        live = rec.live.get((cid, tid, att))
+        runs.append(
+            RunResult(
+                run=rid,
+                params=jparams.get(tid),
+                live_j=None if live is None else live[0],
+                live_reason="" if live is None else live[1],
+                segment=seg,
+                score=score(seg, kpi_cfg),
+            )
+        )
+    return RescoreResult(runs, list(files), source, notes)
+
+
+def _fit_rates(
+    raw: ImuArrays,
+    ing: IngestConfig,
+    seg: SegmentConfig,
+    ov: Mapping[str, Mapping[str, Any]],
+    notes: list[str],
+) -> tuple[IngestConfig, SegmentConfig]:
+    """Keep the ingestion's output rate at or below the recording's rate, and the segmenter's equal to it,
+    unless the user set them."""
+    if len(raw) > 10:
+        step = float(np.median(np.diff(raw.stamp_ns))) / NS
+        measured = 1.0 / step if step > 0 else 0.0
+        if (
+            measured > 0
+            and ing.output_rate_hz > measured * 1.01
+            and "output_rate_hz" not in ov.get(NODE_IMU_INGEST, {})
+        ):
+            notes.append(
+                f"the recording is {measured:.1f} Hz: ingestion output {ing.output_rate_hz:g} -> {measured:.1f} Hz"
+            )
+            ing = dataclasses.replace(ing, output_rate_hz=round(measured, 6), input_rate_hz=0.0)
+        elif (
+            ing.input_rate_hz
+            and abs(ing.input_rate_hz - measured) > 0.05 * measured
+            and "input_rate_hz" not in ov.get(NODE_IMU_INGEST, {})
+        ):
+            notes.append(f"the recording is {measured:.1f} Hz, not {ing.input_rate_hz:g} Hz: input rate measured")
+            ing = dataclasses.replace(ing, input_rate_hz=0.0)
+    if abs(seg.imu_rate_hz - ing.output_rate_hz) > 1e-9 and "imu_rate_hz" not in ov.get(NODE_RUN_SEGMENTER, {}):
+        seg = dataclasses.replace(seg, imu_rate_hz=ing.output_rate_hz)
+    return ing, seg
+
+
+def _segmenter_template(files: Sequence[Path], overrides: Mapping[str, Any] | None) -> str:
+    """run_segmenter's template_file parameter (a stored reference used instead of the first valid run)."""
+    from bac_measure.measure_config import load_node_params
+
+    return str(load_node_params(files, NODE_RUN_SEGMENTER, overrides).get("template_file", "") or "")
+
+
+def refit(campaign_dir: Path, runs: Sequence[RunResult]) -> dict[str, Any]:
+    """Fit the campaign's GP on the rescored J of each trial and recommend (argmin of the posterior mean)."""
+    from bac_agent.bo import Engine, EngineConfig
+    from bac_common.paramspace import CalibrationDefinition
+
+    _, started = journal_params(campaign_dir)
+    if started is None or not started.get("definition"):
+        raise RescoreError(f"{campaign_dir}: the journal does not say which parameters were tuned")
+    definition = CalibrationDefinition.from_dict(started["definition"])
+    # the live campaign's model and recommendation rule
+    cfg = EngineConfig.from_dict(
+        {**journaled_engine_options(started), "budget": max(1, len(runs)), "seed": int(started.get("seed", 0))}
+    )
+    eng = Engine(definition, cfg)
+    told = 0
+    for r in runs:
+        if r.params is not None and r.score.valid:
+            eng.tell(dict(r.params), r.score.j)
+            told += 1
+    if told == 0:
+        raise RescoreError("no valid rescored run with known parameters: nothing to fit")
+    rec = eng.recommend()
+    return {
+        "params": dict(rec.params),
+        "predicted_j": rec.predicted_j,
+        "predicted_std": rec.predicted_std,
+        "n_observations": told,
+    }
+
+
+# --- command line ------------------------------------------------------------------------------------------
+
+
+def _fmt(x: float | None, width: int = 10) -> str:
+    if x is None:
+        return f"{'-':>{width}}"
+    if math.isnan(x):
+        return f"{'invalid':>{width}}"
+    return f"{x:{width}.6f}"
+
+
+def format_table(result: RescoreResult) -> str:
+    lines = [
+        f"source: {result.source}",
+        "parameters: " + ", ".join(str(f) for f in result.files),
+        *(f"note: {n}" for n in result.notes),
+        "",
+        f"{'trial':>5} {'att':>3}  {'live J':>10}  {'rescored J':>10}  {'diff':>9}  calibration / reason",
+    ]
+    for r in result.runs:
+        params = " ".join(f"{k}={v:.4g}" for k, v in list((r.params or {}).items())[:4])
+        parts = f"RMS a_z {r.score.rms_accel_z:.4f} m/s^2, RMS pitch rate {r.score.rms_pitch_rate:.4f} rad/s"
+        what = (params or parts) if r.score.valid else r.score.reason
+        diff = f"{r.diff:9.2e}" if not math.isnan(r.diff) else f"{'-':>9}"
+        lines.append(f"{r.run.trial_id:5d} {r.run.attempt:3d}  {_fmt(r.live_j)}  {_fmt(r.j)}  {diff}  {what}")
+    d = result.max_abs_diff()
+    if not math.isnan(d):
+        lines.append(f"\nlargest |rescored - live| = {d:.3e}")
+    if result.recommendation:
+        rec = result.recommendation
+        params = " ".join(f"{k}={v:.4g}" for k, v in rec["params"].items())
+        lines.append(
+            f"recommendation (GP refit on {rec['n_observations']} rescored trials): {params}, "
+            f"predicted J {rec['predicted_j']:.4f} ± {rec['predicted_std']:.4f}"
+        )
+    return "\n".join(lines)
+
+
+def to_json(result: RescoreResult) -> dict[str, Any]:
+    def num(x: float | None) -> float | None:
+        return None if x is None or math.isnan(x) else float(x)
+
+    return {
+        "source": result.source,
+        "params_files": [str(f) for f in result.files],
+        "notes": result.notes,
+        "runs": [
+            {
+                "campaign_id": r.run.campaign_id,
+                "trial_id": r.run.trial_id,
+                "attempt": r.run.attempt,
+                "params": dict(r.params) if r.params else None,
+                "live_j": num(r.live_j),
+                "j": num(r.j),
+                "valid": r.score.valid,
+                "reason": r.score.reason,
+                "rms_accel_z": num(r.score.rms_accel_z),
+                "rms_pitch_rate": num(r.score.rms_pitch_rate),
+                "lag_s": num(r.segment.lag_s),
+                "alignment_score": num(r.segment.alignment_score),
+                "mean_speed_mps": num(r.segment.mean_speed_mps),
+            }
+            for r in result.runs
+        ],
+        "recommendation": result.recommendation,
+    }
+
+
+def parse_override(text: str) -> tuple[str, str, Any]:
+    """``node.param=value`` (or ``:=``) -> (node, param, value parsed as YAML)."""
+    import yaml
+
+    sep = ":=" if ":=" in text else "="
+    if sep not in text or "." not in text.split(sep, 1)[0]:
+        raise argparse.ArgumentTypeError(f"expected node.param=value, got {text!r}")
+    key, raw = text.split(sep, 1)
+    node, param = key.split(".", 1)
+    return node, param, yaml.safe_load(raw)
+
+
+def main(argv: Sequence[str] | None = None, profile_params: Callable[[str], list[Path]] | None = None) -> int:
+    """``bac rescore``; ``profile_params(name)`` gives a graph profile's parameter files (``bac_bringup``): the
+    ``sim`` profile's for a campaign folder without its ``config/``, the ``car`` profile's for other bags."""
+    ap = argparse.ArgumentParser(
+        prog="bac rescore", description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
+    )
+    ap.add_argument("paths", nargs="+", help="a campaign folder, or bags (rosbag2 folder/mcap/db3, ROS 1 .bag)")
+    ap.add_argument(
+        "--params-file",
+        action="append",
+        default=[],
+        type=Path,
+        help="parameter YAML (repeatable; default: the campaign's config/, else the sim profile's for a campaign "
+        "folder and the car profile's for other bags)",
+    )
+    ap.add_argument(
+        "-p",
+        "--param",
+        action="append",
+        default=[],
+        type=parse_override,
+        metavar="NODE.PARAM=VALUE",
+        help="change one parameter of imu_ingest, run_segmenter or kpi_scorer (repeatable)",
+    )
+    ap.add_argument(
+        "--reingest", action="store_true", help="ingest imu/data_raw again instead of the recorded imu/vehicle"
+    )
+    ap.add_argument(
+        "--window",
+        choices=("run", "whole"),
+        default="run",
+        help="run: cut each run like the live segmenter; whole: score each recording as one window",
+    )
+    ap.add_argument("--imu-topic", help="IMU topic of a foreign bag (default: its only sensor_msgs/Imu topic)")
+    ap.add_argument("--odom-topic", help="odometry topic of a foreign bag (default: vehicle/odom or its only one)")
+    ap.add_argument("--refit", action="store_true", help="fit the GP again on the rescored J and recommend")
+    ap.add_argument("--json", type=Path, help="write the results as JSON")
+    args = ap.parse_args(list(sys.argv[1:] if argv is None else argv))
+    overrides: dict[str, dict[str, Any]] = {}
+    for node, param, value in args.param:
+        if node not in (NODE_IMU_INGEST, NODE_RUN_SEGMENTER, NODE_KPI_SCORER):
+            sys.stderr.write(f"bac rescore: -p {node}.{param}: only imu_ingest, run_segmenter and kpi_scorer apply\n")
+            return 2
+        overrides.setdefault(node, {})[param] = value
+    files = list(args.params_file)
+    if not files and profile_params is not None:
+        first = Path(args.paths[0])
+        is_campaign = len(args.paths) == 1 and (first / "bags").is_dir()
+        if not (is_campaign and default_params_files(first)):
+            files = profile_params("sim" if is_campaign else "car")
+    try:
+        result = rescore(
+            args.paths,
+            files=files or None,
+            overrides=overrides,
+            reingest=args.reingest,
+            window=args.window,
+            imu_topic=args.imu_topic,
+            odom_topic=args.odom_topic,
+        )
+        if args.refit:
+            campaign = Path(args.paths[0])
+            result.recommendation = refit(campaign, result.runs)
+    except BacError as exc:
+        sys.stderr.write(f"bac rescore: {exc}\n")
+        return 2
+    sys.stdout.write(format_table(result) + "\n")
+    if args.json:
+        args.json.write_text(json.dumps(to_json(result), indent=2))
+    return 0
+
+
+__all__ = ["KpiConfig", "RescoreResult", "RunResult", "SegmentConfig", "main", "refit", "rescore"]
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,171 @@
+"""Synthetic runs for the measurement-chain tests and the benchmark (no simulator needed).
+
+A run is what the segmenter buffers: the ``imu/vehicle`` stream (vertical
+acceleration, pitch rate, fixed rate) and ``vehicle/odom`` (distance since the
+run started, speed). The vehicle is two decoupled damped modes driven by the
+road under the front and rear axles:
+
+* heave: a_z = s^2 (2 zeta w s + w^2) / (s^2 + 2 zeta w s + w^2) applied to the mean axle input;
+* pitch: q = s (2 zeta w s + w^2) / (s^2 + 2 zeta w s + w^2) applied to (u_rear - u_front) / wheelbase
+
+(a seat-rail IMU sees something like it). The road is a speed bump (a half-cosine) or a
+random ISO 8608-like profile that is the same for every run of a ``road_seed``. Each run
+starts at a road position ``offset_m`` (the driver never stops at the same point) and drives
+at ``speed_mps`` (cruise control with its error): runs must be cut and aligned.
+"""
+
+from __future__ import annotations
+
+import functools
+from collections.abc import Callable
+from dataclasses import dataclass
+
+import numpy as np
+from scipy import signal
+
+from bac_measure.segmentation import ImuSeries, OdomSeries
+
+NS = 1_000_000_000
+T_START = 1_700_000_000 * NS  # the trial became ready to drive here
+WHEELBASE = 2.8
+FINE_HZ = 2000.0  # the vehicle is simulated at this rate, then sampled by the IMU
+
+
+@dataclass
+class SynthRun:
+    imu: ImuSeries
+    odom: OdomSeries
+    start_ns: int  # the trial became ready to drive
+    offset_m: float  # road position where the odometry reads 0
+    speed_mps: float
+    event_ns: int  # bump runs: when the front axle reached the bump start
+
+
+def _mode(x: np.ndarray, f_hz: float, zeta: float, derivatives: int) -> np.ndarray:
+    """Displacement transmissibility of a damped mode, differentiated ``derivatives`` times."""
+    w = 2 * np.pi * f_hz
+    num = np.polymul([1.0] + [0.0] * derivatives, [2 * zeta * w, w * w])
+    den = [1.0, 2 * zeta * w, w * w]
+    b, a = signal.bilinear(num, den, fs=FINE_HZ)
+    return np.asarray(signal.lfilter(b, a, x), dtype=np.float64)
+
+
+def bump_profile(x: np.ndarray, at_m: float, height: float = 0.06, length: float = 2.0) -> np.ndarray:
+    u = np.clip((x - at_m) / length, 0.0, 1.0)
+    return height * 0.5 * (1 - np.cos(2 * np.pi * u))
+
+
+def random_road(x: np.ndarray, seed: int, roughness: float = 3e-5) -> np.ndarray:
+    """ISO 8608-like profile: G(n) = roughness * (n / 0.1)^-2, n in 0.02..8 cycles/m (sum of sinusoids)."""
+    grid = _road_table(seed, roughness, float(np.floor(x.min())) - 1.0, float(np.ceil(x.max())) + 1.0)
+    return np.asarray(np.interp(x, grid[0], grid[1]), dtype=np.float64)
+
+
+@functools.lru_cache(maxsize=16)
+def _road_table(seed: int, roughness: float, lo: float, hi: float) -> tuple[np.ndarray, np.ndarray]:
+    x = np.arange(lo, hi, 0.01)  # 1 cm: far finer than the shortest wavelength (12.5 cm)
+    rng = np.random.default_rng(seed)
+    n = np.geomspace(0.02, 8.0, 300)
+    dn = np.gradient(n)
+    amp = np.sqrt(2 * roughness * (n / 0.1) ** -2 * dn)
+    phase = rng.uniform(0, 2 * np.pi, n.size)
+    out = np.zeros_like(x)
+    for k in range(0, n.size, 50):  # blocks: bounded memory
+        b = slice(k, k + 50)
+        out += np.sum(amp[b, None] * np.cos(2 * np.pi * n[b, None] * x[None, :] + phase[b, None]), axis=0)
+    return x, out
+
+
+def _run(
+    road: Callable[[np.ndarray], np.ndarray],
+    duration_s: float,
+    speed_mps: float,
+    offset_m: float,
+    zeta: float,
+    noise: float,
+    fs: float,
+    seed: int,
+    lead_s: float,
+    imu_phase_s: float,
+    odom_hz: float,
+    t0_ns: int,
+) -> tuple[ImuSeries, OdomSeries]:
+    rng = np.random.default_rng(seed)
+    t_fine = np.arange(-lead_s, duration_s, 1 / FINE_HZ)
+    x_front = offset_m + speed_mps * np.maximum(t_fine, 0.0)  # standing until the start, then cruising
+    u_f = road(x_front)
+    u_r = road(x_front - WHEELBASE)
+    az = _mode((u_f + u_r) / 2, 1.2, zeta, 2) + 0.02 * _mode((u_f + u_r) / 2, 9.0, 0.15, 2)
+    q = _mode((u_r - u_f) / WHEELBASE, 1.6, zeta, 1)
+    t_imu = np.arange(-lead_s + imu_phase_s, duration_s - 0.01, 1 / fs)
+    az_i = np.interp(t_imu, t_fine, az) + noise * rng.standard_normal(t_imu.size)
+    q_i = np.interp(t_imu, t_fine, q) + 0.1 * noise * rng.standard_normal(t_imu.size)
+    imu = ImuSeries(t0_ns + np.round(t_imu * NS).astype(np.int64), az_i, q_i)
+    t_odom = np.arange(0.0, duration_s, 1 / odom_hz)
+    dist = speed_mps * t_odom
+    odom = OdomSeries(t0_ns + np.round(t_odom * NS).astype(np.int64), dist, np.full(t_odom.size, speed_mps))
+    return imu, odom
+
+
+def bump_run(
+    speed_mps: float = 30 / 3.6,
+    offset_m: float = 0.0,
+    zeta: float = 0.3,
+    noise: float = 0.02,
+    fs: float = 200.0,
+    seed: int = 0,
+    bump_at_m: float = 25.0,
+    duration_s: float = 7.0,
+    imu_phase_s: float = 0.0,
+    lead_s: float = 0.5,
+    t0_ns: int = T_START,
+) -> SynthRun:
+    """A run over a speed bump at road position ``bump_at_m``; the trial became ready at ``t0_ns``."""
+    imu, odom = _run(
+        lambda x: bump_profile(x, bump_at_m),
+        duration_s,
+        speed_mps,
+        offset_m,
+        zeta,
+        noise,
+        fs,
+        seed,
+        lead_s,
+        imu_phase_s,
+        50.0,
+        t0_ns,
+    )
+    event_ns = t0_ns + round((bump_at_m - offset_m) / speed_mps * NS)
+    return SynthRun(imu, odom, t0_ns, offset_m, speed_mps, event_ns)
+
+
+def road_run(
+    speed_mps: float = 60 / 3.6,
+    offset_m: float = 0.0,
+    zeta: float = 0.3,
+    noise: float = 0.05,
+    fs: float = 200.0,
+    seed: int = 0,
+    road_seed: int = 42,
+    length_m: float = 260.0,
+    imu_phase_s: float = 0.0,
+    lead_s: float = 0.5,
+    roughness: float = 3e-5,
+    t0_ns: int = T_START,
+) -> SynthRun:
+    """A run over ``length_m`` of a random road (the same road for the same ``road_seed``)."""
+    imu, odom = _run(
+        lambda x: random_road(x, road_seed, roughness),
+        length_m / speed_mps,
+        speed_mps,
+        offset_m,
+        zeta,
+        noise,
+        fs,
+        seed,
+        lead_s,
+        imu_phase_s,
+        50.0,
+        t0_ns,
+    )
+    return SynthRun(imu, odom, t0_ns, offset_m, speed_mps, 0)

@@ -1,0 +1,138 @@
+"""KPI core: known answers (RMS, ISO 2631-1 Wk gains, VDV, PSD) and validity."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from bac_measure.iso2631 import WK_TABLE, vibration_dose_value, weighted_rms, wk_filter, wk_response
+from bac_measure.kpi import KpiConfig, KpiError, rms, score, score_signals
+from bac_measure.segmentation import MODE_EVENT, RunId, Segment
+
+
+def sine(freq: float, amp: float, fs: float, seconds: float, phase: float = 0.3) -> np.ndarray:
+    t = np.arange(round(seconds * fs)) / fs
+    return amp * np.sin(2 * np.pi * freq * t + phase)
+
+
+@pytest.mark.parametrize("amp,freq,fs", [(1.0, 2.0, 200.0), (0.37, 5.0, 500.0), (3.2, 1.25, 100.0)])
+def test_rms_of_a_sinusoid_is_amplitude_over_sqrt2(amp: float, freq: float, fs: float) -> None:
+    x = sine(freq, amp, fs, 4.0)  # whole number of periods
+    assert rms(x) == pytest.approx(amp / math.sqrt(2), rel=1e-12)
+
+
+def test_j_is_rms_az_plus_rms_pitch_rate() -> None:
+    fs = 200.0
+    az, q = sine(2.0, 1.5, fs, 5.0), sine(1.0, 0.2, fs, 5.0, phase=1.0)
+    s = score_signals(az, q, fs)
+    assert s.valid and s.kpi == "rms"
+    assert s.rms_accel_z == pytest.approx(1.5 / math.sqrt(2), rel=1e-12)
+    assert s.rms_pitch_rate == pytest.approx(0.2 / math.sqrt(2), rel=1e-12)
+    assert s.j == pytest.approx((1.5 + 0.2) / math.sqrt(2), rel=1e-12)
+    w = score_signals(az, q, fs, KpiConfig(weight_accel_z=2.0, weight_pitch_rate=0.5))
+    assert w.j == pytest.approx(2.0 * 1.5 / math.sqrt(2) + 0.5 * 0.2 / math.sqrt(2), rel=1e-12)
+
+
+@pytest.mark.parametrize("freq,expected", [(1.0, 0.482), (6.3, 1.054), (12.5, 0.902)])
+@pytest.mark.parametrize("fs", [200.0, 500.0])
+def test_wk_gain_matches_iso2631_table_within_1_percent(freq: float, expected: float, fs: float) -> None:
+    """Measured on a filtered sinusoid in steady state (band limiting included)."""
+    x = sine(freq, 1.0, fs, 40.0)
+    y = wk_filter(x, fs)
+    steady = slice(round(15 * fs), None)
+    gain = rms(y[steady]) / rms(x[steady])
+    assert gain == pytest.approx(expected, rel=0.01)
+    assert abs(wk_response(freq)) == pytest.approx(expected, rel=0.01)
+
+
+def test_wk_response_follows_the_whole_table() -> None:
+    for f, w in WK_TABLE.items():
+        assert abs(wk_response(f)) == pytest.approx(w, rel=0.005), f
+
+
+def test_weighted_rms_and_vdv_of_a_sinusoid() -> None:
+    fs, amp, f = 500.0, 2.0, 6.3
+    x = sine(f, amp, fs, 60.0)
+    assert weighted_rms(x, fs) == pytest.approx(amp / math.sqrt(2) * 1.054, rel=0.01)
+    # VDV of an (already weighted) sinusoid: (A^4 * 3T/8)^(1/4)
+    assert vibration_dose_value(x, fs) == pytest.approx(amp * (3 * 60.0 / 8) ** 0.25, rel=1e-6)
+
+
+def test_kpi_variants_pick_their_vertical_term() -> None:
+    fs = 500.0
+    az, q = sine(6.3, 1.0, fs, 30.0), sine(1.0, 0.1, fs, 30.0)
+    rms_s = score_signals(az, q, fs, KpiConfig(kpi="rms"))
+    wk_s = score_signals(az, q, fs, KpiConfig(kpi="iso_wk_rms"))
+    vdv_s = score_signals(az, q, fs, KpiConfig(kpi="vdv"))
+    assert wk_s.j == pytest.approx(wk_s.weighted_rms_accel_z + wk_s.rms_pitch_rate, rel=1e-12)
+    assert vdv_s.j == pytest.approx(vdv_s.vdv_accel_z + vdv_s.rms_pitch_rate, rel=1e-12)
+    assert rms_s.weighted_rms_accel_z == wk_s.weighted_rms_accel_z  # every part is always computed
+    assert wk_s.weighted_rms_accel_z > rms_s.rms_accel_z  # Wk > 1 at 6.3 Hz
+
+
+def test_psd_peaks_at_the_tone_and_integrates_to_the_variance() -> None:
+    fs = 200.0
+    az, q = sine(3.0, 1.0, fs, 20.0), sine(1.0, 0.1, fs, 20.0)
+    s = score_signals(az, q, fs, KpiConfig(psd_segment_s=4.0, psd_max_hz=100.0))
+    f = s.psd_frequency_hz
+    assert f[np.argmax(s.psd_accel_z)] == pytest.approx(3.0, abs=0.25)
+    assert f[np.argmax(s.psd_pitch_rate)] == pytest.approx(1.0, abs=0.25)
+    df = f[1] - f[0]
+    assert np.sum(s.psd_accel_z) * df == pytest.approx(0.5, rel=0.02)
+    assert f.max() <= 100.0
+    cut = score_signals(az, q, fs, KpiConfig(psd_max_hz=20.0))
+    assert cut.psd_frequency_hz.max() <= 20.0
+
+
+def _segment(az: np.ndarray, q: np.ndarray, valid: bool = True, reason: str = "") -> Segment:
+    return Segment(
+        run=RunId("c1", 3, 2),
+        mode=MODE_EVENT,
+        window_start_ns=123,
+        window_length_s=az.size / 200.0,
+        distance_start_m=0.0,
+        distance_step_m=0.0,
+        sample_rate_hz=200.0,
+        lag_s=0.0,
+        alignment_score=1.0,
+        mean_speed_mps=8.3,
+        target_speed_mps=8.3,
+        coverage=1.0,
+        accel_z=az,
+        pitch_rate=q,
+        valid=valid,
+        reason=reason,
+    )
+
+
+def test_invalid_segment_gives_invalid_score_with_its_reason() -> None:
+    seg = _segment(np.ones(10), np.ones(10), valid=False, reason="too slow: 27 km/h")
+    s = score(seg)
+    assert not s.valid and math.isnan(s.j)
+    assert s.reason == "segment invalid: too slow: 27 km/h"
+    assert s.run == RunId("c1", 3, 2) and s.window_start_ns == 123
+
+
+def test_nan_in_a_valid_segment_is_refused() -> None:
+    az = np.ones(100)
+    az[40] = np.nan
+    s = score(_segment(az, np.zeros(100)))
+    assert not s.valid and "1 non-finite" in s.reason and math.isnan(s.j)
+
+
+def test_score_of_segment_equals_score_of_its_signals() -> None:
+    rng = np.random.default_rng(0)
+    az, q = rng.standard_normal(500), 0.1 * rng.standard_normal(500)
+    s = score(_segment(az, q))
+    assert s.j == score_signals(az, q, 200.0).j
+    assert s.run.trial_id == 3
+
+
+def test_bad_kpi_configuration_is_refused() -> None:
+    with pytest.raises(KpiError, match="kpi must be one of"):
+        KpiConfig(kpi="comfort")
+    with pytest.raises(KpiError, match="at least one weight"):
+        KpiConfig(weight_accel_z=0.0, weight_pitch_rate=0.0)
+    assert KpiConfig.from_params({"kpi": "vdv", "weight_accel_z": 2, "unrelated": 1}).weight_accel_z == 2.0
