@@ -15,7 +15,7 @@ ROOT=$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)
 cd "$ROOT"
 VENV="$ROOT/.venv"
 STAMPS="$VENV/.bac"
-PY_PKGS=(bac_common bac_ecu_bridge bac_imu bac_measure bac_sim bac_agent bac_reduce bac_campaign bac_bringup)
+PY_PKGS=(bac_common bac_ecu_bridge bac_imu bac_measure bac_sim bac_agent bac_reduce bac_campaign bac_cockpit bac_bringup)
 WITH_BENCH=0
 for arg in "$@"; do
   case "$arg" in
@@ -40,6 +40,9 @@ command -v cmake >/dev/null || need_apt+=(cmake)
 command -v g++ >/dev/null || need_apt+=(g++)
 command -v ip >/dev/null || need_apt+=(iproute2)
 command -v unshare >/dev/null || need_apt+=(util-linux)
+# the cockpit's browser test drives Debian's Chromium through its WebDriver (tests/cockpit)
+command -v chromium >/dev/null || need_apt+=(chromium)
+command -v chromedriver >/dev/null || need_apt+=(chromium-driver)
 if [[ ${#need_apt[@]} -gt 0 ]]; then
   say "installing system packages: ${need_apt[*]}"
   if [[ $(id -u) -eq 0 ]]; then

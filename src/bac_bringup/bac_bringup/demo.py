@@ -106,6 +106,25 @@ class JournalFollower:
             out(f"campaign FAILED: {e.get('reason')}")
 
 
+class CockpitAddress:
+    """Prints the cockpit's address once its node has started (``<campaign>/cockpit.json``)."""
+
+    def __init__(self, campaign_dir: Path) -> None:
+        self.path = campaign_dir / "cockpit.json"
+        self.path.unlink(missing_ok=True)  # left by a graph that did not stop cleanly: this launch writes its own
+        self.shown = False
+
+    def poll(self) -> None:
+        if self.shown or not self.path.exists():
+            return
+        try:
+            url = json.loads(self.path.read_text())["url"]
+        except (OSError, ValueError, KeyError):
+            return  # being written
+        self.shown = True
+        out(f"  cockpit: {url}  (open it in a browser: the page follows the campaign live; `bac watch` in a terminal)")
+
+
 def run_campaign(
     campaign_dir: Path,
     params_files: list[Path],
@@ -134,12 +153,14 @@ def run_campaign(
     if single_process:
         cmd.append("--single-process")
     follower = JournalFollower(campaign_dir / "journal.jsonl")
+    cockpit = CockpitAddress(campaign_dir)
     launcher_log = campaign_dir / "logs" / "launcher.log"
     launcher_log.parent.mkdir(parents=True, exist_ok=True)
     with launcher_log.open("wb") as log:
         proc = subprocess.Popen(cmd, stdout=log, stderr=subprocess.STDOUT)
         try:
             while proc.poll() is None:
+                cockpit.poll()
                 follower.poll()
                 time.sleep(0.2)
         except KeyboardInterrupt:
@@ -233,9 +254,10 @@ def main(argv: Sequence[str] | None = None) -> int:
     seeds = [f"bo_agent.seed:={args.seed}", f"vehicle_sim.seed:={args.seed}"]
     where = "speed bump at 30 km/h" if args.scenario == "bump" else "1.5 km test road at 60 km/h"
     out(f"bac demo: {controller} on the simulated {where}")
+    how = "in one process" if args.single_process else "each in its own process"
     out(
-        f"  the node graph: vehicle_sim (+ its ECU on CAN), imu_ingest, run_segmenter, kpi_scorer, ecu_bridge, "
-        f"campaign_recorder, bo_agent, {'in one process' if args.single_process else 'each in its own process'}"
+        "  the node graph: vehicle_sim (+ its ECU on CAN), imu_ingest, run_segmenter, kpi_scorer, ecu_bridge, "
+        f"campaign_recorder, cockpit, bo_agent, {how}"
     )
     out(f"  campaign folder: {camp}")
     t0 = time.monotonic()
