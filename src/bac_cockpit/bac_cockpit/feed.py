@@ -38,7 +38,7 @@ from bac_cockpit.state import (
 
 LOG = logging.getLogger("bac.cockpit")
 PR_SET_PDEATHSIG = 1
-WORKER_NICE = 10
+WORKER_NICE = 5  # below the graph's nodes, yet not starved on a busy machine
 
 
 def _worker_init() -> None:  # pragma: no cover - runs in the worker process
@@ -208,6 +208,12 @@ class CampaignFeed:
         hub = self.server.hub
         hub.apply(lambda st: st.set_campaign_info(facts.info))
         hub.apply(lambda st: st.set_rows(facts.rows, facts.recommendation, facts.last_apply))
+        st = hub.state
+        if facts.ended == "done" and (st.trial is None or st.trial.state != STATE_DONE):
+            # the journal says the campaign ended (its last bac/trial missed, or the agent long gone)
+            done = done_view(facts, st.trial)
+            if done is not None:
+                hub.apply(lambda s: s.on_trial(done, time.time()))
 
     async def _read_new_bags(self, facts: FolderFacts | None) -> None:
         """Offline: the bags written since the last look (the newest is read again: it may have grown)."""

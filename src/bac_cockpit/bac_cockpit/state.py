@@ -305,12 +305,18 @@ def decimate(x: FloatArray, max_points: int = MAX_SIGNAL_POINTS) -> tuple[FloatA
     return out, stride
 
 
-def _round(values: Iterable[float], digits: int = 6) -> list[float | None]:
-    """JSON numbers with ``digits`` significant digits (non-finite: None)."""
-    out: list[float | None] = []
-    for v in values:
-        fv = float(v)
-        out.append(float(f"{fv:.{digits}g}") if math.isfinite(fv) else None)
+def _round(values: Iterable[float] | FloatArray, digits: int = 6) -> list[float | None]:
+    """JSON numbers with ``digits`` significant digits, each its own (spectra span decades); non-finite: None."""
+    x = np.asarray(values, dtype=np.float64).ravel()
+    finite = np.isfinite(x)
+    with np.errstate(all="ignore"):
+        mag = np.floor(np.log10(np.where(finite & (x != 0.0), np.abs(x), 1.0)))
+        scale = 10.0 ** (digits - 1 - mag)
+        r = np.where(finite, np.round(x * scale) / scale, 0.0)
+    out: list[float | None] = r.tolist()
+    if not finite.all():
+        for i in np.flatnonzero(~finite):
+            out[int(i)] = None
     return out
 
 
@@ -431,6 +437,7 @@ class CockpitState:
         self.diag: dict[str, tuple[DiagView, float]] = {}
         self.model: dict[str, Any] | None = None
         self._signals_key: tuple[Any, ...] = ()
+        self._views: dict[tuple[Any, ...], dict[str, Any] | None] = {}  # signal and spectrum views, by run
 
     # --- inputs ---------------------------------------------------------------------------------------------
     def set_campaign_info(self, info: Mapping[str, Any]) -> list[str]:
@@ -473,7 +480,7 @@ class CockpitState:
         self.trial = t
         self.trial_received_wall = time.time() if wall is None else wall
         changed = ["trial"]
-        if not self.rows_from_journal and t.trial_id > 0:
+        if t.trial_id > 0:  # at once from the message; the journal (read after it) is the record that confirms it
             changed += self._row_from_trial(t)
         if t.state == STATE_DONE and t.params:
             rec = {
@@ -487,7 +494,7 @@ class CockpitState:
         return self._bump(changed)
 
     def _row_from_trial(self, t: TrialView) -> list[str]:
-        """Without a journal: the trials as bac/trial tells them."""
+        """The trial's row as bac/trial tells it (the whole table when there is no journal)."""
         row = self.rows.get(t.trial_id)
         if t.state == STATE_DONE:
             return []
@@ -496,14 +503,21 @@ class CockpitState:
                 t.trial_id, t.kind, dict(t.params), predicted_j=t.predicted_j, predicted_std=t.predicted_j_std
             )
             self.rows[t.trial_id] = row
+        before = row.as_json()
         row.attempts = max(row.attempts, t.attempt)
         name = STATE_NAMES.get(t.state, "")
         if name == "SCORED":
-            row.j, row.status = t.last_j, "scored"
+            # the run's own score when it came (a confirmation run's J is not the message's last_j)
+            sc = self.scores.get((t.trial_id, t.attempt))
+            j = sc.j if sc is not None and sc.valid else (t.last_j if t.kind != KIND_CONFIRMATION else math.nan)
+            if math.isfinite(j):
+                row.j, row.status = j, "scored"
         elif name == "REJECTED" and (t.attempt, t.reason) not in row.rejected:
             row.rejected.append((t.attempt, t.reason))
         elif name == "FAILED":
             row.status, row.reason = "failed", t.reason
+        if row.as_json() == before:
+            return []
         return ["trials", *self._refresh_signals()]
 
     def on_segment(self, s: SegmentView) -> list[str]:
@@ -570,6 +584,13 @@ class CockpitState:
     def _score_of(self, seg: SegmentView | None) -> ScoreView | None:
         return self.scores.get((seg.trial_id, seg.attempt)) if seg is not None else None
 
+    def _cached(self, key: tuple[Any, ...], make: Any) -> Any:
+        if key not in self._views:
+            if len(self._views) > 64:
+                self._views.clear()
+            self._views[key] = make()
+        return self._views[key]
+
     def _signals(self) -> dict[str, Any]:
         last = self.last_segment
         best_row = self.best_row()
@@ -580,11 +601,15 @@ class CockpitState:
             label = f"last run: trial {last.trial_id}" + (f" run {last.attempt}" if last.attempt > 1 else "")
             if not last.valid:
                 label += " (rejected)"
-            out["last"] = signal_view(
-                last, sc.j if sc is not None and sc.valid else None, label, self.max_signal_points
+            j = sc.j if sc is not None and sc.valid else None
+            out["last"] = self._cached(
+                ("sig", *_run_key(last), label, j), lambda: signal_view(last, j, label, self.max_signal_points)
             )
         if best is not None and best_row is not None:
-            out["best"] = signal_view(best, best_row.j, f"best run: trial {best.trial_id}", self.max_signal_points)
+            label_b, jb = f"best run: trial {best.trial_id}", best_row.j
+            out["best"] = self._cached(
+                ("sig", *_run_key(best), label_b, jb), lambda: signal_view(best, jb, label_b, self.max_signal_points)
+            )
         return out
 
     def _spectra(self) -> dict[str, Any]:
@@ -592,10 +617,15 @@ class CockpitState:
         best_row = self.best_row()
         best = self.segments.get(best_row.trial_id) if best_row else None
         out: dict[str, Any] = {"last": None, "best": None}
-        if last is not None:
-            out["last"] = spectrum_view(self._score_of(last), last, f"last run: trial {last.trial_id}")
-        if best is not None:
-            out["best"] = spectrum_view(self._score_of(best), best, f"best run: trial {best.trial_id}")
+        for key, seg, label in (("last", last, "last run"), ("best", best, "best run")):
+            if seg is None:
+                continue
+            sc = self._score_of(seg)
+            text = f"{label}: trial {seg.trial_id}"
+            out[key] = self._cached(
+                ("spec", *_run_key(seg), text, sc is not None),
+                lambda sc=sc, seg=seg, text=text: spectrum_view(sc, seg, text),
+            )
         return out
 
     def _diag_json(self, d: DiagView, wall: float, keys: Sequence[str] = ()) -> dict[str, Any]:
@@ -740,6 +770,10 @@ class CockpitState:
         if out:
             self.version += 1
         return out
+
+
+def _run_key(seg: SegmentView) -> tuple[Any, ...]:
+    return (seg.campaign_id, seg.trial_id, seg.attempt, seg.valid, seg.accel_z.size)
 
 
 def _rows_json(rows: Mapping[int, TrialRow]) -> list[dict[str, Any]]:

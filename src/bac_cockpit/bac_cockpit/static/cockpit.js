@@ -3,6 +3,7 @@
   "use strict";
 
   const S = {};                      // the state, as the server sends it (snapshot, then patches)
+  const T = {};                      // how long each drawing took here, ms (the last 50 of each)
   const $ = (id) => document.getElementById(id);
   const token = new URLSearchParams(location.search).get("token");
   const withToken = (p) => (token ? p + (p.includes("?") ? "&" : "?") + "token=" + encodeURIComponent(token) : p);
@@ -49,20 +50,47 @@
       es.readyState === EventSource.CLOSED ? "connection lost" : "reconnecting…");
   }
 
-  // the banner and the cards at once (what the driver reads); the plots batched
+  // the banner and the cards at once (what the driver reads), then the J plot and the table; the heavy plots
+  // (contour, signals, spectra) a moment later, so that a state change arriving meanwhile is never held back by them
+  const SLOW = new Set(["model", "signals", "spectra", "diagnostics", "campaign"]);
+  let slowPending = new Set();
+  let slowTimer = null;
+
   function update(keys) {
     renderBanner();
     renderCards();
-    for (const k of keys) pending.add(k);
+    for (const k of keys) (SLOW.has(k) ? slowPending : pending).add(k);
     if (timer === null) timer = setTimeout(flush, 0);
+    if (slowTimer === null && slowPending.size) slowTimer = setTimeout(flushSlow, 150);
   }
+
+  // what the plots were last drawn with: a state change redraws only what it changes
+  let drawnTrial = "", drawnMarker = "";
 
   function flush() {
     timer = null;
     const k = pending;
     pending = new Set();
-    if (k.has("trials") || k.has("recommendation") || k.has("model") || k.has("trial")) { renderJ(); renderTable(); }
-    if (k.has("model") || k.has("trial")) renderGP();
+    const t = S.trial || {};
+    const trialKey = `${t.trial_id}/${t.state_name === "DONE"}`;
+    if (k.has("trials") || k.has("recommendation")) renderJ();
+    if (k.has("trials") || trialKey !== drawnTrial) { renderTable(); drawnTrial = trialKey; }
+    const markerKey = t.state_name === "DONE" ? "" : JSON.stringify(t.params || {});
+    if (markerKey !== drawnMarker) slowPending.add("marker");
+    if (slowTimer === null && slowPending.size) slowTimer = setTimeout(flushSlow, 150);
+  }
+
+  function flushSlow() {
+    slowTimer = null;
+    if (timer !== null) { slowTimer = setTimeout(flushSlow, 50); return; }  // the fast path first
+    const k = slowPending;
+    slowPending = new Set();
+    if (k.has("model")) renderJ();  // the model's recommendation band while there is no final one
+    if (k.has("model") || k.has("marker")) {
+      renderGP();
+      const t = S.trial || {};
+      drawnMarker = t.state_name === "DONE" ? "" : JSON.stringify(t.params || {});
+    }
     if (k.has("signals")) renderSignals();
     if (k.has("spectra")) renderSpectra();
     if (k.has("diagnostics")) renderDiag();
@@ -70,7 +98,8 @@
   }
 
   // --- the banner ----------------------------------------------------------------------------------------
-  function renderBanner() {
+  function renderBanner() { timed("renderBanner", () => renderBanner_()); }
+  function renderBanner_() {
     const t = S.trial || { state_name: "IDLE", headline: "WAITING FOR THE CAMPAIGN", tone: "idle", trial_id: 0 };
     const b = $("banner");
     const live = S.mode !== "offline";
@@ -83,6 +112,7 @@
     b.className = "banner tone-" + tone.split(" ").join(" tone-");
     b.dataset.state = live && !connected && S.trial ? "DISCONNECTED" : t.state_name;
     b.dataset.trial = String(t.trial_id || 0);
+    b.dataset.attempt = String(t.attempt || 0);
     setText("headline", headline);
     setText("instruction", instruction || (t.state_name === "IDLE" ? "The page follows the campaign as soon as the agent starts." : ""));
     let trialOf = "";
@@ -113,7 +143,8 @@
       .map(([k, v]) => `<span>${esc(k)}</span><span>${esc(v)}</span>`).join("") + "</div>";
   }
 
-  function renderCards() {
+  function renderCards() { timed("renderCards", () => renderCards_()); }
+  function renderCards_() {
     const best = S.best;
     setText("best", best ? `J ${fj(best.j)}` : "–");
     setText("best-params", best ? `trial ${best.trial_id}: ${params(best.params)}` : "no scored run yet");
@@ -168,7 +199,8 @@
   }
 
   // --- J per trial -------------------------------------------------------------------------------------------
-  function renderJ() {
+  function renderJ() { timed("renderJ", () => renderJ_()); }
+  function renderJ_() {
     const rows = S.trials || [];
     const scored = rows.filter((r) => r.status === "scored" && ok(r.j) && r.kind !== "confirmation");
     const conf = rows.filter((r) => r.status === "scored" && ok(r.j) && r.kind === "confirmation");
@@ -214,7 +246,8 @@
   }
 
   // --- GP posterior mean ---------------------------------------------------------------------------------------------
-  function renderGP() {
+  function renderGP() { timed("renderGP", () => renderGP_()); }
+  function renderGP_() {
     const md = S.model;
     const el = $("gpplot");
     const cap = $("gp-caption");
@@ -280,7 +313,8 @@
       name: s.label + (ok(s.j) ? ` (J ${fj(s.j)})` : ""), line: { color, dash, width: 1.4 } };
   }
 
-  function renderSignals() {
+  function renderSignals() { timed("renderSignals", () => renderSignals_()); }
+  function renderSignals_() {
     const sg = S.signals || {};
     const data = [];
     for (const [k, color, dash] of [["best", COLORS.best, "dash"], ["last", COLORS.last, "solid"]]) {
@@ -297,7 +331,8 @@
     Plotly.react($("sigplot"), data, twoPanels("a_z, m/s²", "pitch rate, rad/s", "time in the aligned window, s", false), PLOT_CONFIG);
   }
 
-  function renderSpectra() {
+  function renderSpectra() { timed("renderSpectra", () => renderSpectra_()); }
+  function renderSpectra_() {
     const sp = S.spectra || {};
     const data = [];
     for (const [k, color, dash] of [["best", COLORS.best, "dash"], ["last", COLORS.last, "solid"]]) {
@@ -311,7 +346,8 @@
   }
 
   // --- tables -----------------------------------------------------------------------------------------------------
-  function renderTable() {
+  function renderTable() { timed("renderTable", () => renderTable_()); }
+  function renderTable_() {
     const rows = S.trials || [];
     const names = ((S.campaign || {}).dimensions || []).map((d) => d.name);
     if (!names.length && rows.length) names.push(...Object.keys(rows[0].params));
@@ -339,7 +375,12 @@
       : `<tr><td colspan="4" class="muted">${S.mode === "offline" ? "diagnostics are not recorded in the campaign folder" : "no /diagnostics yet"}</td></tr>`;
   }
 
-  window.bacCockpit = { state: S };
+  function timed(name, fn) {
+    const t0 = performance.now();
+    try { fn(); } finally { (T[name] = T[name] || []).push(+(performance.now() - t0).toFixed(1)); if (T[name].length > 50) T[name].shift(); }
+  }
+
+  window.bacCockpit = { state: S, timings: T };
   renderBanner();
   connect();
 })();
