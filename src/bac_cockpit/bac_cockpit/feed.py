@@ -288,5 +288,10 @@ class CampaignFeed:
     def close(self) -> None:
         self._closed = True
         if self._pool is not None:
+            # a fit in flight is not waited for: its worker is ended (the view dies with the node)
+            workers = list((getattr(self._pool, "_processes", None) or {}).values())
             self._pool.shutdown(wait=False, cancel_futures=True)
+            for w in workers:
+                with contextlib.suppress(Exception):
+                    w.terminate()
             self._pool = None

@@ -44,7 +44,7 @@ def make_campaign(
         if isinstance(a, Publish):
             published.append(a.status)
         elif isinstance(a, Apply):
-            queue += camp.on_apply_result(a.trial_id, a.apply_try, True, 0, "", dict(a.params), 0.012)
+            queue += camp.on_apply_result(a.trial_id, a.apply_try, True, 0, "", dict(a.params), 0.012, attempts=2)
         elif isinstance(a, AwaitRun):
             if stop_after is not None and scored >= stop_after:
                 break

@@ -153,5 +153,6 @@ def test_the_journal_replaces_what_the_topics_said(tmp_path: Path) -> None:
     assert rows[1]["rejected"] == [[1, "alignment 0.31 below 0.5"]] and rows[1]["attempts"] == 2
     assert rows[-1]["kind"] == "confirmation"
     assert st.part("recommendation")["final"] is True
-    assert st.part("ecu")["last_apply"]["success"] is True
+    last = st.part("ecu")["last_apply"]
+    assert last["success"] is True and last["trial_id"] == 7 and last["attempts"] == 2 and last["latency_s"] == 0.012
     assert st.set_rows(facts.rows, facts.recommendation, facts.last_apply) == []  # nothing new: no patch

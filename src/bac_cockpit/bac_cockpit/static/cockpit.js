@@ -41,6 +41,7 @@
       update(Object.keys(d));
     });
     es.addEventListener("patch", (e) => {
+      window.bacCockpit.received = Date.now();  // when this page had it (the tests compare with the server's time)
       const d = JSON.parse(e.data);
       Object.assign(S, d);
       update(Object.keys(d));
@@ -80,21 +81,26 @@
     if (slowTimer === null && slowPending.size) slowTimer = setTimeout(flushSlow, 150);
   }
 
+  // one heavy drawing per task: a message arriving meanwhile waits for one drawing at most, never for all
   function flushSlow() {
     slowTimer = null;
-    if (timer !== null) { slowTimer = setTimeout(flushSlow, 50); return; }  // the fast path first
+    if (timer !== null) { slowTimer = setTimeout(flushSlow, 20); return; }  // the fast path first
     const k = slowPending;
-    slowPending = new Set();
-    if (k.has("model")) renderJ();  // the model's recommendation band while there is no final one
-    if (k.has("model") || k.has("marker")) {
+    const order = ["model", "marker", "signals", "spectra", "diagnostics", "campaign"];
+    const next = order.find((x) => k.has(x));
+    if (next === undefined) { slowPending = new Set(); return; }
+    k.delete(next);
+    if (next === "model" || next === "marker") {
+      k.delete("marker");
+      if (next === "model") renderJ();  // the model's recommendation band while there is no final one
       renderGP();
       const t = S.trial || {};
       drawnMarker = t.state_name === "DONE" ? "" : JSON.stringify(t.params || {});
-    }
-    if (k.has("signals")) renderSignals();
-    if (k.has("spectra")) renderSpectra();
-    if (k.has("diagnostics")) renderDiag();
-    if (k.has("campaign")) renderCampaign();
+    } else if (next === "signals") renderSignals();
+    else if (next === "spectra") renderSpectra();
+    else if (next === "diagnostics") renderDiag();
+    else if (next === "campaign") renderCampaign();
+    if (k.size) slowTimer = setTimeout(flushSlow, 0);
   }
 
   // --- the banner ----------------------------------------------------------------------------------------
