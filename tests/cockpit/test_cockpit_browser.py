@@ -71,7 +71,7 @@ def live(tmp_path_factory: pytest.TempPathFactory) -> Iterator[dict[str, Any]]:
         env=env,
         start_new_session=True,
     )
-    driver = chromium(1400, 1000, out / "chromedriver.log")
+    driver = chromium(1400, 1560, out / "chromedriver.log")
     rec: dict[str, Any] = {"folder": camp, "out": out, "driver": driver}
     try:
 
@@ -87,6 +87,8 @@ def live(tmp_path_factory: pytest.TempPathFactory) -> Iterator[dict[str, Any]]:
         rec["url"] = url
         driver.get(url)
         wait_js(driver, "return document.getElementById('conn').textContent === 'connected'", 60, "the live stream")
+        # the page's first drawing done (plotly's first use is slow): from here on every update is measured
+        wait_js(driver, "return (window.bacCockpit.timings.renderJ || []).length > 0", 60, "the first drawing")
         driver.execute_script(OBSERVER)
         # the terminal view of the same cockpit, while the campaign runs
         w = subprocess.run([sys.executable, "-m", "bac_bringup.cli", "watch", url, "--once"], env=env,
@@ -101,7 +103,12 @@ def live(tmp_path_factory: pytest.TempPathFactory) -> Iterator[dict[str, Any]]:
                 "+document.getElementById('gpplot').dataset.runs];"
             )
             if st[0] == "READY_TO_DRIVE" and 6 <= st[1] <= 13 and st[2] > shot_runs:
-                shot, shot_runs = save(driver, "cockpit_live.png", out), st[2]
+                taken = save(driver, f"cockpit_ready_{st[1]}.png", out)
+                after = driver.execute_script(
+                    "const b = document.getElementById('banner'); return [b.dataset.state, +b.dataset.trial];"
+                )
+                if after == st[:2]:  # still READY TO DRIVE when the picture was taken
+                    shot, shot_runs = taken, st[2]
             time.sleep(0.1)
         rec["screenshot_live"] = shot
         rec["rc"] = proc.wait()
@@ -182,11 +189,18 @@ def test_the_page_follows_the_graph_within_half_a_second(
     events = read_journal(live["folder"] / "journal.jsonl").events
     obs = live["obs"]
     t0 = obs["t0"]
-    # (what, trial, page shows - journal, cockpit node received - journal, server sent - journal,
-    #  page's script received - journal), s
+    # (what, trial, page shows, cockpit node received, server sent, page's script received), s after the agent
+    # journaled it: READY TO DRIVE is published right after; a J is published after the agent chose the next trial
+    # (its ask), and the page has it from the journal itself (polled every 0.1 s) or from bac/trial, whichever first
     lags = []
+    scored = 0
     for e in events:
-        if e["event"] == "run_ready" and wall_ms(e) > t0:
+        if e["event"] == "trial_scored":
+            scored += 1
+        w = wall_ms(e)  # the agent's decision: journaled (fsynced), then published
+        if w <= t0:
+            continue
+        if e["event"] == "run_ready":
             seen = [
                 b
                 for b in obs["banner"]
@@ -194,17 +208,12 @@ def test_the_page_follows_the_graph_within_half_a_second(
             ]
             assert seen, f"READY TO DRIVE of trial {e['trial_id']} run {e['attempt']} never shown"
             b = min(seen, key=lambda x: x[0])
-            w = wall_ms(e)
             lags.append(("ready", e["trial_id"], *((x - w) / 1e3 for x in (b[0], b[5], b[6], b[7]))))
-    scored = [e for e in events if e["event"] == "trial_scored"]
-    for k, e in enumerate(scored, start=1):
-        if wall_ms(e) <= t0:
-            continue
-        seen = [p for p in obs["points"] if p[1] >= k]
-        assert seen, f"the J point of trial {e['trial_id']} never appeared"
-        p = min(seen, key=lambda x: x[0])
-        w = wall_ms(e)
-        lags.append(("j", e["trial_id"], *((x - w) / 1e3 for x in (p[0], p[2], p[3], p[4]))))
+        elif e["event"] == "trial_scored":
+            pts = [p for p in obs["points"] if p[1] >= scored]
+            assert pts, f"the J point of trial {e['trial_id']} never appeared"
+            p = min(pts, key=lambda x: x[0])
+            lags.append(("j", e["trial_id"], *((x - w) / 1e3 for x in (p[0], p[2], p[3], p[4]))))
     values = sorted(x[2] for x in lags)
     assert len(values) >= BUDGET
     worst = max(lags, key=lambda x: x[2])

@@ -107,8 +107,9 @@ class CockpitNode(BacNode):
         )
         poll_s = self.declare_float(
             "journal_poll_s",
-            1.0,
-            "how often the journal is looked at besides on each trial state, s",
+            0.1,
+            "how often the journal's size is looked at (it is read when it changed): the agent's J and "
+            "recommendation reach the page as soon as they are journaled, s",
             0.1,
             60.0,
             read_only=True,

@@ -93,7 +93,7 @@
     if (next === "model" || next === "marker") {
       k.delete("marker");
       if (next === "model") renderJ();  // the model's recommendation band while there is no final one
-      renderGP();
+      if (next === "model" || !timed("moveMarker", moveMarker)) renderGP();
       const t = S.trial || {};
       drawnMarker = t.state_name === "DONE" ? "" : JSON.stringify(t.params || {});
     } else if (next === "signals") renderSignals();
@@ -169,7 +169,8 @@
     const la = ecu.last_apply;
     const holds = ecu.holds;
     $("ecu-card").dataset.level = link ? link.level : "";
-    setText("ecu-main", link ? `${link.level}: ${link.message}` : (S.mode === "offline" ? "not recorded" : "no diagnostics yet"));
+    const said = (d) => (d.message.toUpperCase().startsWith(d.level) ? d.message : `${d.level}: ${d.message}`);
+    setText("ecu-main", link ? said(link) : (S.mode === "offline" ? "not recorded" : "no diagnostics yet"));
     const ep = [];
     if (la) {
       ep.push(["last apply", `${la.success ? "✓ confirmed" : "✗ failed"} (trial ${la.trial_id}, try ${la.apply_try}` +
@@ -187,7 +188,7 @@
 
     const imu = (S.imu || {}).stream;
     $("imu-card").dataset.level = imu ? imu.level : "";
-    setText("imu-main", imu ? `${imu.level}: ${imu.message}` : (S.mode === "offline" ? "not recorded" : "no diagnostics yet"));
+    setText("imu-main", imu ? said(imu) : (S.mode === "offline" ? "not recorded" : "no diagnostics yet"));
     const iv = imu ? imu.values : {};
     $("imu-detail").innerHTML = imu ? kv([
       ["rate", iv.rate_hz ? `${Number(iv.rate_hz).toFixed(1)} Hz (nominal ${Number(iv.nominal_rate_hz).toFixed(1)})` : ""],
@@ -252,6 +253,26 @@
   }
 
   // --- GP posterior mean ---------------------------------------------------------------------------------------------
+  // the calibration driven now: a red ring drawn as a layout shape (moved by a cheap relayout, the contour stays)
+  function nowShapes(md) {
+    const t = S.trial;
+    const [d0, d1] = md.dims || [];
+    if (!t || !t.params || t.state_name === "DONE" || !d1 || t.params[d0.name] === undefined) return [];
+    const x = t.params[d0.name], y = t.params[d1.name];
+    return [{ type: "circle", xref: "x", yref: "y", xsizemode: "pixel", ysizemode: "pixel", xanchor: x, yanchor: y,
+      x0: -11, x1: 11, y0: -11, y1: 11, line: { color: "#ef4444", width: 3 } }];
+  }
+
+  let drawnModel = null;
+
+  function moveMarker() {  // the contour as it is, the red ring on the calibration driven now
+    const el = $("gpplot");
+    const md = S.model;
+    if (!md || md.kind !== "contour" || drawnModel !== md || !el.layout) return false;
+    Plotly.relayout(el, { shapes: nowShapes(md) });
+    return true;
+  }
+
   function renderGP() { timed("renderGP", () => renderGP_()); }
   function renderGP_() {
     const md = S.model;
@@ -271,11 +292,16 @@
     if (md.kind === "contour") {
       const [d0, d1] = md.dims;
       data.push({ type: "contour", x: md.x, y: md.y, z: md.mean, colorscale: "Viridis", ncontours: 20,
-        contours: { coloring: "heatmap" }, colorbar: { title: { text: "J" }, thickness: 12 },
+        colorbar: { title: { text: "J" }, thickness: 12 },
         hovertemplate: `${d0.name}=%{x:.3f}<br>${d1.name}=%{y:.3f}<br>mean J=%{z:.4f}<extra></extra>` });
       const tr = md.trials || [];
+      // each label dark on the light (high J) part of the map, white on the dark part
+      const flat = md.mean.flat().filter(ok);
+      const mid = (Math.min(...flat) + Math.max(...flat)) / 2;
+      const near = (v, axis) => Math.max(0, Math.min(axis.length - 1, Math.round((v - axis[0]) / (axis[axis.length - 1] - axis[0]) * (axis.length - 1))));
+      const labelColor = (p) => { const z = md.mean[near(p.params[d1.name], md.y)][near(p.params[d0.name], md.x)]; return ok(z) && z > mid ? "#111" : "#fff"; };
       data.push({ type: "scatter", mode: "markers+text", name: "trials", x: tr.map((p) => p.params[d0.name]), y: tr.map((p) => p.params[d1.name]),
-        text: tr.map((p) => String(p.trial_id)), textposition: "top right", textfont: { color: "#fff", size: 10 },
+        text: tr.map((p) => String(p.trial_id)), textposition: "top right", textfont: { color: tr.map(labelColor), size: 11 },
         marker: { size: 9, color: "#fff", line: { color: "#000", width: 1 } },
         hovertemplate: "trial %{text}<extra></extra>" });
       if ((md.failed || []).length) data.push({ type: "scatter", mode: "markers", name: "failed", x: md.failed.map((p) => p.params[d0.name]),
@@ -283,10 +309,7 @@
       const r = md.recommendation;
       if (r) data.push({ type: "scatter", mode: "markers", name: r.final ? "recommendation" : "model's best", x: [r.params[d0.name]], y: [r.params[d1.name]],
         marker: { symbol: "star", size: 20, color: "#fde047", line: { color: "#000", width: 1.5 } } });
-      if (t && t.params && t.state_name !== "DONE" && t.params[d0.name] !== undefined) data.push({ type: "scatter", mode: "markers",
-        name: `now: trial ${t.trial_id}`, x: [t.params[d0.name]], y: [t.params[d1.name]],
-        marker: { symbol: "circle-open", size: 22, color: "#ef4444", line: { width: 3 } } });
-      layout = { margin: { l: 56, r: 10, t: 8, b: 40 }, uirevision: "gp",
+      layout = { margin: { l: 56, r: 10, t: 8, b: 40 }, uirevision: "gp", shapes: nowShapes(md),
         xaxis: { title: { text: d0.name }, range: [d0.lower, d0.upper] }, yaxis: { title: { text: d1.name }, range: [d1.lower, d1.upper] },
         legend: { orientation: "h", y: -0.22, font: { size: 11 } } };
     } else {
@@ -302,6 +325,7 @@
         legend: { orientation: "h", y: -0.22 } };
     }
     Plotly.react(el, data, layout, PLOT_CONFIG);
+    drawnModel = md;
   }
 
   // --- signals and spectra -----------------------------------------------------------------------------------------
@@ -320,8 +344,14 @@
   }
 
   function renderSignals() { timed("renderSignals", () => renderSignals_()); }
+  const sigKey = (v) => JSON.stringify(["last", "best"].map((k) => v && v[k] ? [v[k].label, v[k].trial_id, v[k].attempt, v[k].j, v[k].source, (v[k].t || v[k].f || []).length] : null));
+  let drawnSignals = null, drawnSpectra = null;
+
   function renderSignals_() {
     const sg = S.signals || {};
+    const key = sigKey(sg);
+    if (key === drawnSignals) return;
+    drawnSignals = key;
     const data = [];
     for (const [k, color, dash] of [["best", COLORS.best, "dash"], ["last", COLORS.last, "solid"]]) {
       const s = sg[k];
@@ -340,6 +370,9 @@
   function renderSpectra() { timed("renderSpectra", () => renderSpectra_()); }
   function renderSpectra_() {
     const sp = S.spectra || {};
+    const key = sigKey(sp);
+    if (key === drawnSpectra) return;
+    drawnSpectra = key;
     const data = [];
     for (const [k, color, dash] of [["best", COLORS.best, "dash"], ["last", COLORS.last, "solid"]]) {
       const s = sp[k];
@@ -383,7 +416,7 @@
 
   function timed(name, fn) {
     const t0 = performance.now();
-    try { fn(); } finally { (T[name] = T[name] || []).push(+(performance.now() - t0).toFixed(1)); if (T[name].length > 50) T[name].shift(); }
+    try { return fn(); } finally { (T[name] = T[name] || []).push(+(performance.now() - t0).toFixed(1)); if (T[name].length > 50) T[name].shift(); }
   }
 
   window.bacCockpit = { state: S, timings: T };
