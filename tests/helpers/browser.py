@@ -37,7 +37,7 @@ def chromium(width: int = 1400, height: int = 1000, log: Path | None = None) -> 
     from selenium.webdriver.chrome.service import Service
 
     binary = shutil.which("chromium") or shutil.which("chromium-browser")
-    driver = shutil.which("chromedriver")
+    driver = shutil.which("chromedriver") or shutil.which("chromium.chromedriver")
     if binary is None or driver is None:
         pytest.fail(
             "the browser tests need Debian's chromium and chromium-driver (apt-get install chromium chromium-driver; "

@@ -332,6 +332,7 @@ def main(argv: Sequence[str] | None = None) -> int:
             + (f", for good after {r2:.0f} runs" if math.isfinite(r2) else "")
         )
     out(f"report: {result['html']}")
+    out(f"cockpit of the finished campaign: bac cockpit {camp}")
     out(f"recommendation_gap_pct {100 * s['gap']:.2f}")
     return 0
 

@@ -28,10 +28,11 @@ def make_campaign(
     reject: Mapping[int, str] | None = None,
     confirmation: bool = True,
     stop_after: int | None = None,
+    definition: CalibrationDefinition | None = None,
 ) -> list[TrialStatus]:
     """Run a campaign to its end (or until ``stop_after`` trials were scored); ``reject`` = {trial: reason}: its
     first run is invalid. Returns every Trial status the agent published."""
-    defn = CalibrationDefinition.load(resolve_definition("controller_i"))
+    defn = definition or CalibrationDefinition.load(resolve_definition("controller_i"))
     eng = Engine(defn, budget=budget, seed=2)
     cfg = CampaignConfig(campaign_id=folder.name, budget=budget, confirmation_run=confirmation)
     camp = Campaign(eng, Journal(folder), cfg, clock=lambda: 1.0, definition=defn.to_dict())
