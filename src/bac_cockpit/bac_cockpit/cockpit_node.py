@@ -19,6 +19,7 @@ import contextlib
 import json
 import os
 import sys
+import time
 from pathlib import Path
 from typing import Any
 
@@ -115,6 +116,7 @@ class CockpitNode(BacNode):
             read_only=True,
         )
 
+        self._t0 = time.monotonic()
         self.campaign_dir = Path(campaign_dir).expanduser() if campaign_dir else None
         state = CockpitState("live", max_signal_points=max_points)
         relayed = bool(unix_socket and self.public_url)
@@ -182,6 +184,11 @@ class CockpitNode(BacNode):
         return 3.0
 
     def destroy_node(self) -> None:
+        # what the page cost: this process's CPU and the model worker's fits (the graph's nodes are the others)
+        self.get_logger().info(
+            f"cockpit: {time.process_time():.1f} s of CPU in this process over {time.monotonic() - self._t0:.0f} s; "
+            f"{self.feed.model_fits} GP fits in the worker, {self.feed.model_seconds_total:.1f} s of wall time in all"
+        )
         self.feed.close()
         self.server.stop()
         if self.campaign_dir is not None:

@@ -124,7 +124,8 @@ class CampaignFeed:
         self._bags_read: set[str] = set()
         self._last_state: tuple[int, int, int] | None = None
         self.model_fits = 0
-        self.model_seconds = 0.0
+        self.model_seconds = 0.0  # the last fit's wall time
+        self.model_seconds_total = 0.0
         self._closed = False
 
     # --- from the node's callbacks (any thread) ----------------------------------------------------------
@@ -266,6 +267,7 @@ class CampaignFeed:
                 model = await asyncio.to_thread(compute_model, str(self.dir), self.model_grid)
             self.model_fits += 1
             self.model_seconds = time.monotonic() - t0
+            self.model_seconds_total += self.model_seconds
             model["fit_s"] = round(self.model_seconds, 3)
             self.server.hub.apply(lambda st: st.set_model(model))
         except concurrent.futures.process.BrokenProcessPool:
