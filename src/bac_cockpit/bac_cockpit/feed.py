@@ -38,6 +38,7 @@ from bac_cockpit.state import (
 
 LOG = logging.getLogger("bac.cockpit")
 PR_SET_PDEATHSIG = 1
+DIAGNOSTICS_EVERY_S = 0.5  # the health cards at most twice a second (/diagnostics runs on sim time: 10 Hz at 10x)
 WORKER_NICE = 5  # below the graph's nodes, yet not starved on a busy machine
 
 
@@ -148,7 +149,7 @@ class CampaignFeed:
 
     def diagnostics(self, views: Sequence[DiagView]) -> None:
         wall = time.time()
-        self.server.apply(lambda st: st.on_diagnostics(views, wall))
+        self.server.apply(lambda st: st.on_diagnostics(views, wall), throttle_s=DIAGNOSTICS_EVERY_S)
 
     # --- in the server's loop ---------------------------------------------------------------------------------
     def start(self) -> None:

@@ -157,20 +157,45 @@ class _Client:
 
 
 class Hub:
-    """The state and the browsers following it (used in the server's loop only)."""
+    """The state and the browsers following it (used in the server's loop only).
+
+    Some parts change faster than anyone reads them (``/diagnostics`` at 10x real time: tens of messages a
+    second): :meth:`apply` with ``throttle_s`` sends them at most that often (the latest state each time), so that
+    they never crowd out what the driver must see.
+    """
 
     def __init__(self, state: CockpitState) -> None:
         self.state = state
         self.clients: set[_Client] = set()
         self.on_change: list[Callable[[list[str]], None]] = []
+        self._held: set[str] = set()
+        self._last_sent: dict[str, float] = {}
+        self._timer: asyncio.TimerHandle | None = None
 
-    def apply(self, fn: StateFn) -> list[str]:
+    def apply(self, fn: StateFn, throttle_s: float = 0.0) -> list[str]:
         keys = fn(self.state)
+        if keys and throttle_s > 0:
+            loop = asyncio.get_running_loop()
+            now = loop.time()
+            group = ",".join(sorted(keys))
+            if now - self._last_sent.get(group, -math.inf) < throttle_s:
+                self._held.update(keys)
+                if self._timer is None:
+                    self._timer = loop.call_later(throttle_s, self._send_held)
+                return keys
+            self._last_sent[group] = now
         if keys:
             self.broadcast(keys)
             for cb in self.on_change:
                 cb(keys)
         return keys
+
+    def _send_held(self) -> None:
+        self._timer = None
+        keys, self._held = sorted(self._held), set()
+        if keys:
+            self._last_sent[",".join(keys)] = asyncio.get_running_loop().time()
+            self.broadcast(keys)
 
     def broadcast(self, keys: list[str]) -> None:
         if not self.clients:
@@ -422,19 +447,19 @@ class CockpitServer:
             await site.start()
             self.bound.fallback_from = self.port
             _ = exc
-        server = site._server  # the asyncio server: which port the OS gave
-        socks = getattr(server, "sockets", None) or []
+        ports = [a[1] for a in runner.addresses if isinstance(a, tuple) and len(a) >= 2]  # which port the OS gave
         self.bound.host = self.host
-        self.bound.port = int(socks[0].getsockname()[1]) if socks else self.port
+        self.bound.port = int(ports[0]) if ports else self.port
 
     # --- from other threads ---------------------------------------------------------------------------------
-    def apply(self, fn: StateFn) -> None:
-        """Run ``fn(state)`` in the server's loop and send what it changed (never blocks the caller)."""
+    def apply(self, fn: StateFn, throttle_s: float = 0.0) -> None:
+        """Run ``fn(state)`` in the server's loop and send what it changed (never blocks the caller); with
+        ``throttle_s`` at most that often."""
         loop = self.loop
         if loop is None or loop.is_closed():
             return
         with contextlib.suppress(RuntimeError):  # the loop is closing
-            loop.call_soon_threadsafe(self.hub.apply, fn)
+            loop.call_soon_threadsafe(self.hub.apply, fn, throttle_s)
 
     def spawn(self, coro_fn: Callable[[], Coroutine[Any, Any, None]]) -> None:
         """Start a coroutine in the server's loop."""

@@ -498,15 +498,17 @@ class CockpitState:
         row = self.rows.get(t.trial_id)
         if t.state == STATE_DONE:
             return []
+        before = row.as_json() if row is not None else None
         if row is None:
             row = TrialRow(
                 t.trial_id, t.kind, dict(t.params), predicted_j=t.predicted_j, predicted_std=t.predicted_j_std
             )
             self.rows[t.trial_id] = row
-        before = row.as_json()
-        row.attempts = max(row.attempts, t.attempt)
         name = STATE_NAMES.get(t.state, "")
-        if name == "SCORED":
+        # each field as the journal has it at that point (the journal, read next, then finds nothing to change)
+        if name == "READY_TO_DRIVE":
+            row.attempts = max(row.attempts, t.attempt)
+        elif name == "SCORED":
             # the run's own score when it came (a confirmation run's J is not the message's last_j)
             sc = self.scores.get((t.trial_id, t.attempt))
             j = sc.j if sc is not None and sc.valid else (t.last_j if t.kind != KIND_CONFIRMATION else math.nan)

@@ -3,6 +3,7 @@ read-only, and the relay out of a network namespace (through a Unix socket)."""
 
 from __future__ import annotations
 
+import contextlib
 import gzip
 import http.client
 import json
@@ -75,9 +76,10 @@ def test_a_dns_rebinding_host_is_refused_without_a_token(server: CockpitServer) 
 
 
 def read_events(url: str, want: int, timeout: float = 20.0) -> list[tuple[str, dict[str, Any], float]]:
-    """The first ``want`` server-sent events, with the time each arrived."""
+    """The first ``want`` server-sent events (or those that came before nothing came for ``timeout`` s), with the
+    time each arrived."""
     out: list[tuple[str, dict[str, Any], float]] = []
-    with urllib.request.urlopen(url, timeout=timeout) as r:
+    with contextlib.suppress(TimeoutError), urllib.request.urlopen(url, timeout=timeout) as r:
         event, data = "", []
         for raw in r:
             line = raw.decode().rstrip("\n")
@@ -177,3 +179,26 @@ def test_the_relay_publishes_a_cockpit_served_on_a_unix_socket(tmp_path: Path) -
             srv.stop()
     finally:
         relay.stop()
+
+
+def test_a_flood_of_diagnostics_is_sent_at_most_twice_a_second(server: CockpitServer) -> None:
+    from bac_cockpit.state import DiagView
+
+    got: list[Any] = []
+    t = threading.Thread(target=lambda: got.extend(read_events(base(server) + "/events", 99, timeout=3)))
+    t.start()
+    deadline = time.monotonic() + 10
+    while not server.hub.clients and time.monotonic() < deadline:
+        time.sleep(0.01)
+    t0 = time.monotonic()
+    for i in range(40):  # 40 diagnostics messages in 0.4 s (10x real time)
+        v = [DiagView("imu_ingest: imu/data_raw", 0, f"OK {i}", "", {"rate_hz": "400"})]
+        server.apply(lambda st, v=v: st.on_diagnostics(v), throttle_s=0.5)
+        time.sleep(0.01)
+    server.apply(lambda st: st.set_campaign_info({"campaign_id": "after"}))  # not held back by the flood
+    t.join(20)
+    kinds = [("campaign" if "campaign" in d else "diag") for _, d, _ in got[1:]]
+    assert kinds.count("diag") <= 3 and "campaign" in kinds, kinds
+    last_diag = [d for _, d, _ in got[1:] if "diagnostics" in d][-1]
+    assert last_diag["imu"]["stream"]["message"] == "OK 39"  # the held update sends the latest state
+    assert got[kinds.index("campaign") + 1][2] - t0 < 1.5

@@ -83,8 +83,7 @@
 
   // one heavy drawing per task: a message arriving meanwhile waits for one drawing at most, never for all
   function flushSlow() {
-    slowTimer = null;
-    if (timer !== null) { slowTimer = setTimeout(flushSlow, 20); return; }  // the fast path first
+    slowTimer = null;  // (a fast flush already queued runs before this: its timer is older)
     const k = slowPending;
     const order = ["model", "marker", "signals", "spectra", "diagnostics", "campaign"];
     const next = order.find((x) => k.has(x));
@@ -206,6 +205,8 @@
   }
 
   // --- J per trial -------------------------------------------------------------------------------------------
+  let drawnJ = null;
+
   function renderJ() { timed("renderJ", () => renderJ_()); }
   function renderJ_() {
     const rows = S.trials || [];
@@ -242,6 +243,10 @@
       else if (r.rejected && r.rejected.length) shapes.push({ type: "rect", xref: "x", yref: "paper", x0: r.trial_id - 0.4, x1: r.trial_id + 0.4, y0: 0, y1: 1, fillcolor: "rgba(217,72,15,0.15)", line: { width: 0 } });
     }
     const el = $("jplot");
+    const key = JSON.stringify([xs, ys, pred.map((r) => [r.trial_id, r.predicted_j, r.predicted_std]), conf.map((r) => r.j),
+      rec ? [rec.predicted_j, rec.predicted_std] : null, nmax, shapes.length, rows.map((r) => r.status)]);
+    if (key === drawnJ) return;
+    drawnJ = key;
     Plotly.react(el, data, {
       margin: { l: 56, r: 10, t: 8, b: 40 }, uirevision: "j", shapes,
       xaxis: { title: { text: "trial" }, range: [0.5, nmax + 0.5], dtick: nmax > 30 ? undefined : 1 },
