@@ -126,7 +126,9 @@ def live(tmp_path_factory: pytest.TempPathFactory) -> Iterator[dict[str, Any]]:
             " recFinal: document.getElementById('rec-card').dataset.final,"
             " recParams: document.getElementById('rec-params').textContent,"
             " gpContours: document.querySelectorAll('#gpplot g.contour, #gpplot .contourlayer path').length,"
-            " banner: document.getElementById('banner').dataset.state};"
+            " banner: document.getElementById('banner').dataset.state,"
+            " signals: (document.getElementById('sigplot').data || []).map(t => t.name),"
+            " spectra: (document.getElementById('specplot').data || []).map(t => t.name)};"
         )
         rec["timings"] = driver.execute_script("return window.bacCockpit.timings;")
         rec["screenshot_end"] = save(driver, "cockpit_end.png", out)
@@ -179,6 +181,18 @@ def test_the_gp_plot_updates_through_the_campaign(live: dict[str, Any]) -> None:
     assert len(set(runs)) >= 3, runs
     assert runs == sorted(runs) and runs[-1] >= BUDGET // 2, runs
     assert live["dom"]["gpContours"] > 0
+
+
+def test_the_last_run_against_the_best_and_their_spectra(live: dict[str, Any]) -> None:
+    """The signals and the spectra drawn are the last run's (the confirmation run) and the best trial's."""
+    events = read_journal(live["folder"] / "journal.jsonl").events
+    scored = [e for e in events if e["event"] == "trial_scored"]
+    best = min((e for e in scored if e["kind"] != 2), key=lambda e: e["j"])
+    last = scored[-1]
+    for plot in ("signals", "spectra"):
+        names = live["dom"][plot]
+        assert any(n.startswith(f"last run: trial {last['trial_id']}") for n in names), (plot, names)
+        assert any(n.startswith(f"best run: trial {best['trial_id']}") for n in names), (plot, names)
 
 
 def test_the_final_recommendation_is_shown(live: dict[str, Any]) -> None:
