@@ -29,6 +29,7 @@ from typing import Any
 import numpy as np
 import numpy.typing as npt
 from rosbags.highlevel import AnyReader
+from rosbags.interfaces import Qos
 from rosbags.typesys.store import Typestore
 
 from bac_common import cdr
@@ -176,6 +177,19 @@ def bag_topics(path: str | Path) -> dict[str, tuple[str, int]]:
     """Topic -> (message type, count) of a bag."""
     with _Bag(path) as bag:
         return bag.topics()
+
+
+def offered_qos(path: str | Path) -> dict[str, list[Qos]]:
+    """Topic -> the QoS profiles its publishers offered, as the bag recorded them (rosbag2 ``offered_qos_profiles``:
+    metadata.yaml, or an mcap channel's metadata); an empty list for a bag that recorded none (bags written by bac
+    before 2026-11-24, ROS 1 bags). :func:`bac_measure.recording.playback_qos` gives what ``ros2 bag play``
+    offers from them."""
+    with _Bag(path) as bag:
+        out: dict[str, list[Qos]] = {}
+        for c in bag.reader.connections:
+            profiles = getattr(getattr(c, "ext", None), "offered_qos_profiles", None) or []
+            out.setdefault(c.topic, []).extend(profiles)
+        return out
 
 
 # --- vectorized CDR (bac_common.cdr) ----------------------------------------------------------------------
