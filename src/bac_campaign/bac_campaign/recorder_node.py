@@ -2,7 +2,10 @@
 
 Subscribes every topic of a run (raw and ingested IMU, odometry, trial,
 segment, score, confirmed calibration) without deserializing them and writes
-the bytes as they arrived into ``<campaign_dir>/bags/trial_NNNN/``.
+the bytes as they arrived into ``<campaign_dir>/bags/trial_NNNN/``, with the
+metadata ``ros2 bag record`` (Jazzy) writes: each topic offered reliable +
+transient local, so ``ros2 bag play`` feeds every reader of the graph
+(:mod:`bac_measure.recording`).
 
 Topics are not ordered with respect to each other (a lagging IMU subscription
 can deliver a run's last samples after the next trial was announced), so a

@@ -175,6 +175,8 @@ def _concat_odom(parts: list[OdomArrays]) -> OdomArrays:
         recv_ns=np.concatenate([p.recv_ns for p in parts])[idx],
         distance_m=np.concatenate([p.distance_m for p in parts])[idx],
         speed_mps=np.concatenate([p.speed_mps for p in parts])[idx],
+        position_y_m=np.concatenate([p.series().position_y_m for p in parts])[idx],
+        position_z_m=np.concatenate([p.series().position_z_m for p in parts])[idx],
     )
 
 
@@ -286,11 +288,7 @@ def rescore(
             f"ingestion: {health.samples_in} samples at {health.rate_hz:.1f} Hz, {health.gaps} gaps, "
             f"{health.nonfinite} NaN/inf, {health.restarts} stream restarts, {health.clock_jumps} clock jumps"
         )
-    odom = (
-        OdomSeries(rec.odom.stamp_ns, rec.odom.distance_m, rec.odom.speed_mps)
-        if rec.odom is not None
-        else OdomSeries.empty()
-    )
+    odom = rec.odom.series() if rec.odom is not None else OdomSeries.empty()
     jparams, _ = journal_params(campaign_dir)
 
     runs: list[RunResult] = []

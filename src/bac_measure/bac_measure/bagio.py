@@ -29,11 +29,13 @@ from typing import Any
 import numpy as np
 import numpy.typing as npt
 from rosbags.highlevel import AnyReader
+from rosbags.interfaces import Qos
 from rosbags.typesys.store import Typestore
 
 from bac_common import cdr
 from bac_common.errors import BacError
 from bac_measure.recording import bac_typestore
+from bac_measure.segmentation import OdomSeries
 
 FloatArray = npt.NDArray[np.float64]
 IntArray = npt.NDArray[np.int64]
@@ -69,7 +71,8 @@ class ImuArrays:
 
 @dataclass(frozen=True)
 class OdomArrays:
-    """nav_msgs/Odometry messages of one topic: bac's distance (pose.position.x) and speed (twist.linear.x)."""
+    """nav_msgs/Odometry messages of one topic: the pose's position (``distance_m`` is its x: bac's odometer with
+    ``distance_source: position_x``; y, z default to 0) and the forward speed (twist.linear.x)."""
 
     topic: str
     frame_id: str
@@ -77,9 +80,20 @@ class OdomArrays:
     recv_ns: IntArray
     distance_m: FloatArray
     speed_mps: FloatArray
+    position_y_m: FloatArray | None = None
+    position_z_m: FloatArray | None = None
+
+    def __post_init__(self) -> None:
+        for name in ("position_y_m", "position_z_m"):
+            if getattr(self, name) is None:
+                object.__setattr__(self, name, np.zeros(np.shape(self.stamp_ns)))
 
     def __len__(self) -> int:
         return int(self.stamp_ns.shape[0])
+
+    def series(self) -> OdomSeries:
+        """As the segmentation's :class:`~bac_measure.segmentation.OdomSeries` (position and speed)."""
+        return OdomSeries(self.stamp_ns, self.distance_m, self.speed_mps, self.position_y_m, self.position_z_m)
 
 
 @dataclass(frozen=True)
@@ -178,6 +192,19 @@ def bag_topics(path: str | Path) -> dict[str, tuple[str, int]]:
         return bag.topics()
 
 
+def offered_qos(path: str | Path) -> dict[str, list[Qos]]:
+    """Topic -> the QoS profiles its publishers offered, as the bag recorded them (rosbag2 ``offered_qos_profiles``:
+    metadata.yaml, or an mcap channel's metadata); an empty list for a bag that recorded none (bags written by bac
+    before 2026-11-24, ROS 1 bags). :func:`bac_measure.recording.playback_qos` gives what ``ros2 bag play``
+    offers from them."""
+    with _Bag(path) as bag:
+        out: dict[str, list[Qos]] = {}
+        for c in bag.reader.connections:
+            profiles = getattr(getattr(c, "ext", None), "offered_qos_profiles", None) or []
+            out.setdefault(c.topic, []).extend(profiles)
+        return out
+
+
 # --- vectorized CDR (bac_common.cdr) ----------------------------------------------------------------------
 
 
@@ -234,26 +261,38 @@ def _odom_arrays(bag: _Bag, t: str, conns: list[Any], recv: list[int], raws: lis
         stamps, d = fast
         for i in (0, len(raws) - 1):
             m = bag.deserialize(raws[i], conns[i])
-            got = (d[i, cdr.ODOM_X], d[i, cdr.ODOM_VX], stamps[i])
-            want = (m.pose.pose.position.x, m.twist.twist.linear.x, _stamp(m.header))
+            got = (d[i, 0], d[i, 1], d[i, 2], d[i, cdr.ODOM_VX], stamps[i])
+            p = m.pose.pose.position
+            want = (p.x, p.y, p.z, m.twist.twist.linear.x, _stamp(m.header))
             if not all(_same(a, b) for a, b in zip(got, want, strict=True)):
                 fast = None
                 break
     if fast is not None:
         stamps, d = fast
-        return OdomArrays(t, _frame(raws[0]), stamps, recv_ns, d[:, cdr.ODOM_X].copy(), d[:, cdr.ODOM_VX].copy())
+        pos = d[:, cdr.ODOM_POSITION]
+        return OdomArrays(
+            t,
+            _frame(raws[0]),
+            stamps,
+            recv_ns,
+            pos[:, 0].copy(),
+            d[:, cdr.ODOM_VX].copy(),
+            pos[:, 1].copy(),
+            pos[:, 2].copy(),
+        )
     stamps = np.zeros(len(raws), np.int64)
-    dist = np.zeros(len(raws))
+    pos = np.zeros((len(raws), 3))
     speed = np.zeros(len(raws))
     frame = ""
     for i, (c, raw) in enumerate(zip(conns, raws, strict=True)):
         m = bag.deserialize(raw, c)
         stamps[i] = _stamp(m.header)
-        dist[i] = m.pose.pose.position.x
+        p = m.pose.pose.position
+        pos[i] = (p.x, p.y, p.z)
         speed[i] = m.twist.twist.linear.x
         if i == 0:
             frame = str(m.header.frame_id)
-    return OdomArrays(t, frame, stamps, recv_ns, dist, speed)
+    return OdomArrays(t, frame, stamps, recv_ns, pos[:, 0].copy(), speed, pos[:, 1].copy(), pos[:, 2].copy())
 
 
 def _collect(bag: _Bag, topics: list[str]) -> dict[str, tuple[list[Any], list[int], list[bytes]]]:
@@ -399,13 +438,15 @@ def write_bag(
                 T["geometry_msgs/msg/PoseWithCovariance"],
             )
             Tw, TwC = T["geometry_msgs/msg/Twist"], T["geometry_msgs/msg/TwistWithCovariance"]
+            oy, oz = odom.series().position_y_m, odom.series().position_z_m
+            assert oy is not None and oz is not None
             for i in range(len(odom)):
                 m = T[ODOM_TYPE](
                     header=header(int(odom.stamp_ns[i]), odom.frame_id),
                     child_frame_id="base_link",
                     pose=PwC(
                         pose=Pose(
-                            position=P(x=float(odom.distance_m[i]), y=0.0, z=0.0),
+                            position=P(x=float(odom.distance_m[i]), y=float(oy[i]), z=float(oz[i])),
                             orientation=Quat(x=0.0, y=0.0, z=0.0, w=1.0),
                         ),
                         covariance=zeros36,

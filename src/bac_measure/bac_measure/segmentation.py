@@ -1,9 +1,9 @@
 """Run segmentation: "cut & align" of paper algorithm 1 (pure core of ``run_segmenter``).
 
 A run is the IMU stream (``imu/vehicle``: vertical acceleration without
-gravity, pitch rate, fixed rate) and the odometry (``vehicle/odom``:
-distance since the run started, speed) buffered from the moment its trial
-became ready to drive. :func:`cut_run` cuts the segment of interest out of
+gravity, pitch rate, fixed rate) and the odometry (``vehicle/odom``, any
+nav_msgs/Odometry: the pose's position, the forward speed ``twist.linear.x``)
+buffered from the moment its trial became ready to drive. :func:`cut_run` cuts the segment of interest out of
 it and aligns it with a reference run:
 
 * **event** mode (a speed bump): the impact is the first sample whose
@@ -15,10 +15,22 @@ it and aligns it with a reference run:
   in one IMU sample), so that a run driven a little faster or slower is not
   stretched against the reference.
 
+**The distance** is what ``distance_source`` says: ``path_length`` (the length of the path of the
+pose, the sum of ``|Δ position|`` in x, y, z: any odometry after REP 105, wheel odometry,
+robot_localization, a GNSS/INS driver), ``speed_integral`` (the integral of the forward speed
+``twist.linear.x`` over the stamps: what a speed-only source gives) or ``position_x``
+(``pose.position.x`` read as an odometer: bac's convention before 2026-11-24, a trip or cumulative
+odometer). Path length and speed integral have no origin of their own: a drive's distance counts from
+its start (``distance_origin`` applies to ``position_x`` only). Each drive's distance is summed from its
+own first sample, so the live node and an offline tool given the same drive get the same distances,
+bit for bit, whatever else they buffered.
+
 **A run is one drive.** The odometry is split into drives: a drive begins where the distance
 counter resets, where the odometry was silent for ``odom_gap_s``, or where the vehicle speeds up
 through ``new_drive_speed_fraction`` of the target speed after being slower (a standstill, a turn:
-the drive begins at its slowest point). The run of an attempt is cut from the first drive that
+the drive begins at its slowest point). For ``path_length`` a jump of the pose (a
+step longer than ``ODOM_RESET_M`` plus twice what the speed allows: a reset of the odometry) also begins
+a drive, and the jump is not counted. The run of an attempt is cut from the first drive that
 holds the whole window after the attempt became ready to drive: for a first attempt that may be
 the drive in progress (a rolling start), for a **retry** (``retry=True``) only a drive that began
 after it, so the tail of an earlier run is never taken for the new one. A drive that began past
@@ -69,7 +81,9 @@ MODE_DISTANCE = 1  # bac_msgs/RunSegment.MODE_DISTANCE
 MODES = {"event": MODE_EVENT, "distance": MODE_DISTANCE}
 ALIGN_SIGNALS = ("accel_z", "pitch_rate", "both", "none")
 DISTANCE_ORIGINS = ("odom", "run_start")
-ODOM_RESET_M = 1.0  # a drop of the odometry distance larger than this is a reset (a new run)
+DISTANCE_SOURCES = ("position_x", "path_length", "speed_integral")
+ODOM_RESET_M = 1.0  # a drop of pose.x (position_x), or a pose jump beyond what the speed allows (path_length), larger
+# than this is a reset (a new drive)
 SPLINE_MARGIN = 16  # samples around a re-sampled window (the cubic prefilter's support, to 1e-9)
 RATE_PROBE = 200  # stamp steps used to measure the IMU rate when it is not configured
 
@@ -118,24 +132,41 @@ class ImuSeries:
 
 @dataclass(frozen=True)
 class OdomSeries:
-    """``vehicle/odom`` samples: stamps (ns), distance since the run started (m), speed (m/s)."""
+    """``vehicle/odom`` samples (nav_msgs/Odometry): stamps (ns), ``pose.pose.position`` x, y, z (m) and the
+    forward speed ``twist.twist.linear.x`` (m/s). ``distance_m`` is the position's x (bac's odometer with
+    ``distance_source: position_x``); y and z default to 0."""
 
     stamp_ns: IntArray
     distance_m: FloatArray
     speed_mps: FloatArray
+    position_y_m: FloatArray | None = None
+    position_z_m: FloatArray | None = None
 
     def __post_init__(self) -> None:
         t = np.asarray(self.stamp_ns, dtype=np.int64).reshape(-1)
         d = np.asarray(self.distance_m, dtype=np.float64).reshape(-1)
         v = np.asarray(self.speed_mps, dtype=np.float64).reshape(-1)
-        if not (t.shape == d.shape == v.shape):
-            raise SegmentationError(f"odometry arrays differ in length: {t.shape}, {d.shape}, {v.shape}")
+        y = np.zeros(t.shape) if self.position_y_m is None else np.asarray(self.position_y_m, np.float64).reshape(-1)
+        z = np.zeros(t.shape) if self.position_z_m is None else np.asarray(self.position_z_m, np.float64).reshape(-1)
+        if not (t.shape == d.shape == v.shape == y.shape == z.shape):
+            raise SegmentationError(
+                f"odometry arrays differ in length: {t.shape}, {d.shape}, {v.shape}, {y.shape}, {z.shape}"
+            )
         object.__setattr__(self, "stamp_ns", t)
         object.__setattr__(self, "distance_m", d)
         object.__setattr__(self, "speed_mps", v)
+        object.__setattr__(self, "position_y_m", y)
+        object.__setattr__(self, "position_z_m", z)
 
     def __len__(self) -> int:
         return int(self.stamp_ns.shape[0])
+
+    @property
+    def position(self) -> FloatArray:
+        """(n, 3) pose positions, m."""
+        y, z = self.position_y_m, self.position_z_m
+        assert y is not None and z is not None  # set by __post_init__
+        return np.column_stack([self.distance_m, y, z])
 
     @staticmethod
     def empty() -> OdomSeries:
@@ -164,7 +195,9 @@ class SegmentConfig:
     distance_end_m: float = 1600.0  # section end s1, odometry m
     distance_step_m: float = 0.0  # distance grid step, m; 0 = target speed / IMU rate
     max_shift_m: float = 15.0  # alignment search range, +- m (covers the driver's start offset)
-    distance_origin: str = "odom"  # "odom": pose.x is the distance since the run started; "run_start": subtract it
+    distance_source: str = "position_x"  # position_x (pose.x as an odometer), path_length, speed_integral
+    distance_origin: str = "odom"  # position_x: "odom": pose.x is the distance since the run started; "run_start":
+    # subtract its value at the drive's start (path_length and speed_integral always count from the drive's start)
     # drives (a retry is a new drive)
     new_drive_speed_fraction: float = 0.5  # a drive begins where the speed rises through this fraction of the target
     odom_gap_s: float = 1.0  # odometry silent this long (stamps): what follows is a new drive
@@ -199,6 +232,8 @@ class SegmentConfig:
             p.append("distance_step_m must be >= 0 (0 = automatic)")
         if not (0.0 <= self.max_shift_m <= 1000.0):
             p.append(f"max_shift_m must be in [0, 1000], got {self.max_shift_m}")
+        if self.distance_source not in DISTANCE_SOURCES:
+            p.append(f"distance_source must be one of {DISTANCE_SOURCES}, got {self.distance_source!r}")
         if self.distance_origin not in DISTANCE_ORIGINS:
             p.append(f"distance_origin must be one of {DISTANCE_ORIGINS}, got {self.distance_origin!r}")
         if not (0.0 < self.new_drive_speed_fraction < 1.0):
@@ -567,21 +602,28 @@ class _Drive:
     rolling: bool  # it began before the run's start (a first attempt may use it from there)
 
 
-def drive_starts(t: IntArray, d: FloatArray, v: FloatArray, config: SegmentConfig) -> IntArray:
+def drive_starts(
+    t: IntArray, d: FloatArray, v: FloatArray, config: SegmentConfig, resets: IntArray | None = None
+) -> IntArray:
     """Indices (into time-sorted odometry) where a drive begins; 0 is always one.
 
-    A drive begins at a reset of the distance counter, after odometry silent for ``odom_gap_s``, or at the
-    slowest point before the speed rises through ``new_drive_speed_fraction`` of the target speed.
+    A drive begins at a reset of the distance counter (``resets``; by default where ``d``, pose.x, drops by more
+    than ``ODOM_RESET_M``), after odometry silent for ``odom_gap_s``, or at the slowest point (smallest
+    ``|speed|``: a standstill, also between reversing and driving off) before the speed rises through
+    ``new_drive_speed_fraction`` of the target speed.
     """
     n = t.size
     if n == 0:
         return np.zeros(0, np.int64)
     starts = {0}
     dt = np.diff(t)
-    starts.update((np.flatnonzero(np.diff(d) < -ODOM_RESET_M) + 1).tolist())
+    if resets is None:
+        resets = np.flatnonzero(np.diff(d) < -ODOM_RESET_M) + 1
+    starts.update(np.asarray(resets, np.int64).tolist())
     starts.update((np.flatnonzero(dt > config.odom_gap_s * NS) + 1).tolist())
     thr = config.new_drive_speed_fraction * config.target_speed_mps
-    slow = v < thr
+    speed = np.abs(v)
+    slow = speed < thr
     rises = np.flatnonzero(slow[:-1] & ~slow[1:]) + 1
     if rises.size:
         # the slow stretch before each rise begins after the last fast sample before it
@@ -589,16 +631,48 @@ def drive_starts(t: IntArray, d: FloatArray, v: FloatArray, config: SegmentConfi
         for i in rises.tolist():  # one per slowdown, not per sample
             k = int(np.searchsorted(fast, i)) - 1
             j = int(fast[k]) + 1 if k >= 0 else 0
-            seg = v[j:i]
+            seg = speed[j:i]
             starts.add(j + int(seg.size - 1 - np.argmin(seg[::-1])))  # the last of its slowest samples
     return np.array(sorted(starts), dtype=np.int64)
 
 
+def odometry_steps(
+    odom: OdomSeries, config: SegmentConfig
+) -> tuple[IntArray, FloatArray, FloatArray, IntArray, FloatArray]:
+    """The odometry in stamp order as (stamps, pose.x, speed, resets) and the distance of each step ``i -> i + 1``
+    by ``distance_source`` (n - 1 values; 0 across a silence of ``odom_gap_s`` and across a reset)::
+
+        t, x, v, resets, steps = odometry_steps(odom, config)     # (t, x, v, resets) as sorted; steps: m
+
+    ``position_x``: the steps of pose.x (resets: where it drops by more than ``ODOM_RESET_M``);
+    ``path_length``: ``|Δ position|`` (resets: pose jumps longer than ``ODOM_RESET_M`` + twice the distance the
+    speed allows); ``speed_integral``: the trapezoid of ``twist.linear.x`` over the stamps (no resets).
+    """
+    order = np.argsort(odom.stamp_ns, kind="stable")
+    t, x, v = odom.stamp_ns[order], odom.distance_m[order], odom.speed_mps[order]
+    if t.size < 2:
+        return t, x, v, np.zeros(0, np.int64), np.zeros(0)
+    dt_s = np.diff(t) / NS
+    gap = dt_s > config.odom_gap_s
+    src = config.distance_source
+    if src == "position_x":
+        steps = np.diff(x)
+        reset = steps < -ODOM_RESET_M
+    elif src == "path_length":
+        steps = np.linalg.norm(np.diff(odom.position[order], axis=0), axis=1)
+        reach = 2.0 * np.maximum(np.abs(v[:-1]), np.abs(v[1:])) * dt_s
+        reset = steps > ODOM_RESET_M + reach
+    else:
+        steps = 0.5 * (v[:-1] + v[1:]) * dt_s
+        reset = np.zeros(steps.shape, bool)
+    steps = np.where(gap | reset, 0.0, steps)
+    return t, x, v, np.asarray(np.flatnonzero(reset) + 1, dtype=np.int64), np.asarray(steps, dtype=np.float64)
+
+
 def _drives(odom: OdomSeries, start_ns: int, config: SegmentConfig, retry: bool) -> list[_Drive]:
     """The drives a run starting at ``start_ns`` may be cut from, in order (see the module doc)."""
-    order = np.argsort(odom.stamp_ns, kind="stable")
-    t, d, v = odom.stamp_ns[order], odom.distance_m[order], odom.speed_mps[order]
-    starts = drive_starts(t, d, v, config)
+    t, x, v, resets, steps = odometry_steps(odom, config)
+    starts = drive_starts(t, x, v, config, resets)
     bounds = [*starts.tolist(), int(t.size)]
     out: list[_Drive] = []
     for k in range(len(bounds) - 1):
@@ -609,9 +683,12 @@ def _drives(odom: OdomSeries, start_ns: int, config: SegmentConfig, retry: bool)
         if rolling and retry:
             continue  # a retry is a new drive: not the one in progress when it was announced
         first = int(np.searchsorted(t[a:b], start_ns)) + a if rolling else a
-        dd = d[first:b]
-        if config.distance_origin == "run_start":
-            dd = dd - dd[0]
+        if config.distance_source == "position_x":
+            dd = x[first:b]
+            if config.distance_origin == "run_start":
+                dd = dd - dd[0]
+        else:  # summed from the drive's (or the run's) first sample: the same whatever was buffered before
+            dd = np.concatenate([[0.0], np.cumsum(steps[first : b - 1])])
         out.append(
             _Drive(
                 t=t[first:b].astype(np.float64),

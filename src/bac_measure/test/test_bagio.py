@@ -36,7 +36,14 @@ def arrays(n: int = 300, seed: int = 0) -> tuple[ImuArrays, OdomArrays]:
     )
     to = T0 + np.arange(n // 10, dtype=np.int64) * 20_000_000
     odom = OdomArrays(
-        "vehicle/odom", "odom", to, to + 1, np.cumsum(rng.uniform(0, 0.3, to.size)), rng.uniform(8, 9, to.size)
+        "vehicle/odom",
+        "odom",
+        to,
+        to + 1,
+        np.cumsum(rng.uniform(0, 0.3, to.size)),
+        rng.uniform(8, 9, to.size),
+        -40.0 + 0.01 * rng.standard_normal(to.size),  # a pose's y and z (REP 105 odom frame)
+        3.0 + np.cumsum(rng.uniform(0, 0.01, to.size)),
     )
     return imu, odom
 
@@ -52,6 +59,9 @@ def test_rosbag2_round_trip_is_exact(tmp_path: Path, storage: str) -> None:
     o = read_odom(bag)
     assert np.array_equal(o.stamp_ns, odom.stamp_ns)
     assert np.array_equal(o.distance_m, odom.distance_m) and np.array_equal(o.speed_mps, odom.speed_mps)
+    assert np.array_equal(o.position_y_m, odom.position_y_m) and np.array_equal(o.position_z_m, odom.position_z_m)
+    # the odometry reaches the segmentation whole: each distance source sees the same pose and speed
+    np.testing.assert_array_equal(o.series().position, odom.series().position)
     topics = bag_topics(bag)
     assert topics["/imu/data_raw"] == ("sensor_msgs/msg/Imu", 300) and topics["/vehicle/odom"][1] == 30
 
@@ -101,7 +111,7 @@ def test_vectorized_cdr_matches_rosbags_with_mixed_frame_ids() -> None:
             child_frame_id=c,
             pose=T["geometry_msgs/msg/PoseWithCovariance"](
                 pose=T["geometry_msgs/msg/Pose"](
-                    position=T["geometry_msgs/msg/Point"](x=10.0 * i, y=1.0, z=2.0),
+                    position=T["geometry_msgs/msg/Point"](x=10.0 * i, y=1.0 - i, z=2.0 + 0.25 * i),
                     orientation=Q(x=0.0, y=0.0, z=0.0, w=1.0),
                 ),
                 covariance=np.zeros(36),
@@ -116,6 +126,15 @@ def test_vectorized_cdr_matches_rosbags_with_mixed_frame_ids() -> None:
     assert fast is not None
     assert fast[1][:, 0].tolist() == [10.0 * i for i in range(9)]
     assert fast[1][:, 43].tolist() == [0.5 * i for i in range(9)]
+    # the nodes' decoder (bac_common.cdr.odometry): the pose's position x, y, z and the forward speed
+    from bac_common import cdr
+
+    odo = cdr.odometry(raws)
+    assert odo is not None
+    t, pos, vx = odo
+    assert t.tolist() == [i * 1_000_000_000 for i in range(9)]
+    np.testing.assert_array_equal(pos, [[10.0 * i, 1.0 - i, 2.0 + 0.25 * i] for i in range(9)])
+    assert vx.tolist() == [0.5 * i for i in range(9)]
 
 
 def test_ros1_real_recording_is_read() -> None:
