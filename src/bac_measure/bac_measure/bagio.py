@@ -62,6 +62,12 @@ class ImuArrays:
     recv_ns: IntArray  # bag (receive) time, ns
     accel: FloatArray  # (n, 3) linear_acceleration, m/s^2
     gyro: FloatArray  # (n, 3) angular_velocity, rad/s
+    has_recv: bool = True  # False: recv_ns are the stamps (a recording without receive times, e.g. MDF)
+
+    @property
+    def recv_or_none(self) -> IntArray | None:
+        """The receive times when the recording has them (for the arrival jitter), else None."""
+        return self.recv_ns if self.has_recv else None
 
     def __len__(self) -> int:
         return int(self.stamp_ns.shape[0])
@@ -99,13 +105,69 @@ def _norm(topic: str) -> str:
     return topic if topic.startswith("/") else "/" + topic
 
 
+BAG_KINDS = "a rosbag2 folder, .mcap, .db3 or ROS 1 .bag"
+_MAGIC = {
+    b"#ROSBAG V2.0": "bag",
+    b"\x89MCAP0\r\n": "bag",
+    b"SQLite format 3\x00": "bag",
+    b"MDF     ": "an MDF measurement file (read it with --channel-map / bac_measure.mdfio)",
+    b"UnFinMF ": "an MDF measurement file that was not finalized",
+    b"\x89PNG": "a PNG image",
+    b"\xff\xd8\xff": "a JPEG image",
+    b"GIF8": "a GIF image",
+    b"%PDF": "a PDF document",
+    b"PK\x03\x04": "a ZIP archive (unpack it first)",
+    b"\x1f\x8b": "a gzip archive (unpack it first)",
+    b"BZh": "a bzip2 archive (unpack it first)",
+    b"(\xb5/\xfd": "a zstd-compressed file (unpack it first)",
+    b"\x7fELF": "a program (ELF)",
+}
+
+
+def describe_file(path: Path) -> str:
+    """What a file is by its first bytes: "bag" for a bag, else a short description (a PNG image, a text
+    file, ...)."""
+    with path.open("rb") as f:
+        head = f.read(512)
+    for magic, what in _MAGIC.items():
+        if head.startswith(magic):
+            return what
+    try:
+        text = head.decode("utf-8")
+    except UnicodeDecodeError:
+        return "binary data of an unknown kind"
+    first = text.strip().splitlines()[0][:60] if text.strip() else ""
+    return f"a text file (it begins {first!r})" if first else "a text file of blank lines"
+
+
+def check_bag_path(path: Path) -> None:
+    """Raise BagError saying what was found when ``path`` is not something a bag reader can open."""
+    if not path.exists():
+        raise BagError(f"no such bag: {path}")
+    if path.is_dir():
+        if (path / "metadata.yaml").exists() or any(path.glob("*.mcap")) or any(path.glob("*.db3")):
+            return
+        if (path / "bags").is_dir():
+            return
+        entries = sorted(p.name for p in path.iterdir())
+        shown = ", ".join(entries[:8]) + (", ..." if len(entries) > 8 else "") if entries else "nothing"
+        raise BagError(
+            f"{path} is a folder but not a rosbag2 (no metadata.yaml, .mcap or .db3 in it; it holds {shown}); "
+            f"give {BAG_KINDS}"
+        )
+    if path.stat().st_size == 0:
+        raise BagError(f"{path} is empty (0 bytes): the recording was never written (a recorder that died at start?)")
+    kind = describe_file(path)
+    if kind != "bag":
+        raise BagError(f"{path} is not a bag: it is {kind}; give {BAG_KINDS}")
+
+
 class _Bag:
     """An open bag with friendly errors."""
 
     def __init__(self, path: str | Path) -> None:
         self.path = Path(path)
-        if not self.path.exists():
-            raise BagError(f"no such bag: {self.path}")
+        check_bag_path(self.path)
         self.store: Typestore = bac_typestore()
         try:
             self.reader = AnyReader([self.path], default_typestore=self.store)
@@ -120,7 +182,7 @@ class _Bag:
             "(ros2 bag reindex, mcap recover, rosbag reindex) and retry"
         )
         if isinstance(exc, UnicodeDecodeError | ValueError) and "codec" in text:
-            hint = "this is not a bag (rosbag2 folder, .mcap, .db3 or ROS 1 .bag)"
+            hint = f"this is not a bag ({BAG_KINDS})"
         return BagError(f"cannot read bag {self.path}: {text}; {hint}")
 
     def __enter__(self) -> _Bag:
@@ -148,9 +210,15 @@ class _Bag:
             if topics[t][0] != msgtype:
                 raise BagError(f"{self.path}: topic {t} carries {topics[t][0]}, not {msgtype}")
             return t
-        cands = sorted(t for t, (typ, _) in topics.items() if typ == msgtype)
+        cands = sorted(t for t, (typ, n) in topics.items() if typ == msgtype)
         if not cands:
-            raise BagError(f"{self.path} holds no {msgtype} messages; topics: {', '.join(sorted(topics)) or 'none'}")
+            shown = ", ".join(f"{t} ({typ}, {n})" for t, (typ, n) in sorted(topics.items())) or "none"
+            what = {
+                IMU_TYPE: "record the IMU driver's sensor_msgs/Imu topic (ros2 bag record /imu/data_raw ...)",
+                ODOM_TYPE: "record the odometry (nav_msgs/Odometry) to cut runs, or score the whole recording "
+                "(--window whole)",
+            }.get(msgtype, "record it")
+            raise BagError(f"{self.path} holds no {msgtype} messages; its topics: {shown}; {what}")
         if len(cands) == 1:
             return cands[0]
         for p in preferred:

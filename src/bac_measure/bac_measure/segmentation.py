@@ -220,13 +220,17 @@ class SegmentConfig:
 
 
 def from_params(cls: Any, params: Mapping[str, Any]) -> Any:
-    """Build the dataclass ``cls`` from a mapping of node parameters (same names; others ignored)."""
+    """Build the dataclass ``cls`` from a mapping of node parameters (same names; others ignored). A value of
+    the wrong type (``detrend: "no"``, ``window_s: fast``) raises :class:`SegmentationError` naming it."""
+    from bac_imu.ingest import typed_value
+
     kwargs: dict[str, Any] = {}
     for f in fields(cls):
         if f.name in params:
-            default = f.default
-            v = params[f.name]
-            kwargs[f.name] = type(default)(v) if isinstance(default, bool | int | float | str) else v
+            try:
+                kwargs[f.name] = typed_value(f.name, params[f.name], f.default)
+            except ValueError as exc:
+                raise SegmentationError(f"{cls.__name__}: {exc}") from exc
     return cls(**kwargs)
 
 
@@ -996,9 +1000,13 @@ def window_segment(
     end_ns: int | None = None,
     imu_rate_hz: float = 0.0,
     run: RunId | None = None,
+    min_coverage: float = 1.0,
 ) -> Segment:
     """A plain time window of an IMU stream as a segment (no alignment, no speed check): for scoring
-    any recording, e.g. a bag that was not driven as a bac run."""
+    any recording, e.g. a bag that was not driven as a bac run.
+
+    ``min_coverage`` as in :class:`SegmentConfig`: below it the segment is invalid, naming where the data is
+    missing; at or above it the holes are bridged by linear interpolation (as :func:`cut_run` does)."""
     t = imu.stamp_ns
     keep = np.ones(t.shape, bool)
     if start_ns is not None:
@@ -1010,6 +1018,10 @@ def window_segment(
         raise SegmentationError("the window holds fewer than two IMU samples")
     g = _grid(sub, imu_rate(sub, imu_rate_hz))
     cov, hole = _coverage(g, 0, g.n - 1)
+    ok = cov >= min_coverage
+    az, q = (_fill_nan(g.az), _fill_nan(g.q)) if ok else (g.az, g.q)
+    if ok and hole:
+        hole = ""
     return Segment(
         run=run or RunId(),
         mode=MODE_EVENT,
@@ -1023,8 +1035,8 @@ def window_segment(
         mean_speed_mps=math.nan,
         target_speed_mps=math.nan,
         coverage=cov,
-        accel_z=g.az,
-        pitch_rate=g.q,
-        valid=cov >= 1.0,
-        reason=hole,
+        accel_z=az,
+        pitch_rate=q,
+        valid=ok,
+        reason="" if ok else f"{hole} (coverage {cov:.3f} below min_coverage {min_coverage:g})",
     )
