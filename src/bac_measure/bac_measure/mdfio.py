@@ -230,7 +230,7 @@ def _open(path: Path) -> Any:
 
 
 def _start_ns(mdf: Any) -> int:
-    st = mdf.header.start_time
+    st: datetime = mdf.header.start_time
     if st.tzinfo is None:
         st = st.replace(tzinfo=UTC)
     td = st - datetime(1970, 1, 1, tzinfo=UTC)
