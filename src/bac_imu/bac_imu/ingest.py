@@ -54,7 +54,7 @@ IntArray = npt.NDArray[np.int64]
 BoolArray = npt.NDArray[np.bool_]
 
 MOUNT_SOURCES = ("config", "standstill")
-MOUNT_FALLBACKS = ("mean", "config")
+STANDSTILL_FALLBACKS = ("mean", "config")
 BIAS_SOURCES = ("none", "standstill")
 OFFSET_WARN_MPS2 = 0.1  # a mean a_z beyond this without a standstill bias: an offset that goes into RMS(a_z)
 MOUNT_CHECK_S = 2.0  # the mean a_z is judged once this much output holds data
@@ -72,7 +72,9 @@ class IngestConfig:
     input_rate_hz: float = 0.0  # nominal rate of imu/data_raw, Hz; 0 = measured from the first samples
     rate_probe_samples: int = 50  # samples used to measure the input rate when input_rate_hz = 0
     mount_source: str = "config"  # "config": mount_*_deg; "standstill": roll/pitch from gravity at standstill
-    mount_fallback: str = "mean"  # no standstill: "mean": roll/pitch from the mean accelerometer; "config"
+    # without a standstill: "mean": what needs one (mount roll/pitch, bias) from the long-run mean of the
+    # accelerometer and gyro over standstill_timeout_s; "config": the configured mount, nominal gravity, no gyro bias
+    standstill_fallback: str = "mean"
     mount_roll_deg: float = 0.0  # sensor frame relative to the vehicle frame, intrinsic z-y-x (yaw, pitch, roll)
     mount_pitch_deg: float = 0.0
     mount_yaw_deg: float = 0.0
@@ -102,8 +104,10 @@ class IngestConfig:
             problems.append(f"rate_probe_samples must be >= 5, got {self.rate_probe_samples}")
         if self.mount_source not in MOUNT_SOURCES:
             problems.append(f"mount_source must be one of {MOUNT_SOURCES}, got {self.mount_source!r}")
-        if self.mount_fallback not in MOUNT_FALLBACKS:
-            problems.append(f"mount_fallback must be one of {MOUNT_FALLBACKS}, got {self.mount_fallback!r}")
+        if self.standstill_fallback not in STANDSTILL_FALLBACKS:
+            problems.append(
+                f"standstill_fallback must be one of {STANDSTILL_FALLBACKS}, got {self.standstill_fallback!r}"
+            )
         if self.bias_source not in BIAS_SOURCES:
             problems.append(f"bias_source must be one of {BIAS_SOURCES}, got {self.bias_source!r}")
         for name in ("mount_roll_deg", "mount_pitch_deg", "mount_yaw_deg"):
@@ -357,9 +361,12 @@ class StreamHealth:
                 if axis != "z"
                 else "gravity is removed too little (a wrong gravity value or a large accelerometer offset)"
             )
+            sensor = rotation_matrix(*self.mount_rpy_deg).T @ g
+            roll, pitch = roll_pitch_from_gravity(sensor)
             return (
                 f"mean a_z {mz:+.2f} m/s^2 after gravity removal (limit {self.max_mean_accel_z:g}): {where} with the "
-                f"{mount}; J would measure gravity, not the ride; {fix}"
+                f"{mount} (the mean acceleration says roll {roll:.0f} pitch {pitch:.0f} deg); J would measure "
+                f"gravity, not the ride; {fix}"
             )
         return ""
 
@@ -788,29 +795,45 @@ class ImuIngestor:
     def _no_standstill(self, t: IntArray, x: FloatArray, bad: BoolArray) -> None:
         c = self.config
         h = self._health
-        used = "configured mount"
+        used = "configured mount, nominal gravity and no gyro bias used (an accelerometer offset stays in a_z)"
         if c.mount_source == "standstill":
             h.mount_source = "config (no standstill found)"
-            # the long-run mean of the accelerometer: the car's own accelerations average out, gravity stays
-            # (over the searched span only, so that a stream pushed in chunks gives the same mount)
-            inside = (t <= int(t[0]) + round(c.standstill_timeout_s * NS)) & ~bad if t.size else np.zeros(0, bool)
-            if c.mount_fallback == "mean" and np.count_nonzero(inside) >= 2:
-                mean = x[inside, :3].mean(axis=0)
-                if abs(float(np.linalg.norm(mean)) - c.gravity) <= 0.25 * c.gravity:
-                    roll, pitch = roll_pitch_from_gravity(mean)
-                    self._R = rotation_matrix(roll, pitch, c.mount_yaw_deg)
-                    h.mount_rpy_deg = (roll, pitch, c.mount_yaw_deg)
-                    span = (int(t[inside][-1]) - int(t[inside][0])) / NS
-                    h.mount_source = f"mean accelerometer over {span:.1f} s (no standstill found)"
-                    used = f"roll and pitch from the mean accelerometer over {span:.1f} s"
         if c.bias_source == "standstill":
             h.bias_source = "none (no standstill found)"
+        # the long-run mean: the car's own accelerations average out over a drive, gravity (and the sensor's
+        # offsets) stay; over the searched span only, so that a stream pushed in chunks gives the same result
+        inside = (t <= int(t[0]) + round(c.standstill_timeout_s * NS)) & ~bad if t.size else np.zeros(0, bool)
+        if c.standstill_fallback == "mean" and np.count_nonzero(inside) >= 2:
+            mean = x[inside].mean(axis=0)
+            span = (int(t[inside][-1]) - int(t[inside][0])) / NS
+            if abs(float(np.linalg.norm(mean[:3])) - c.gravity) <= 0.25 * c.gravity:
+                what = f"mean accelerometer over {span:.1f} s (no standstill found)"
+                parts = []
+                if c.mount_source == "standstill":
+                    roll, pitch = roll_pitch_from_gravity(mean[:3])
+                    self._R = rotation_matrix(roll, pitch, c.mount_yaw_deg)
+                    h.mount_rpy_deg = (roll, pitch, c.mount_yaw_deg)
+                    h.mount_source = what
+                    parts.append("roll and pitch")
+                if c.bias_source == "standstill":
+                    v = self._R @ mean[:3]
+                    gyro_bias = self._R @ mean[3:]
+                    gyro_bias[2] = 0.0  # the mean yaw rate is the drive's turns, not a bias
+                    self._offset = np.concatenate([[v[0], v[1], v[2]], gyro_bias])
+                    if c.mount_source == "standstill":
+                        self._offset[0:2] = 0.0
+                    h.gravity_mps2 = float(v[2])
+                    h.gyro_bias = (float(gyro_bias[0]), float(gyro_bias[1]), 0.0)
+                    h.bias_source = f"long-run mean over {span:.1f} s (no standstill found)"
+                    parts.append("gravity and the roll/pitch gyro bias")
+                h.gravity_tilt_deg = _tilt_deg(self._R @ mean[:3])
+                if parts:
+                    used = f"{' and '.join(parts)} from the long-run mean over {span:.1f} s"
         self._event(
             "no_standstill",
             int(h.first_stamp_ns or 0),
             int(h.last_stamp_ns or 0),
-            f"no standstill of {c.standstill_s} s within the first {c.standstill_timeout_s} s: {used}, nominal "
-            "gravity and no gyro bias used (an accelerometer offset stays in a_z)",
+            f"no standstill of {c.standstill_s} s within the first {c.standstill_timeout_s} s: {used}",
         )
 
     def _design_filter(self) -> None:

@@ -51,7 +51,7 @@ INGEST_PARAMS = {
         "where the mounting rotation comes from: config (mount_*_deg) or standstill (roll and pitch from gravity)",
         choices=("config", "standstill"),
     ),
-    "mount_fallback": ParamSpec(
+    "standstill_fallback": ParamSpec(
         "without a standstill (mount_source standstill): mean (roll and pitch from the mean accelerometer over "
         "standstill_timeout_s) or config (mount_*_deg)",
         choices=("mean", "config"),

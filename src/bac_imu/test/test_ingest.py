@@ -158,7 +158,7 @@ def test_no_standstill_falls_back_to_configured_mount_and_says_so() -> None:
     cfg = IngestConfig(
         output_rate_hz=100.0,
         mount_source="standstill",
-        mount_fallback="config",
+        standstill_fallback="config",
         standstill_timeout_s=10.0,
         mount_roll_deg=1.0,
     )

@@ -416,6 +416,64 @@ def run_starts(trials: Sequence[TrialEvent]) -> list[TrialEvent]:
 # --- writing (tests, benchmarks, conversions) ---------------------------------------------------------
 
 
+def _header(T: Any, ns: int, frame: str) -> Any:
+    return T["std_msgs/msg/Header"](
+        stamp=T["builtin_interfaces/msg/Time"](sec=int(ns // 1_000_000_000), nanosec=int(ns % 1_000_000_000)),
+        frame_id=frame,
+    )
+
+
+def imu_to_cdr(imu: ImuArrays) -> list[tuple[int, bytes]]:
+    """(receive time, ROS 2 CDR bytes of a sensor_msgs/Imu) of every sample: what a driver would have sent."""
+    ts = bac_typestore()
+    T = ts.types
+    zeros9 = np.zeros(9)
+    V3, Quat = T["geometry_msgs/msg/Vector3"], T["geometry_msgs/msg/Quaternion"]
+    out = []
+    for i in range(len(imu)):
+        m = T[IMU_TYPE](
+            header=_header(T, int(imu.stamp_ns[i]), imu.frame_id),
+            orientation=Quat(x=0.0, y=0.0, z=0.0, w=1.0),
+            orientation_covariance=np.array([-1.0, *zeros9[1:]]),
+            angular_velocity=V3(x=float(imu.gyro[i, 0]), y=float(imu.gyro[i, 1]), z=float(imu.gyro[i, 2])),
+            angular_velocity_covariance=zeros9,
+            linear_acceleration=V3(x=float(imu.accel[i, 0]), y=float(imu.accel[i, 1]), z=float(imu.accel[i, 2])),
+            linear_acceleration_covariance=zeros9,
+        )
+        out.append((int(imu.recv_ns[i]), bytes(ts.serialize_cdr(m, IMU_TYPE))))
+    return out
+
+
+def odom_to_cdr(odom: OdomArrays) -> list[tuple[int, bytes]]:
+    """(receive time, ROS 2 CDR bytes of a nav_msgs/Odometry) of every sample: distance in pose.x, speed in
+    twist.linear.x, as bac reads them."""
+    ts = bac_typestore()
+    T = ts.types
+    zeros36 = np.zeros(36)
+    V3, Quat = T["geometry_msgs/msg/Vector3"], T["geometry_msgs/msg/Quaternion"]
+    P, Pose, PwC = T["geometry_msgs/msg/Point"], T["geometry_msgs/msg/Pose"], T["geometry_msgs/msg/PoseWithCovariance"]
+    Tw, TwC = T["geometry_msgs/msg/Twist"], T["geometry_msgs/msg/TwistWithCovariance"]
+    out = []
+    for i in range(len(odom)):
+        m = T[ODOM_TYPE](
+            header=_header(T, int(odom.stamp_ns[i]), odom.frame_id),
+            child_frame_id="base_link",
+            pose=PwC(
+                pose=Pose(
+                    position=P(x=float(odom.distance_m[i]), y=0.0, z=0.0),
+                    orientation=Quat(x=0.0, y=0.0, z=0.0, w=1.0),
+                ),
+                covariance=zeros36,
+            ),
+            twist=TwC(
+                twist=Tw(linear=V3(x=float(odom.speed_mps[i]), y=0.0, z=0.0), angular=V3(x=0.0, y=0.0, z=0.0)),
+                covariance=zeros36,
+            ),
+        )
+        out.append((int(odom.recv_ns[i]), bytes(ts.serialize_cdr(m, ODOM_TYPE))))
+    return out
+
+
 def write_bag(
     path: str | Path,
     imu: ImuArrays | None = None,
@@ -429,61 +487,16 @@ def write_bag(
     if plugin is None:
         raise BagError(f"storage must be mcap or sqlite3, got {storage!r}")
     ts = bac_typestore()
-    T = ts.types
     p = Path(path)
-    zeros9 = np.zeros(9)
-    zeros36 = np.zeros(36)
-
-    def header(ns: int, frame: str) -> Any:
-        return T["std_msgs/msg/Header"](
-            stamp=T["builtin_interfaces/msg/Time"](sec=int(ns // 1_000_000_000), nanosec=int(ns % 1_000_000_000)),
-            frame_id=frame,
-        )
-
-    V3, Quat = T["geometry_msgs/msg/Vector3"], T["geometry_msgs/msg/Quaternion"]
     items: list[tuple[int, int, bytes]] = []  # (time, connection number, bytes)
     with Writer(p, version=9, storage_plugin=plugin) as w:
         conns = []
         if imu is not None:
             conns.append(w.add_connection(_norm(imu.topic), IMU_TYPE, typestore=ts))
-            for i in range(len(imu)):
-                m = T[IMU_TYPE](
-                    header=header(int(imu.stamp_ns[i]), imu.frame_id),
-                    orientation=Quat(x=0.0, y=0.0, z=0.0, w=1.0),
-                    orientation_covariance=np.array([-1.0, *zeros9[1:]]),
-                    angular_velocity=V3(x=float(imu.gyro[i, 0]), y=float(imu.gyro[i, 1]), z=float(imu.gyro[i, 2])),
-                    angular_velocity_covariance=zeros9,
-                    linear_acceleration=V3(
-                        x=float(imu.accel[i, 0]), y=float(imu.accel[i, 1]), z=float(imu.accel[i, 2])
-                    ),
-                    linear_acceleration_covariance=zeros9,
-                )
-                items.append((int(imu.recv_ns[i]), len(conns) - 1, bytes(ts.serialize_cdr(m, IMU_TYPE))))
+            items += [(t, len(conns) - 1, b) for t, b in imu_to_cdr(imu)]
         if odom is not None:
             conns.append(w.add_connection(_norm(odom.topic), ODOM_TYPE, typestore=ts))
-            P, Pose, PwC = (
-                T["geometry_msgs/msg/Point"],
-                T["geometry_msgs/msg/Pose"],
-                T["geometry_msgs/msg/PoseWithCovariance"],
-            )
-            Tw, TwC = T["geometry_msgs/msg/Twist"], T["geometry_msgs/msg/TwistWithCovariance"]
-            for i in range(len(odom)):
-                m = T[ODOM_TYPE](
-                    header=header(int(odom.stamp_ns[i]), odom.frame_id),
-                    child_frame_id="base_link",
-                    pose=PwC(
-                        pose=Pose(
-                            position=P(x=float(odom.distance_m[i]), y=0.0, z=0.0),
-                            orientation=Quat(x=0.0, y=0.0, z=0.0, w=1.0),
-                        ),
-                        covariance=zeros36,
-                    ),
-                    twist=TwC(
-                        twist=Tw(linear=V3(x=float(odom.speed_mps[i]), y=0.0, z=0.0), angular=V3(x=0.0, y=0.0, z=0.0)),
-                        covariance=zeros36,
-                    ),
-                )
-                items.append((int(odom.recv_ns[i]), len(conns) - 1, bytes(ts.serialize_cdr(m, ODOM_TYPE))))
+            items += [(t, len(conns) - 1, b) for t, b in odom_to_cdr(odom)]
         items.sort(key=lambda x: x[0])
         for t_ns, ci, data in items:
             w.write(conns[ci], t_ns, data)

@@ -792,7 +792,7 @@ def _cut_event(g: _Grid, drive: _Drive, config: SegmentConfig, ref: Reference | 
     az = _resample(g.az, pos, fill=cov >= config.min_coverage)
     q = _resample(g.q, pos, fill=cov >= config.min_coverage)
     k_pre = start - np.arange(round(config.pre_roll_s * fs), 0, -1, dtype=np.float64)
-    pre = _pre_roll(g, k_pre[k_pre >= p_begin])
+    pre_roll = _pre_roll(g, k_pre[k_pre >= p_begin])
     if ref is not None:
         score = _final_score(config, az, q, ref)
         if not (score >= config.min_alignment) and not any(r.startswith("alignment") for r in reasons):
@@ -827,7 +827,7 @@ def _cut_event(g: _Grid, drive: _Drive, config: SegmentConfig, ref: Reference | 
         pitch_rate=q,
         valid=not reasons,
         reason="; ".join(reasons),
-        pre_roll_accel_z=pre,
+        pre_roll_accel_z=pre_roll,
     )
     return _Plan(segment=seg)
 
@@ -893,7 +893,9 @@ def _cut_distance(g: _Grid, drive: _Drive, config: SegmentConfig, ref: Reference
     q = _resample(g.q, pos, fill=cov >= config.min_coverage)
     s_pre = s_fine[0] - np.arange(round(config.pre_roll_s * fs_eq), 0, -1, dtype=np.float64) * ds
     s_pre = s_pre[s_pre >= od[0]]
-    pre = _pre_roll(g, (_distance_to_time(ot, od, s_pre) - g.t0_ns) / g.step_ns) if s_pre.size else np.zeros(0)
+    pre_roll = (
+        _pre_roll(g, (_distance_to_time(ot, od, s_pre) - g.t0_ns) / g.step_ns) if s_pre.size else np.zeros(0)
+    )
     if ref is not None:
         score = _final_score(config, az, q, ref)
         if not (score >= config.min_alignment) and not any(r.startswith("alignment") for r in reasons):
@@ -927,7 +929,7 @@ def _cut_distance(g: _Grid, drive: _Drive, config: SegmentConfig, ref: Reference
         pitch_rate=q,
         valid=not reasons,
         reason="; ".join(reasons),
-        pre_roll_accel_z=pre,
+        pre_roll_accel_z=pre_roll,
     )
     return _Plan(segment=seg)
 
