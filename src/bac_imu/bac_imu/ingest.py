@@ -341,7 +341,7 @@ class StreamHealth:
         mount = f"mount roll {self.mount_rpy_deg[0]:.1f} pitch {self.mount_rpy_deg[1]:.1f} deg from {self.mount_source}"
         fix = (
             "give the mount (mount_roll_deg, mount_pitch_deg: the sensor's rotation in the vehicle frame, e.g. "
-            "roll 180 for an IMU upside down, roll -90 / 90 for its y axis up / down), or set mount_source "
+            "roll 180 for an IMU upside down, roll 90 for its y axis up, -90 for it down), or set mount_source "
             "standstill and record a standstill of a few seconds"
         )
         if math.isfinite(tilt) and tilt > 20.0:
@@ -365,7 +365,7 @@ class StreamHealth:
             roll, pitch = roll_pitch_from_gravity(sensor)
             return (
                 f"mean a_z {mz:+.2f} m/s^2 after gravity removal (limit {self.max_mean_accel_z:g}): {where} with the "
-                f"{mount} (the mean acceleration says roll {roll:.0f} pitch {pitch:.0f} deg); J would measure "
+                f"{mount} (the mean acceleration says roll {round(roll) + 0:d} pitch {round(pitch) + 0:d} deg); J would measure "
                 f"gravity, not the ride; {fix}"
             )
         return ""

@@ -893,9 +893,7 @@ def _cut_distance(g: _Grid, drive: _Drive, config: SegmentConfig, ref: Reference
     q = _resample(g.q, pos, fill=cov >= config.min_coverage)
     s_pre = s_fine[0] - np.arange(round(config.pre_roll_s * fs_eq), 0, -1, dtype=np.float64) * ds
     s_pre = s_pre[s_pre >= od[0]]
-    pre_roll = (
-        _pre_roll(g, (_distance_to_time(ot, od, s_pre) - g.t0_ns) / g.step_ns) if s_pre.size else np.zeros(0)
-    )
+    pre_roll = _pre_roll(g, (_distance_to_time(ot, od, s_pre) - g.t0_ns) / g.step_ns) if s_pre.size else np.zeros(0)
     if ref is not None:
         score = _final_score(config, az, q, ref)
         if not (score >= config.min_alignment) and not any(r.startswith("alignment") for r in reasons):
