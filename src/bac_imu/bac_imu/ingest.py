@@ -365,8 +365,8 @@ class StreamHealth:
             roll, pitch = roll_pitch_from_gravity(sensor)
             return (
                 f"mean a_z {mz:+.2f} m/s^2 after gravity removal (limit {self.max_mean_accel_z:g}): {where} with the "
-                f"{mount} (the mean acceleration says roll {round(roll) + 0:d} pitch {round(pitch) + 0:d} deg); J would measure "
-                f"gravity, not the ride; {fix}"
+                f"{mount} (the mean acceleration says roll {round(roll) + 0:d} pitch {round(pitch) + 0:d} deg); J "
+                f"would measure gravity, not the ride; {fix}"
             )
         return ""
 
