@@ -154,3 +154,24 @@ def test_bad_mdf_input_is_named(
     assert whole.runs[0].score.valid and math.isfinite(whole.runs[0].score.j)
     cut = rescore([tmp_path / "imu_only.mf4"])
     assert not cut.runs[0].score.valid
+
+
+def test_rescore_p_values_are_yaml_and_checked(
+    tmp_path: Path, run: tuple[ImuArrays, OdomArrays], capsys: pytest.CaptureFixture[str]
+) -> None:
+    imu, odom = run
+    bag = write_bag(tmp_path / "b", imu, odom)
+    assert rescore_main([str(bag), "-p", "kpi_scorer.bogus_param=3"]) == 2
+    assert "kpi_scorer has no parameter 'bogus_param'" in capsys.readouterr().err
+    assert rescore_main([str(bag), "-p", "run_segmenter.min_coverag=0.9"]) == 2
+    assert "did you mean min_coverage?" in capsys.readouterr().err
+    assert rescore_main([str(bag), "-p", "kpi_scorer.detrend=maybe"]) == 2
+    assert "detrend must be true or false" in capsys.readouterr().err
+    plain, detrended = tmp_path / "p.json", tmp_path / "d.json"
+    assert rescore_main([str(bag), "--json", str(plain), "-p", "kpi_scorer.detrend=false"]) == 0
+    assert rescore_main([str(bag), "--json", str(detrended), "-p", "kpi_scorer.detrend=true"]) == 0
+    j0 = json.loads(plain.read_text())["runs"][0]["j"]
+    j1 = json.loads(detrended.read_text())["runs"][0]["j"]
+    assert j0 != j1  # "false" is false (it used to turn detrending on)
+    assert rescore_main([str(bag), "-p", "run_segmenter.run_timeout_s=5", "--json", str(plain)]) == 0
+    assert any("live node only" in n for n in json.loads(plain.read_text())["notes"])

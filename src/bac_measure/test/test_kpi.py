@@ -96,6 +96,25 @@ def test_the_segmenter_hands_the_pre_roll_to_the_scorer() -> None:
     assert no_pre.pre_roll_accel_z.size == 0 and np.array_equal(no_pre.accel_z, seg.accel_z)
 
 
+def test_an_event_cut_carries_the_a_z_before_its_window() -> None:
+    """Event mode: the pre-roll is the run's a_z just before the window (from the run start on), on its grid."""
+    from bac_measure.segmentation import SegmentConfig, cut_run
+    from bac_measure.synthetic import bump_run
+
+    run = bump_run(lead_s=0.5, bump_at_m=40.0, duration_s=10.0)  # the impact ~4.8 s after the run start
+    cfg = SegmentConfig(imu_rate_hz=200.0)
+    seg = cut_run(run.imu, run.odom, cfg, run.start_ns)
+    assert seg.valid, seg.reason
+    available = (seg.window_start_ns - run.start_ns) / 1e9  # the run starts at the trial: no data before it
+    assert seg.pre_roll_accel_z.size == pytest.approx(min(5.0, available) * 200, abs=2)
+    t_pre = seg.window_start_ns - np.arange(seg.pre_roll_accel_z.size, 0, -1) * 5_000_000
+    want = np.interp(t_pre, run.imu.stamp_ns, run.imu.accel_z)
+    np.testing.assert_allclose(seg.pre_roll_accel_z, want, atol=0.05)
+    short = cut_run(run.imu, run.odom, replace(cfg, pre_roll_s=1.0), run.start_ns)
+    assert short.pre_roll_accel_z.size == 200
+    np.testing.assert_allclose(short.pre_roll_accel_z, seg.pre_roll_accel_z[-200:], atol=1e-6)
+
+
 def test_wk_response_follows_the_whole_table() -> None:
     for f, w in WK_TABLE.items():
         assert abs(wk_response(f)) == pytest.approx(w, rel=0.005), f
