@@ -175,3 +175,25 @@ def test_rescore_p_values_are_yaml_and_checked(
     assert j0 != j1  # "false" is false (it used to turn detrending on)
     assert rescore_main([str(bag), "-p", "run_segmenter.run_timeout_s=5", "--json", str(plain)]) == 0
     assert any("live node only" in n for n in json.loads(plain.read_text())["notes"])
+
+
+def test_replay_reads_an_mdf_file_as_the_messages_a_driver_sends(
+    tmp_path: Path, run: tuple[ImuArrays, OdomArrays]
+) -> None:
+    """bac replay's reader: the IMU and speed channels become imu/data_raw and vehicle/odom CDR messages."""
+    from bac_campaign.bagplay import iter_bag_messages
+    from bac_common import cdr
+
+    imu, odom = run
+    mf4 = write_canape_mf4(tmp_path / "run.mf4", imu, odom)
+    msgs = list(iter_bag_messages(mf4, ["imu/data_raw", "vehicle/odom", "bac/trial"], None, ChannelMap.parse(CANAPE)))
+    assert [m.time_ns for m in msgs] == sorted(m.time_ns for m in msgs)
+    raws = [m.cdr for m in msgs if m.topic == "imu/data_raw"]
+    decoded = cdr.imu(raws)
+    assert decoded is not None
+    stamps, acc, gyr = decoded
+    assert np.array_equal(stamps, imu.stamp_ns) and np.array_equal(acc, imu.accel)
+    np.testing.assert_allclose(gyr, imu.gyro, rtol=1e-14, atol=1e-16)
+    od = cdr.odometry([m.cdr for m in msgs if m.topic == "vehicle/odom"])
+    assert od is not None and np.array_equal(od[0], odom.stamp_ns)
+    np.testing.assert_allclose(od[2], odom.speed_mps, atol=0.01 / 3.6 / 2 + 1e-12)
