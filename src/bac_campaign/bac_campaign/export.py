@@ -82,9 +82,11 @@ def _hd_comment(lines: Sequence[str]) -> str:
 
 def export_mf4(campaign_dir: str | Path, out: str | Path | None = None, raw: bool = True) -> ExportResult:
     """Write the campaign's MDF4 file (default: ``<campaign>/export/<campaign id>.mf4``)."""
-    from asammdf import MDF, Signal
-
     from bac_campaign.report import load_campaign
+    from bac_measure.mdfio import asammdf
+
+    mod = asammdf()
+    MDF, Signal = mod.MDF, mod.Signal
 
     camp = Path(campaign_dir)
     if not (camp / "bags").is_dir():

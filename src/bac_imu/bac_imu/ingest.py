@@ -828,7 +828,7 @@ class ImuIngestor:
                     parts.append("gravity and the roll/pitch gyro bias")
                 h.gravity_tilt_deg = _tilt_deg(self._R @ mean[:3])
                 if parts:
-                    used = f"{' and '.join(parts)} from the long-run mean over {span:.1f} s"
+                    used = f"{', '.join(parts)} from the long-run mean over {span:.1f} s"
         self._event(
             "no_standstill",
             int(h.first_stamp_ns or 0),

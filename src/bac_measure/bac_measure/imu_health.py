@@ -157,7 +157,12 @@ def report_text(raw: ImuArrays, health: StreamHealth, sc: Score, notes: list[str
         f"health: {LEVELS[d.level]} - {d.message}",
         "  " + health.summary().replace("; ", "\n  "),
     ]
-    if health.bias_source != "standstill":
+    if health.bias_source.startswith("long-run mean"):
+        lines.append(
+            "  no standstill in the recording: gravity and the gyro bias from the long-run mean (the drive's own "
+            "mean accelerations are in them; record a standstill of a few seconds to measure them at rest)"
+        )
+    elif health.bias_source != "standstill":
         lines.append(
             "  no standstill bias: "
             + (

@@ -211,8 +211,20 @@ def is_mdf(path: str | Path) -> bool:
         return f.read(8) in MDF_MAGIC
 
 
+def asammdf() -> Any:
+    """The asammdf module, imported on first use (~0.4 s), its helpers' start-up chatter (numexpr's thread
+    count on the root logger) kept out of the tools' output."""
+    import logging
+
+    logging.getLogger("numexpr").setLevel(logging.WARNING)
+    logging.getLogger("numexpr.utils").setLevel(logging.WARNING)
+    import asammdf as module
+
+    return module
+
+
 def _open(path: Path) -> Any:
-    from asammdf import MDF
+    MDF = asammdf().MDF
 
     if not path.exists():
         raise MdfError(f"no such MDF file: {path}")
@@ -388,6 +400,15 @@ def read_mdf(
             used = ", ".join(f"{r}={ref.name}" for r, ref in mapping.roles.items())
             notes.append(f"channels found by unit and name: {used}")
         missing = [r for r in IMU_ROLES if r not in mapping.roles]
+        if missing:  # a partial map: the other roles by unit and name
+            guessed, _ = guess_map(channels)
+            if guessed is not None:
+                extra = {r: ref for r, ref in guessed.roles.items() if r not in mapping.roles}
+                if extra:
+                    mapping = ChannelMap({**extra, **mapping.roles})
+                    used = ", ".join(f"{r}={ref.name}" for r, ref in extra.items())
+                    notes.append(f"the roles the map does not give found by unit and name: {used}")
+            missing = [r for r in IMU_ROLES if r not in mapping.roles]
         if missing:
             raise MdfError(
                 f"the channel map lacks {', '.join(missing)}: bac needs the three accelerometer and the three gyro "
@@ -485,8 +506,8 @@ def write_mdf(
 ) -> Path:
     """Write IMU (and odometry speed) arrays as an MDF file (tests, the benchmark, conversions): the IMU in one
     channel group (m/s^2, rad/s), the speed in another (m/s); ``names`` renames the roles' channels."""
-    from asammdf import MDF, Signal
-
+    mod = asammdf()
+    MDF, Signal = mod.MDF, mod.Signal
     nm = {r: r for r in ROLES} | dict(names or {})
     t0 = int(imu.stamp_ns[0])
     if odom is not None and len(odom):
