@@ -128,8 +128,16 @@ def test_bad_mdf_input_is_named(
     mf4 = write_canape_mf4(tmp_path / "run.mf4", imu, odom)
     with pytest.raises(MdfError, match=r"has no channel 'AccZ' \(mapped to accel_z\).*its channels:\n.*'IMU_AccX'"):
         read_mdf(mf4, ChannelMap.parse({**CANAPE, "accel_z": "AccZ"}))
+    partial = read_mdf(mf4, ChannelMap.parse({k: v for k, v in CANAPE.items() if k != "gyro_z"}))
+    assert any("map does not give found by unit and name: gyro_z=IMU_GyrZ" in n for n in partial.notes)
+    five = MDF(version="4.10")
+    whole_file = MDF(mf4)
+    five.append([whole_file.get(CANAPE[r]) for r in ("accel_x", "accel_y", "accel_z", "gyro_x", "gyro_y")])
+    five.save(tmp_path / "five.mf4", overwrite=True)
+    five.close()
+    whole_file.close()
     with pytest.raises(MdfError, match="the channel map lacks gyro_z"):
-        read_mdf(mf4, ChannelMap.parse({k: v for k, v in CANAPE.items() if k != "gyro_z"}))
+        read_mdf(tmp_path / "five.mf4", ChannelMap.parse({k: v for k, v in CANAPE.items() if k != "gyro_z"}))
     with pytest.raises(MdfError, match="unknown role 'acc_z'"):
         ChannelMap.parse({"acc_z": "IMU_AccZ"})
     with pytest.raises(MdfError, match=r"unit 'V' is not a unit of speed"):
