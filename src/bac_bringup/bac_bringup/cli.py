@@ -29,6 +29,7 @@ SUBCOMMANDS: dict[str, tuple[str, str, str]] = {
     "rescore": ("bac_bringup.tools", "rescore_main", "re-cut and re-score a campaign's bags (or any IMU bag) offline"),
     "replay": ("bac_bringup.tools", "replay_main", "play bags into the live graph on /clock (the replay profile)"),
     "report": ("bac_campaign.report", "main", "make a campaign's report (PNG + HTML)"),
+    "export": ("bac_campaign.export", "main", "write a campaign as ASAM MDF4 (--mf4) for asammdf, CANape, INCA"),
     "reduce": ("bac_reduce.cli", "main", "simulation phase: find the parameters that matter (paper sec. III-D)"),
     "ground-truth": ("bac_sim.ground_truth", "main", "recompute the simulator's true optima by dense grids"),
 }

@@ -13,16 +13,22 @@ runs go through the same pure cores as the live nodes (ingestion,
   ingestion again from ``imu/data_raw`` (to change ingestion parameters).
   The reference run for alignment is rebuilt as live: the campaign's first
   valid run (under the configuration in use).
-* **Any bag** with sensor_msgs/Imu (rosbag2 mcap/sqlite3, ROS 1): its IMU is
-  ingested; with ``--window whole`` the whole recording is scored as one run,
-  otherwise it is cut like a bac run starting at its first sample (event or
-  distance mode from the parameters; distance mode needs odometry).
+* **Any bag** with sensor_msgs/Imu (rosbag2 mcap/sqlite3, ROS 1) or **MDF file**
+  (MDF4 ``.mf4``, MDF 3 ``.mdf``/``.dat`` from INCA, CANape, a data logger; the
+  channels by ``--channel-map``/``--channel``, else guessed from units and names,
+  :mod:`bac_measure.mdfio`): its IMU is ingested (whole-recording health, mount
+  and bias from a standstill, clipping: :mod:`bac_measure.offline`); with
+  ``--window whole`` the whole recording is scored as one run (``min_coverage``
+  honoured), otherwise it is cut like a bac run starting at its first sample
+  (event or distance mode from the parameters; distance mode needs odometry: a
+  speed or distance channel of an MDF file).
 
 ``--refit`` fits the campaign's GP again on the rescored J values and prints
 the new recommendation.
 
     bac rescore CAMPAIGN_DIR [--params-file F ...] [-p node.param=value ...] [--reingest] [--refit] [--json out.json]
     bac rescore any.bag --window whole [--imu-topic /imu/data] [-p imu_ingest.output_rate_hz=50]
+    bac rescore drive.mf4 [--channel-map imu_channels.yaml] [--channel speed=VehSpd] [--window whole]
 """
 
 from __future__ import annotations
@@ -55,14 +61,20 @@ from bac_measure.bagio import (
     run_starts,
 )
 from bac_measure.kpi import KpiConfig, Score, score
+from bac_measure.mdfio import ChannelMap, is_mdf, read_mdf
 from bac_measure.measure_config import (
     NODE_IMU_INGEST,
     NODE_KPI_SCORER,
     NODE_RUN_SEGMENTER,
+    ParamsFileError,
+    check_overrides,
     ingest_config,
     kpi_config,
+    load_node_params,
+    parse_value,
     segment_config,
 )
+from bac_measure.offline import OFFLINE_DEFAULTS, fit_rates, whole_recording
 from bac_measure.segmentation import (
     ImuSeries,
     OdomSeries,
@@ -189,13 +201,29 @@ class _Recording:
     live: dict[RunKey, tuple[float, str]]  # live J (NaN when invalid) and reason
 
 
-def read_recording(bags: Sequence[Path], imu_topic: str | None, odom_topic: str | None) -> _Recording:
+def read_recording(
+    bags: Sequence[Path],
+    imu_topic: str | None,
+    odom_topic: str | None,
+    channels: ChannelMap | None = None,
+    notes: list[str] | None = None,
+) -> _Recording:
     veh: list[ImuArrays] = []
     raw: list[ImuArrays] = []
     odo: list[OdomArrays] = []
     trials: list[Any] = []
     live: dict[RunKey, tuple[float, str]] = {}
     for bag in bags:
+        if is_mdf(bag):  # an MDF recording: IMU and odometry channels, no bac topics
+            mdf = read_mdf(bag, channels)
+            raw.append(mdf.imu)
+            if mdf.odom is not None:
+                odo.append(mdf.odom)
+            if notes is not None:
+                notes.extend(f"{bag.name}: {n}" for n in mdf.notes)
+            continue
+        if channels is not None and bag.is_file():
+            raise RescoreError(f"{bag} is not an MDF file: --channel-map / --channel apply to MDF recordings only")
         topics = {"/" + t.lstrip("/") for t in bag_topics(bag)}
         if imu_topic is not None:
             raw.append(read_imu(bag, imu_topic))
@@ -254,8 +282,9 @@ def rescore(
     window: str = "run",
     imu_topic: str | None = None,
     odom_topic: str | None = None,
+    channels: ChannelMap | None = None,
 ) -> RescoreResult:
-    """Cut and score every run of a campaign (or bags) again; see the module doc."""
+    """Cut and score every run of a campaign (or bags, or MDF files) again; see the module doc."""
     if window not in ("run", "whole"):
         raise RescoreError(f"window must be 'run' or 'whole', got {window!r}")
     ps = [Path(p) for p in paths]
@@ -266,11 +295,21 @@ def rescore(
     bags = campaign_bags(campaign_dir) if campaign_dir is not None else ps
     files = [Path(f) for f in files] if files else default_params_files(campaign_dir)
     ov = {k: dict(v) for k, v in (overrides or {}).items()}
-    ing_cfg = ingest_config(files, ov.get(NODE_IMU_INGEST))
+    notes: list[str] = []
+    for node, values in ov.items():
+        if node not in (NODE_IMU_INGEST, NODE_RUN_SEGMENTER, NODE_KPI_SCORER):
+            raise RescoreError(f"-p {node}.*: only imu_ingest, run_segmenter and kpi_scorer apply")
+        notes += check_overrides(node, values)
+    foreign = campaign_dir is None
+    ing_ov = dict(ov.get(NODE_IMU_INGEST, {}))
+    if foreign:  # a recording that is not a bac campaign: mount and bias from a standstill unless configured
+        in_files = load_node_params(files, NODE_IMU_INGEST)
+        ing_ov = {**{k: v for k, v in OFFLINE_DEFAULTS.items() if k not in in_files}, **ing_ov}
+    ing_cfg = ingest_config(files, ing_ov)
     seg_cfg = segment_config(files, ov.get(NODE_RUN_SEGMENTER))
     kpi_cfg = kpi_config(files, ov.get(NODE_KPI_SCORER))
-    rec = read_recording(bags, imu_topic, odom_topic)
-    notes: list[str] = []
+    rec = read_recording(bags, imu_topic, odom_topic, channels, notes)
+    problem = ""
 
     if rec.imu_vehicle is not None and not reingest:
         source = "imu/vehicle (recorded)"
@@ -282,20 +321,31 @@ def rescore(
         r = rec.imu_raw
         source = f"{r.topic} (re-ingested)"
         ing_cfg, seg_cfg = _fit_rates(r, ing_cfg, seg_cfg, ov, notes)
+        if foreign:
+            ing_cfg, _ = whole_recording(r, ing_cfg, ov.get(NODE_IMU_INGEST, {}), notes)
         out, health = ingest_all(r.stamp_ns, r.accel, r.gyro, ing_cfg)
         imu = ImuSeries(out.stamp_ns, out.accel_z, out.pitch_rate)
         notes.append(
-            f"ingestion: {health.samples_in} samples at {health.rate_hz:.1f} Hz, {health.gaps} gaps, "
-            f"{health.nonfinite} NaN/inf, {health.restarts} stream restarts, {health.clock_jumps} clock jumps"
+            f"ingestion: {health.samples_in} samples at {health.rate_hz:.1f} Hz, {health.samples_expected} "
+            f"expected, {health.lost_samples} lost, {health.gaps} gaps, {health.nonfinite} NaN/inf, "
+            f"{health.saturated} saturated, {health.restarts} stream restarts, {health.clock_jumps} clock jumps; "
+            f"mount roll {health.mount_rpy_deg[0]:.1f} pitch {health.mount_rpy_deg[1]:.1f} deg from "
+            f"{health.mount_source}, bias from {health.bias_source}"
         )
+        problem = health.gravity_problem()
     odom = rec.odom.series() if rec.odom is not None else OdomSeries.empty()
     jparams, _ = journal_params(campaign_dir)
 
     runs: list[RunResult] = []
     if window == "whole":
         rid = RunId("rescore", 1, 1)
-        seg = window_segment(imu, imu_rate_hz=seg_cfg.imu_rate_hz, run=rid)
-        runs.append(RunResult(rid, None, None, "", seg, score(seg, kpi_cfg)))
+        seg = window_segment(imu, imu_rate_hz=seg_cfg.imu_rate_hz, run=rid, min_coverage=seg_cfg.min_coverage)
+        if seg.valid and seg.coverage < 1.0:
+            notes.append(
+                f"{(1.0 - seg.coverage) * seg.window_length_s:.2f} s of holes bridged by linear interpolation "
+                f"(coverage {seg.coverage:.3f}, min_coverage {seg_cfg.min_coverage:g})"
+            )
+        runs.append(RunResult(rid, None, None, "", seg, _refuse(score(seg, kpi_cfg), problem)))
         return RescoreResult(runs, list(files), source, notes)
 
     starts = [(s.campaign_id, s.trial_id, s.attempt, s.stamp_ns) for s in rec.starts]
@@ -317,10 +367,17 @@ def rescore(
                 live_j=None if live is None else live[0],
                 live_reason="" if live is None else live[1],
                 segment=seg,
-                score=score(seg, kpi_cfg),
+                score=_refuse(score(seg, kpi_cfg), problem),
             )
         )
     return RescoreResult(runs, list(files), source, notes)
+
+
+def _refuse(sc: Score, problem: str) -> Score:
+    """No J when the ingestion left gravity in a_z (a wrong mount): the reason names the likely cause."""
+    if not problem or not sc.valid:
+        return sc
+    return dataclasses.replace(sc, j=math.nan, valid=False, reason=f"ingestion: {problem}")
 
 
 def _fit_rates(
@@ -331,29 +388,10 @@ def _fit_rates(
     notes: list[str],
 ) -> tuple[IngestConfig, SegmentConfig]:
     """Keep the ingestion's output rate at or below the recording's rate, and the segmenter's equal to it,
-    unless the user set them."""
-    if len(raw) > 10:
-        step = float(np.median(np.diff(raw.stamp_ns))) / NS
-        measured = 1.0 / step if step > 0 else 0.0
-        if (
-            measured > 0
-            and ing.output_rate_hz > measured * 1.01
-            and "output_rate_hz" not in ov.get(NODE_IMU_INGEST, {})
-        ):
-            notes.append(
-                f"the recording is {measured:.1f} Hz: ingestion output {ing.output_rate_hz:g} -> {measured:.1f} Hz"
-            )
-            ing = dataclasses.replace(ing, output_rate_hz=round(measured, 6), input_rate_hz=0.0)
-        elif (
-            ing.input_rate_hz
-            and abs(ing.input_rate_hz - measured) > 0.05 * measured
-            and "input_rate_hz" not in ov.get(NODE_IMU_INGEST, {})
-        ):
-            notes.append(f"the recording is {measured:.1f} Hz, not {ing.input_rate_hz:g} Hz: input rate measured")
-            ing = dataclasses.replace(ing, input_rate_hz=0.0)
-    if abs(seg.imu_rate_hz - ing.output_rate_hz) > 1e-9 and "imu_rate_hz" not in ov.get(NODE_RUN_SEGMENTER, {}):
-        seg = dataclasses.replace(seg, imu_rate_hz=ing.output_rate_hz)
-    return ing, seg
+    unless the user set them (:func:`bac_measure.offline.fit_rates`)."""
+    ing, fitted = fit_rates(raw, ing, seg, ov.get(NODE_IMU_INGEST, {}), ov.get(NODE_RUN_SEGMENTER, {}), notes)
+    assert fitted is not None
+    return ing, fitted
 
 
 def _segmenter_template(files: Sequence[Path], overrides: Mapping[str, Any] | None) -> str:
@@ -463,14 +501,15 @@ def to_json(result: RescoreResult) -> dict[str, Any]:
 
 def parse_override(text: str) -> tuple[str, str, Any]:
     """``node.param=value`` (or ``:=``) -> (node, param, value parsed as YAML)."""
-    import yaml
-
     sep = ":=" if ":=" in text else "="
     if sep not in text or "." not in text.split(sep, 1)[0]:
         raise argparse.ArgumentTypeError(f"expected node.param=value, got {text!r}")
     key, raw = text.split(sep, 1)
     node, param = key.split(".", 1)
-    return node, param, yaml.safe_load(raw)
+    try:
+        return node.strip(), param.strip(), parse_value(raw)
+    except ParamsFileError as exc:
+        raise argparse.ArgumentTypeError(str(exc)) from exc
 
 
 def main(argv: Sequence[str] | None = None, profile_params: Callable[[str], list[Path]] | None = None) -> int:
@@ -508,6 +547,18 @@ def main(argv: Sequence[str] | None = None, profile_params: Callable[[str], list
     )
     ap.add_argument("--imu-topic", help="IMU topic of a foreign bag (default: its only sensor_msgs/Imu topic)")
     ap.add_argument("--odom-topic", help="odometry topic of a foreign bag (default: vehicle/odom or its only one)")
+    ap.add_argument(
+        "--channel-map",
+        type=Path,
+        help="MDF files: a YAML mapping roles (accel_x ... gyro_z, speed, distance) to channels",
+    )
+    ap.add_argument(
+        "--channel",
+        action="append",
+        default=[],
+        metavar="ROLE=NAME",
+        help="MDF files: map one role to a channel, e.g. speed=VehSpd (repeatable; wins over --channel-map)",
+    )
     ap.add_argument("--refit", action="store_true", help="fit the GP again on the rescored J and recommend")
     ap.add_argument("--json", type=Path, help="write the results as JSON")
     args = ap.parse_args(list(sys.argv[1:] if argv is None else argv))
@@ -532,6 +583,7 @@ def main(argv: Sequence[str] | None = None, profile_params: Callable[[str], list
             window=args.window,
             imu_topic=args.imu_topic,
             odom_topic=args.odom_topic,
+            channels=ChannelMap.load(args.channel_map, args.channel),
         )
         if args.refit:
             campaign = Path(args.paths[0])
@@ -541,7 +593,9 @@ def main(argv: Sequence[str] | None = None, profile_params: Callable[[str], list
         return 2
     sys.stdout.write(format_table(result) + "\n")
     if args.json:
-        args.json.write_text(json.dumps(to_json(result), indent=2))
+        from bac_measure.imu_health import jsonable
+
+        args.json.write_text(json.dumps(jsonable(to_json(result)), indent=2, allow_nan=False))
     return 0
 
 

@@ -184,6 +184,8 @@ class SegmentConfig:
     align_signal: str = "both"  # cross-correlated with the reference: accel_z, pitch_rate, both, none (no refinement)
     min_alignment: float = 0.5  # minimum normalized cross-correlation with the reference
     min_coverage: float = 1.0  # minimum fraction of the window with valid IMU samples (1 = every sample)
+    max_mean_accel_z: float = 1.0  # |mean a_z| over the window beyond this: gravity is in it (wrong mount), m/s^2
+    pre_roll_s: float = 5.0  # a_z before the window kept for the scorer's Wk filter (not from rest), s; 0 = none
     # event mode
     trigger_threshold_mps2: float = 1.0  # |a_z| that marks the impact, m/s^2
     trigger_after_m: float = 0.0  # ignore impacts before this odometry distance, m
@@ -218,6 +220,10 @@ class SegmentConfig:
             p.append(f"min_alignment must be in [-1, 1], got {self.min_alignment}")
         if not (0.0 < self.min_coverage <= 1.0):
             p.append(f"min_coverage must be in (0, 1], got {self.min_coverage}")
+        if not self.max_mean_accel_z > 0:
+            p.append(f"max_mean_accel_z must be > 0, got {self.max_mean_accel_z}")
+        if not (0.0 <= self.pre_roll_s <= 60.0):
+            p.append(f"pre_roll_s must be in [0, 60], got {self.pre_roll_s}")
         if not self.trigger_threshold_mps2 > 0:
             p.append("trigger_threshold_mps2 must be > 0")
         if not (0.0 <= self.pre_trigger_s < self.window_s):
@@ -255,13 +261,17 @@ class SegmentConfig:
 
 
 def from_params(cls: Any, params: Mapping[str, Any]) -> Any:
-    """Build the dataclass ``cls`` from a mapping of node parameters (same names; others ignored)."""
+    """Build the dataclass ``cls`` from a mapping of node parameters (same names; others ignored). A value of
+    the wrong type (``detrend: "no"``, ``window_s: fast``) raises :class:`SegmentationError` naming it."""
+    from bac_imu.ingest import typed_value
+
     kwargs: dict[str, Any] = {}
     for f in fields(cls):
         if f.name in params:
-            default = f.default
-            v = params[f.name]
-            kwargs[f.name] = type(default)(v) if isinstance(default, bool | int | float | str) else v
+            try:
+                kwargs[f.name] = typed_value(f.name, params[f.name], f.default)
+            except ValueError as exc:
+                raise SegmentationError(f"{cls.__name__}: {exc}") from exc
     return cls(**kwargs)
 
 
@@ -285,6 +295,9 @@ class Segment:
     pitch_rate: FloatArray = field(repr=False)
     valid: bool
     reason: str
+    # a_z just before the window on the same grid (up to pre_roll_s, data of the same drive only): what the
+    # scorer's Wk filter runs through first, so the window does not start from rest; may be empty
+    pre_roll_accel_z: FloatArray = field(default_factory=lambda: np.zeros(0), repr=False)
 
     @property
     def window_start_s(self) -> float:
@@ -755,6 +768,30 @@ def _coverage(g: _Grid, lo: float, hi: float) -> tuple[float, str]:
     )
 
 
+def _pre_roll(g: _Grid, pos: FloatArray) -> FloatArray:
+    """a_z at the positions ``pos`` (increasing, before a window) where the grid has data: the finite samples
+    after the last hole, cubic-spline re-sampled like the window."""
+    pos = pos[pos >= 0.0]
+    if pos.size < 2:
+        return np.zeros(0)
+    y = _resample(g.az, pos, fill=False)
+    bad = np.flatnonzero(~np.isfinite(y))
+    if bad.size:
+        y = y[int(bad[-1]) + 1 :]
+    return np.asarray(y, dtype=np.float64)
+
+
+def _gravity_reason(config: SegmentConfig, az: FloatArray) -> str:
+    m = float(np.nanmean(az)) if az.size and np.any(np.isfinite(az)) else 0.0
+    if abs(m) <= config.max_mean_accel_z:
+        return ""
+    return (
+        f"mean a_z {m:+.2f} m/s^2 over the window (limit {config.max_mean_accel_z:g}): gravity is in the vertical "
+        "acceleration, the IMU's mount is wrong (see imu_ingest's /diagnostics: give the mount or record a "
+        "standstill)"
+    )
+
+
 def _cut_event(g: _Grid, drive: _Drive, config: SegmentConfig, ref: Reference | None) -> _Plan:
     fs = g.rate_hz
     n = round(config.window_s * fs)
@@ -831,6 +868,8 @@ def _cut_event(g: _Grid, drive: _Drive, config: SegmentConfig, ref: Reference | 
     pos = start + np.arange(n, dtype=np.float64)
     az = _resample(g.az, pos, fill=cov >= config.min_coverage)
     q = _resample(g.q, pos, fill=cov >= config.min_coverage)
+    k_pre = start - np.arange(round(config.pre_roll_s * fs), 0, -1, dtype=np.float64)
+    pre_roll = _pre_roll(g, k_pre[k_pre >= p_begin])
     if ref is not None:
         score = _final_score(config, az, q, ref)
         if not (score >= config.min_alignment) and not any(r.startswith("alignment") for r in reasons):
@@ -838,6 +877,9 @@ def _cut_event(g: _Grid, drive: _Drive, config: SegmentConfig, ref: Reference | 
                 f"alignment correlation {score:.3f} below {config.min_alignment:.3f}: the run does not match "
                 "the reference (another event, or a very different response)"
             )
+    gravity = _gravity_reason(config, az)
+    if gravity:
+        reasons.append(gravity)
     t_start = g.t0_ns + start * g.step_ns
     t_end = t_start + n * g.step_ns
     d0, d1 = np.interp([t_start, t_end], ot, od)
@@ -862,6 +904,7 @@ def _cut_event(g: _Grid, drive: _Drive, config: SegmentConfig, ref: Reference | 
         pitch_rate=q,
         valid=not reasons,
         reason="; ".join(reasons),
+        pre_roll_accel_z=pre_roll,
     )
     return _Plan(segment=seg)
 
@@ -925,6 +968,9 @@ def _cut_distance(g: _Grid, drive: _Drive, config: SegmentConfig, ref: Reference
         reasons.insert(0, hole)
     az = _resample(g.az, pos, fill=cov >= config.min_coverage)
     q = _resample(g.q, pos, fill=cov >= config.min_coverage)
+    s_pre = s_fine[0] - np.arange(round(config.pre_roll_s * fs_eq), 0, -1, dtype=np.float64) * ds
+    s_pre = s_pre[s_pre >= od[0]]
+    pre_roll = _pre_roll(g, (_distance_to_time(ot, od, s_pre) - g.t0_ns) / g.step_ns) if s_pre.size else np.zeros(0)
     if ref is not None:
         score = _final_score(config, az, q, ref)
         if not (score >= config.min_alignment) and not any(r.startswith("alignment") for r in reasons):
@@ -933,6 +979,9 @@ def _cut_distance(g: _Grid, drive: _Drive, config: SegmentConfig, ref: Reference
                 f"the reference (wrong road section, or a start offset beyond the +-{config.max_shift_m:g} m "
                 "of max_shift_m)"
             )
+    gravity = _gravity_reason(config, az)
+    if gravity:
+        reasons.append(gravity)
     duration = (float(t_fine[-1]) - float(t_fine[0])) / NS
     mean_speed = (n - 1) * ds / duration if duration > 0 else math.nan
     speed = _speed_reason(config, mean_speed)
@@ -955,6 +1004,7 @@ def _cut_distance(g: _Grid, drive: _Drive, config: SegmentConfig, ref: Reference
         pitch_rate=q,
         valid=not reasons,
         reason="; ".join(reasons),
+        pre_roll_accel_z=pre_roll,
     )
     return _Plan(segment=seg)
 
@@ -1073,9 +1123,13 @@ def window_segment(
     end_ns: int | None = None,
     imu_rate_hz: float = 0.0,
     run: RunId | None = None,
+    min_coverage: float = 1.0,
 ) -> Segment:
     """A plain time window of an IMU stream as a segment (no alignment, no speed check): for scoring
-    any recording, e.g. a bag that was not driven as a bac run."""
+    any recording, e.g. a bag that was not driven as a bac run.
+
+    ``min_coverage`` as in :class:`SegmentConfig`: below it the segment is invalid, naming where the data is
+    missing; at or above it the holes are bridged by linear interpolation (as :func:`cut_run` does)."""
     t = imu.stamp_ns
     keep = np.ones(t.shape, bool)
     if start_ns is not None:
@@ -1087,6 +1141,10 @@ def window_segment(
         raise SegmentationError("the window holds fewer than two IMU samples")
     g = _grid(sub, imu_rate(sub, imu_rate_hz))
     cov, hole = _coverage(g, 0, g.n - 1)
+    ok = cov >= min_coverage
+    az, q = (_fill_nan(g.az), _fill_nan(g.q)) if ok else (g.az, g.q)
+    if ok and hole:
+        hole = ""
     return Segment(
         run=run or RunId(),
         mode=MODE_EVENT,
@@ -1100,8 +1158,8 @@ def window_segment(
         mean_speed_mps=math.nan,
         target_speed_mps=math.nan,
         coverage=cov,
-        accel_z=g.az,
-        pitch_rate=g.q,
-        valid=cov >= 1.0,
-        reason=hole,
+        accel_z=az,
+        pitch_rate=q,
+        valid=ok,
+        reason="" if ok else f"{hole} (coverage {cov:.3f} below min_coverage {min_coverage:g})",
     )

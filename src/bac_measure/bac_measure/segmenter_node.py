@@ -83,6 +83,16 @@ SEGMENT_PARAMS = {
     ),
     "min_alignment": ParamSpec("minimum normalized cross-correlation with the reference", -1.0, 1.0),
     "min_coverage": ParamSpec("minimum fraction of the window with valid IMU samples (1 = all)", 1e-3, 1.0),
+    "max_mean_accel_z": ParamSpec(
+        "|mean a_z| over the window beyond this makes the run invalid: gravity is in it (a wrong mount), m/s^2",
+        1e-3,
+        100.0,
+    ),
+    "pre_roll_s": ParamSpec(
+        "a_z before the window handed to the scorer, so the ISO 2631-1 Wk filter does not start from rest, s",
+        0.0,
+        60.0,
+    ),
     "trigger_threshold_mps2": ParamSpec("event mode: |a_z| that marks the impact, m/s^2", 1e-3, 1000.0),
     "trigger_after_m": ParamSpec("event mode: ignore impacts before this odometry distance, m", 0.0, 1e6),
     "pre_trigger_s": ParamSpec("event mode: the window starts this long before the impact, s", 0.0, 600.0),

