@@ -29,7 +29,7 @@ from typing import Any
 
 from bac_common.errors import BacError
 
-SCHEMA_VERSION = 1
+SCHEMA_VERSION = 2  # 2 (2026-11-24): trial_proposed.optimizer_state, apply_result.outcome
 JOURNAL_NAME = "journal.jsonl"
 
 
@@ -59,6 +59,12 @@ def _clean(value: Any) -> Any:
     if isinstance(value, list | tuple):
         return [_clean(v) for v in value]
     return value
+
+
+def strict_json(value: Any) -> Any:
+    """``value`` in the form the journal writes it: non-finite floats as None, mappings with str keys, tuples as
+    lists (recursively)."""
+    return _clean(value)
 
 
 def read_journal(path: str | Path) -> JournalRead:
