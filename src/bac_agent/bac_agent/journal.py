@@ -102,19 +102,20 @@ def read_journal(path: str | Path) -> JournalRead:
 
 
 class Journal:
-    """An append-only, fsynced JSON-lines journal (see the module doc)."""
+    """An append-only, fsynced JSON-lines journal (see the module doc); ``name``: the file in ``campaign_dir``
+    (another log kept the same way, e.g. the recorder's index of bags)."""
 
-    def __init__(self, campaign_dir: str | Path) -> None:
+    def __init__(self, campaign_dir: str | Path, name: str = JOURNAL_NAME) -> None:
         self.dir = Path(campaign_dir)
         try:
             self.dir.mkdir(parents=True, exist_ok=True)
         except OSError as exc:
             raise JournalError(f"cannot create the campaign folder {self.dir}: {exc}") from exc
-        self.path = self.dir / JOURNAL_NAME
+        self.path = self.dir / name
         read = read_journal(self.path)
         self.torn: bytes = read.torn
         if read.torn:
-            torn_path = self.path.with_name(JOURNAL_NAME + ".torn")
+            torn_path = self.path.with_name(name + ".torn")
             with torn_path.open("ab") as f:
                 f.write(read.torn + b"\n")
                 f.flush()
