@@ -30,7 +30,6 @@ CALS = {"A": {"damping_front": 0.8, "damping_rear": 0.5}, "B": {"damping_front":
 
 
 def _trial(trial_id: int, attempt: int, state: int, stamp_ns: int) -> bytes:
-    from builtin_interfaces.msg import Time
     from rclpy.serialization import serialize_message
 
     from bac_msgs.msg import Calibration, Trial
@@ -38,13 +37,12 @@ def _trial(trial_id: int, attempt: int, state: int, stamp_ns: int) -> bytes:
     # (a calibration with values: rosbags and Fast-CDR align an empty float64[] differently)
     cal = Calibration(trial_id=trial_id, names=["damping_front"], values=[0.5])
     m = Trial(campaign_id=CID, trial_id=trial_id, attempt=attempt, state=state, calibration=cal)
-    m.stamp = Time(sec=stamp_ns // 10**9, nanosec=stamp_ns % 10**9)
+    m.stamp.sec, m.stamp.nanosec = stamp_ns // 10**9, stamp_ns % 10**9
     return bytes(serialize_message(m))
 
 
 def _run_messages(cal: str, seed: int, t0: int) -> list[tuple[str, int, bytes]]:
     """A simulated bump run as the recorder stores it: imu/vehicle (ingested) and vehicle/odom, stamped from t0."""
-    from builtin_interfaces.msg import Time
     from nav_msgs.msg import Odometry
     from rclpy.serialization import serialize_message
     from sensor_msgs.msg import Imu
@@ -54,14 +52,14 @@ def _run_messages(cal: str, seed: int, t0: int) -> list[tuple[str, int, bytes]]:
     msgs: list[tuple[str, int, bytes]] = []
     for t, az, q in zip(out.stamp_ns.tolist(), out.accel_z.tolist(), out.pitch_rate.tolist(), strict=True):
         m = Imu()
-        m.header.stamp = Time(sec=t // 10**9, nanosec=t % 10**9)
+        m.header.stamp.sec, m.header.stamp.nanosec = t // 10**9, t % 10**9
         m.linear_acceleration.z = az
         m.angular_velocity.y = q
         msgs.append(("imu/vehicle", t, bytes(serialize_message(m))))
     odom_ns = (t0 + np.round(rec.odom_t * 1e9)).astype(np.int64)
     for t, d, v in zip(odom_ns.tolist(), rec.distance.tolist(), rec.speed.tolist(), strict=True):
         o = Odometry()
-        o.header.stamp = Time(sec=t // 10**9, nanosec=t % 10**9)
+        o.header.stamp.sec, o.header.stamp.nanosec = t // 10**9, t % 10**9
         o.pose.pose.position.x = d
         o.twist.twist.linear.x = v
         msgs.append(("vehicle/odom", t, bytes(serialize_message(o))))
