@@ -15,7 +15,9 @@ The process ends when a node finishes: with code 0 when that node ``ends_graph``
 spinning, so that the others take its last messages), else with the node's code (1 for a 0). On SIGINT
 or SIGTERM it ends with 0 after a clean stop: the callbacks in flight finish, then the nodes are destroyed
 in waves of increasing ``stop_order`` (the bridge restores the baseline on the simulated ECU before the
-simulated vehicle goes); a watchdog ends the process if that clean-up hangs.
+simulated vehicle goes) while the ROS context is still valid (the signals are handled here, not by rclpy,
+which would shut the context down first and leave the nodes still running publishing into it), and only
+then is the context shut down; a watchdog ends the process if that clean-up hangs.
 """
 
 from __future__ import annotations
@@ -24,7 +26,9 @@ import argparse
 import importlib
 import json
 import logging
+import signal
 import sys
+import threading
 import time
 from collections.abc import Sequence
 from dataclasses import dataclass
@@ -87,11 +91,20 @@ def run_nodes(
     """
     import rclpy
     from rclpy.executors import ExternalShutdownException, MultiThreadedExecutor
+    from rclpy.signals import SignalHandlerOptions
     from rclpy.utilities import ok, try_shutdown
 
     from bac_common.rosnode import BacNode, drain_executor, start_exit_watchdog
 
-    rclpy.init(args=["bac_container"])
+    stop = threading.Event()
+
+    def on_signal(signum: int, _frame: Any) -> None:
+        if not stop.is_set():
+            LOG.info("received %s: stopping", signal.Signals(signum).name)
+        stop.set()
+
+    old_handlers = {s: signal.signal(s, on_signal) for s in (signal.SIGINT, signal.SIGTERM)}
+    rclpy.init(args=["bac_container"], signal_handler_options=SignalHandlerOptions.NO)
     created: list[tuple[ContainedNode, Any]] = []
     executor: MultiThreadedExecutor | None = None
     code = 0
@@ -104,7 +117,7 @@ def run_nodes(
         for _, n in created:
             executor.add_node(n)
         deadline = None if timeout_s is None else time.monotonic() + timeout_s
-        while ok():
+        while ok() and not stop.is_set():
             executor.spin_once(timeout_sec=0.05)
             done = [(s, n) for s, n in created if getattr(n, "exit_code", None) is not None]
             if done:
@@ -112,7 +125,7 @@ def run_nodes(
                 if spec.ends_graph and node.exit_code == 0:
                     LOG.info("%s finished: shutting down the graph", spec.name)
                     linger_end = time.monotonic() + linger_s
-                    while ok() and time.monotonic() < linger_end:
+                    while ok() and not stop.is_set() and time.monotonic() < linger_end:
                         executor.spin_once(timeout_sec=0.02)
                     code = 0
                 else:
@@ -145,6 +158,8 @@ def run_nodes(
             except Exception:
                 LOG.exception("destroying a node failed")
         try_shutdown()
+        for s, h in old_handlers.items():
+            signal.signal(s, h)
     return code
 
 
