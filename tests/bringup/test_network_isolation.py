@@ -99,7 +99,7 @@ def sim_graph_seen_from_outside(ros_env: dict[str, str], tmp_path: Path, *launch
     """``bac launch sim`` (2 trials) and, apart from it, a plain rclpy listener of bac/trial, in a namespace whose
     only way off the machine is ext0, with no multicast route on loopback (a machine's usual routes)."""
     args = [
-        sys.executable, str(VISIBILITY_PROBE), str(tmp_path / "campaign"),
+        sys.executable, str(VISIBILITY_PROBE), str(tmp_path / "campaign"), "launch", "sim",
         "--timeout", "300", "--log-dir", str(tmp_path / "logs"),
         "-p", "bo_agent.budget:=2", "-p", "bo_agent.confirmation_run:=false", *launch_args,
     ]  # fmt: skip
@@ -129,3 +129,15 @@ def test_control_with_can_between_processes_the_graph_hides_in_a_private_namespa
     assert "entering a private network namespace" in r["launch_log"]
     assert not r["graph_in_this_namespace"] and r["graph_namespaces"], r["graph_namespaces"]
     assert r["received"] == []  # the whole campaign ran, and a tool outside its namespace heard nothing
+
+
+@pytest.mark.slow
+def test_the_demo_keeps_its_graph_in_a_private_namespace(ros_env: dict[str, str], tmp_path: Path) -> None:
+    """bac demo is a measurement: no other graph on the machine may disturb it (bac demo --visible: it is seen)."""
+    args = [sys.executable, str(VISIBILITY_PROBE), str(tmp_path / "campaign"), "demo", "--budget", "2"]
+    r = run_in_namespace_with_an_external_interface(ros_env, args, lo_multicast_route=False, timeout=480)
+    assert r["launch_rc"] == 0, r["launch_log"]
+    assert "recommendation_gap_pct" in r["launch_log"]
+    assert not r["graph_in_this_namespace"] and r["graph_namespaces"], r["graph_namespaces"]
+    assert r["received"] == []
+    assert r["delta"]["ext0"]["tx_packets"] == 0, r["delta"]

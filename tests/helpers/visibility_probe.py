@@ -4,11 +4,12 @@ Run inside a throw-away network namespace that has a loopback and a fake externa
 holding the default route; see tests/bringup/test_network_isolation.py): any packet that would leave the machine
 is counted on ext0's transmit counter.
 
-    visibility_probe.py CAMPAIGN_DIR [LAUNCH ARGS ...]
+    visibility_probe.py CAMPAIGN_DIR launch sim [ARGS ...]      (or: demo [ARGS ...])
 
-starts ``bac launch sim`` (as a user would: not marked as inside a private namespace, so the launcher enters
-one of its own if the profile needs it), and beside it, apart from the launcher, a plain rclpy process that
-subscribes to bac/trial as ``ros2 topic echo /bac/trial`` would. It waits for the campaign to end, stops the
+starts ``bac launch sim --campaign-dir CAMPAIGN_DIR ARGS`` (or ``bac demo``), as a user would: not marked as
+inside a private namespace, so the launcher enters one of its own if the profile needs it; and beside it,
+apart from the launcher, a plain rclpy process that subscribes to bac/trial as ``ros2 topic echo /bac/trial``
+would. It waits for the campaign to end, stops the
 listener and prints what the listener received, the launcher's exit code and output, whether any process of
 the graph ran in another network namespace than this one, and the interface counters' change.
 """
@@ -91,7 +92,7 @@ def graph_namespaces(launcher: int, marker: str) -> set[int]:
 
 def main() -> int:
     camp = Path(sys.argv[1])
-    launch_args = sys.argv[2:]
+    command = [*sys.argv[2:], "--campaign-dir", str(camp)]
     camp.parent.mkdir(parents=True, exist_ok=True)
     env = {k: v for k, v in os.environ.items() if k != "BAC_PRIVATE_NETNS"}  # as a user's shell
     received = camp.parent / "received.jsonl"
@@ -99,7 +100,7 @@ def main() -> int:
     here = os.stat("/proc/self/ns/net").st_ino
     with (camp.parent / "launch.log").open("wb") as log:
         launch = subprocess.Popen(
-            [sys.executable, "-m", "bac_bringup.cli", "launch", "sim", "--campaign-dir", str(camp), *launch_args],
+            [sys.executable, "-m", "bac_bringup.cli", *command],
             env=env,
             stdout=log,
             stderr=subprocess.STDOUT,
