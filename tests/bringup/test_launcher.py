@@ -209,6 +209,17 @@ def test_process_per_node_takes_shared_can_between_processes_into_a_namespace(
     assert ecu["netns"] == bridge["netns"] != os.stat("/proc/self/ns/net").st_ino
 
 
+def test_a_lone_can_node_keeps_the_profiles_bus(ros_env: dict[str, str], tmp_path: Path) -> None:
+    """One CAN node talks to a peer outside the graph (python -m bac_sim.ecu): its bus stays udp_multicast."""
+    nodes = [{**reporter("bridge_only", tmp_path, finish_after_s=1.0), "can": True, "ends_graph": True}]
+    prof = make_profile(tmp_path, nodes, can={"interface": "udp_multicast", "channel": "239.74.163.2"})
+    p = launch(ros_env, str(prof))
+    out, _ = p.communicate(timeout=90)
+    assert p.returncode == 0, out.decode(errors="replace")
+    r = report(tmp_path, "bridge_only")
+    assert r is not None and r["can_interface"] == "udp_multicast"
+
+
 def test_a_virtual_bus_between_processes_is_refused(ros_env: dict[str, str], tmp_path: Path) -> None:
     prof = shared_process_profile(tmp_path, {"interface": "virtual", "channel": "x"})
     p = launch(ros_env, str(prof), "--process-per-node")

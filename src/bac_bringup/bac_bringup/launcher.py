@@ -292,10 +292,10 @@ def prepare(profile: Profile, single_process: bool) -> Profile:
     if not profile.needs_can or profile.can is None:
         return profile
     can_processes = profile.can_processes
-    one_process = single_process or len(can_processes) <= 1
+    one_process = single_process or profile.can_in_one_process
     if one_process and profile.can.interface in CAN_INTERFACES_CROSS_PROCESS:
         return replace(profile, can=CanSpec("virtual", f"bac-{os.getpid()}", profile.can.bitrate, {}))
-    if not one_process and profile.can.interface in CAN_INTERFACES_IN_PROCESS:
+    if len(can_processes) > 1 and not single_process and profile.can.interface in CAN_INTERFACES_IN_PROCESS:
         raise ProfileError(
             f"profile '{profile.name}': CAN interface '{profile.can.interface}' reaches only the same process, but "
             f"its CAN nodes run in {len(can_processes)} processes ({', '.join(can_processes)}): give them one "
@@ -305,13 +305,14 @@ def prepare(profile: Profile, single_process: bool) -> Profile:
 
 
 def needs_private_netns(profile: Profile, single_process: bool) -> bool:
-    """True when CAN over udp_multicast crosses processes and this process is not in a private namespace yet."""
+    """True when CAN goes over udp_multicast (between processes, or to a peer outside the graph) and this process
+    is not in a private namespace yet."""
     return (
         not single_process
         and profile.needs_can
         and profile.can is not None
         and profile.can.interface in CAN_INTERFACES_CROSS_PROCESS
-        and len(profile.can_processes) > 1
+        and not profile.can_in_one_process
         and not netns.in_private_netns()
     )
 

@@ -25,7 +25,7 @@ still talks to while it stops, goes last).
 ``process: NAME`` puts nodes in one process (``bac_bringup.container``, as a component container would):
 the nodes with the same process name share a process and its executor, the others keep one process each
 (a node's process name is its own name unless it has ``process:``). CAN
-stays in one process when every ``can: true`` node shares one: the launcher then uses python-can's
+stays in one process when the ``can: true`` nodes (two or more) share one: the launcher then uses python-can's
 in-process ``virtual`` bus whatever the profile's ``can.interface`` says for the cross-process case
 (``udp_multicast``), and the graph needs no private network namespace, so ROS tools on this machine see
 it. A ``virtual`` bus between processes is refused (it cannot carry a frame from one process to another).
@@ -139,6 +139,14 @@ class Profile:
     def can_processes(self) -> tuple[str, ...]:
         """The processes that open the CAN bus (process mode)."""
         return tuple(p.name for p in self.processes() if p.can) if self.needs_can else ()
+
+    @property
+    def can_in_one_process(self) -> bool:
+        """True when CAN connects nodes of one process only (process mode): several CAN nodes, one process.
+
+        A lone CAN node talks to something outside the graph (a real ECU, ``python -m bac_sim.ecu``), so its
+        bus is the profile's."""
+        return sum(n.can for n in self.nodes) >= 2 and len(self.can_processes) == 1
 
     def one_process_per_node(self) -> Profile:
         """A copy without the ``process:`` groups: every node in a process of its own."""
