@@ -21,7 +21,7 @@ setup(
         "page for a campaign folder, and a terminal view."
     ),
     license="Apache-2.0",
-    tests_require=["pytest"],
+    extras_require={"test": ["pytest"]},  # colcon test runs pytest (tests_require is gone from setuptools)
     entry_points={
         "console_scripts": [
             "cockpit = bac_cockpit.cockpit_node:main",
