@@ -1,9 +1,11 @@
 """Safe by default: the cockpit listens on 127.0.0.1 only; another address is refused without an access token, and
 with one every request without it gets 401 (403 with a wrong one). Real processes: ``bac cockpit`` and the
-``cockpit`` node."""
+``cockpit`` node; and the address ``bac demo`` prints for its graph in a private network namespace is reached from
+outside it (on 127.0.0.1 still)."""
 
 from __future__ import annotations
 
+import json
 import os
 import re
 import subprocess
@@ -11,6 +13,7 @@ import sys
 import urllib.error
 import urllib.request
 from pathlib import Path
+from typing import Any
 
 import psutil
 import pytest
@@ -113,3 +116,27 @@ def test_with_a_token_a_request_without_it_is_refused(procs: Procs, folder: Path
     with pytest.raises(urllib.error.HTTPError) as err:
         urllib.request.urlopen(req, timeout=10)
     assert err.value.code == 405  # read-only, even with the token
+
+
+def test_the_demo_s_private_graph_has_its_cockpit_published_here(procs: Procs, tmp_path: Path) -> None:
+    """``bac demo`` runs its graph in a private network namespace of its own: the address it prints is reached
+    from this one (the relay, through a Unix socket), and it still shows the live campaign."""
+    camp = tmp_path / "demo"
+    # this test already runs in a private namespace: unmarked, the demo makes one of its own, as from a shell
+    procs.python("demo", ["-m", "bac_bringup.cli", "demo", "--budget", "2", "--campaign-dir", str(camp)],
+                 env={"BAC_PRIVATE_NETNS": ""})  # fmt: skip
+    url = printed_url(procs, "demo")
+    assert url == "http://127.0.0.1:8765/", procs.log("demo")
+    assert "in a private network namespace" in procs.log("demo")
+    node_pid = int(json.loads((camp / "cockpit.json").read_text())["pid"])
+    assert os.readlink(f"/proc/{node_pid}/ns/net") != os.readlink("/proc/self/ns/net")  # the node is elsewhere
+    with urllib.request.urlopen(url + "api/health", timeout=10) as r:
+        assert json.loads(r.read())["mode"] == "live"
+
+    def trial_shown() -> Any:
+        with urllib.request.urlopen(url + "api/state", timeout=10) as r:
+            trial = json.loads(r.read()).get("trial")
+        return trial if trial and int(trial.get("trial_id", 0)) >= 1 else None
+
+    trial = wait_for(trial_shown, 180, what="the demo's first trial on the relayed page")
+    assert int(trial["trial_id"]) >= 1
