@@ -12,8 +12,11 @@ from __future__ import annotations
 
 import argparse
 import importlib
+import json
 import logging
 import sys
+import threading
+import time
 from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any
@@ -124,6 +127,8 @@ def launch_main(argv: Sequence[str]) -> int:
                 published.close()
     if profile.campaign:
         launcher.save_launch_config(profile, Path(profile.global_params["campaign_dir"]), argv, args.single_process)
+        if "cockpit" in [n.name for n in profile.nodes]:
+            announce_cockpit(Path(profile.global_params["campaign_dir"]))
     return launcher.run_graph(profile, single_process=args.single_process, log_dir=args.log_dir, timeout_s=args.timeout)
 
 
@@ -140,9 +145,30 @@ def _publish_cockpit(profile: Any, overrides: dict[str, dict[str, Any]]) -> tupl
     return extra, published
 
 
-def default_campaign_dir(profile_name: str) -> Path:
-    import time
+def announce_cockpit(campaign_dir: Path, timeout_s: float = 300.0) -> threading.Thread:
+    """Print the cockpit's address (``cockpit: URL``, from the node's ``<campaign>/cockpit.json``) as soon as the
+    node has started, whether its output goes to the terminal or to a log file (``--log-dir``)."""
+    path = campaign_dir / "cockpit.json"
+    started = time.time()
 
+    def watch() -> None:
+        deadline = time.monotonic() + timeout_s
+        while time.monotonic() < deadline:
+            try:
+                if path.stat().st_mtime >= started:  # this launch's node, not a file left by an earlier one
+                    url = json.loads(path.read_text())["url"]
+                    logging.getLogger("bac.launch").info("cockpit: %s", url)
+                    return
+            except (OSError, ValueError, KeyError):
+                pass  # not there yet, or being written
+            time.sleep(0.2)
+
+    thread = threading.Thread(target=watch, name="bac-cockpit-address", daemon=True)
+    thread.start()
+    return thread
+
+
+def default_campaign_dir(profile_name: str) -> Path:
     return Path("campaigns") / f"{profile_name}-{time.strftime('%Y%m%d-%H%M%S')}"
 
 
