@@ -15,7 +15,7 @@ ROOT=$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)
 cd "$ROOT"
 VENV="$ROOT/.venv"
 STAMPS="$VENV/.bac"
-PY_PKGS=(bac_common bac_ecu_bridge bac_imu bac_measure bac_sim bac_agent bac_reduce bac_campaign bac_bringup)
+PY_PKGS=(bac_common bac_ecu_bridge bac_imu bac_measure bac_sim bac_agent bac_reduce bac_campaign bac_cockpit bac_bringup)
 WITH_BENCH=0
 for arg in "$@"; do
   case "$arg" in
@@ -46,6 +46,21 @@ if [[ ${#need_apt[@]} -gt 0 ]]; then
     apt-get update -qq && DEBIAN_FRONTEND=noninteractive apt-get install -y -qq "${need_apt[@]}"
   else
     sudo apt-get update -qq && sudo DEBIAN_FRONTEND=noninteractive apt-get install -y -qq "${need_apt[@]}"
+  fi
+fi
+# the cockpit's browser test drives Debian's Chromium through its WebDriver (tests/cockpit): installed as root
+# (or with a password-less sudo); without them the demo runs and that test says what to install
+need_browser=()
+command -v chromium >/dev/null || command -v chromium-browser >/dev/null || need_browser+=(chromium)
+command -v chromedriver >/dev/null || command -v chromium.chromedriver >/dev/null || need_browser+=(chromium-driver)
+if [[ ${#need_browser[@]} -gt 0 ]]; then
+  say "installing the test browser: ${need_browser[*]}"
+  as_root=()
+  [[ $(id -u) -eq 0 ]] || as_root=(sudo -n)
+  if ! { "${as_root[@]}" apt-get update -qq \
+         && "${as_root[@]}" env DEBIAN_FRONTEND=noninteractive apt-get install -y -qq "${need_browser[@]}"; }; then
+    echo "setup.sh: could not install ${need_browser[*]} (not root, no password-less sudo?): the browser tests" \
+         "will fail until they are installed (apt-get install ${need_browser[*]})" >&2
   fi
 fi
 

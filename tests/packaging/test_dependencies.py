@@ -49,6 +49,10 @@ KEY_OF_IMPORT = {
     "distributed": "python3-distributed-pip",
     "pytest": "python3-pytest",
     "sklearn": "python3-sklearn",
+    "aiohttp": "python3-aiohttp",
+    "rich": "python3-rich",
+    "selenium": "python3-selenium",
+    "psutil": "python3-psutil",
 }
 RUN_TAGS = ("depend", "exec_depend", "build_export_depend")
 ALL_TAGS = ("depend", "exec_depend", "build_depend", "build_export_depend", "buildtool_depend", "test_depend")
@@ -145,7 +149,7 @@ PKGS = packages()
 
 def test_every_python_package_is_found() -> None:
     assert {"bac_common", "bac_ecu_bridge", "bac_imu", "bac_measure", "bac_sim", "bac_agent", "bac_reduce",
-            "bac_campaign", "bac_bringup", "bac_msgs"} <= set(PKGS)  # fmt: skip
+            "bac_campaign", "bac_cockpit", "bac_bringup", "bac_msgs"} <= set(PKGS)  # fmt: skip
 
 
 @pytest.mark.parametrize("name", sorted(n for n, p in PKGS.items() if p.code.is_dir()))

@@ -422,6 +422,7 @@ class BoAgentNode(BacNode):
                     str(res.message),
                     applied,
                     float(res.latency_s),
+                    int(res.attempts),
                 )
             )
         elif now > self._apply_deadline:

@@ -603,8 +603,9 @@ class Campaign:
         message: str = "",
         applied: Mapping[str, float] | None = None,
         latency_s: float = math.nan,
+        attempts: int = 0,
     ) -> list[Action]:
-        """The bridge answered an Apply."""
+        """The bridge answered an Apply (``attempts``: the bridge's CAN transactions for it; 0 = not told)."""
         t = self.current
         if t is None or t.trial_id != trial_id or t.apply_try != apply_try or t.phase != State.APPLYING:
             return [Log("warn", f"ignored an apply answer for trial {trial_id} try {apply_try}: not awaited")]
@@ -629,6 +630,7 @@ class Campaign:
             message=message if success else reason,
             applied=dict(applied or {}),
             latency_s=latency_s,
+            attempts=int(attempts),
             outcome=outcome,
         )
         if outcome == APPLY_CONFIRMED:

@@ -12,14 +12,18 @@ from __future__ import annotations
 
 import argparse
 import importlib
+import json
 import logging
 import sys
+import threading
+import time
 from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any
 
 from bac_bringup import launcher, netns
 from bac_bringup.profile import ProfileError, load_profile
+from bac_common.errors import BacError
 
 # sub-command -> (module, function, one-line help); the function takes argv and returns an exit code
 SUBCOMMANDS: dict[str, tuple[str, str, str]] = {
@@ -29,6 +33,8 @@ SUBCOMMANDS: dict[str, tuple[str, str, str]] = {
     "rescore": ("bac_bringup.tools", "rescore_main", "re-cut and re-score a campaign's bags (or any IMU bag) offline"),
     "replay": ("bac_bringup.tools", "replay_main", "play bags into the live graph on /clock (the replay profile)"),
     "report": ("bac_campaign.report", "main", "make a campaign's report (PNG + HTML)"),
+    "cockpit": ("bac_cockpit.cli", "cockpit_main", "serve the cockpit's page for a campaign folder (no graph needed)"),
+    "watch": ("bac_cockpit.cli", "watch_main", "the cockpit in a terminal (a running cockpit or a campaign folder)"),
     "export": ("bac_campaign.export", "main", "write a campaign as ASAM MDF4 (--mf4) for asammdf, CANape, INCA"),
     "reduce": ("bac_reduce.cli", "main", "simulation phase: find the parameters that matter (paper sec. III-D)"),
     "ground-truth": ("bac_sim.ground_truth", "main", "recompute the simulator's true optima by dense grids"),
@@ -107,18 +113,62 @@ def launch_main(argv: Sequence[str]) -> int:
         return 2
     if launcher.needs_private_netns(profile, args.single_process):
         try:
-            return launcher.relaunch_in_netns(["launch", *argv])
+            extra, published = _publish_cockpit(profile, overrides)
+        except BacError as exc:
+            logging.getLogger("bac.launch").error("%s", exc)
+            return 2
+        try:
+            return launcher.relaunch_in_netns(["launch", *argv, *extra])
         except netns.NetnsError as exc:
             logging.getLogger("bac.launch").error("%s", exc)
             return 3
+        finally:
+            if published is not None:
+                published.close()
     if profile.campaign:
         launcher.save_launch_config(profile, Path(profile.global_params["campaign_dir"]), argv, args.single_process)
+        if "cockpit" in [n.name for n in profile.nodes]:
+            announce_cockpit(Path(profile.global_params["campaign_dir"]))
     return launcher.run_graph(profile, single_process=args.single_process, log_dir=args.log_dir, timeout_s=args.timeout)
 
 
-def default_campaign_dir(profile_name: str) -> Path:
-    import time
+def _publish_cockpit(profile: Any, overrides: dict[str, dict[str, Any]]) -> tuple[list[str], Any]:
+    """A cockpit in a graph that goes into a private network namespace is published from here, outside, through
+    a Unix socket (bac_cockpit.relay): its address is then reachable from this machine's browser."""
+    if "cockpit" not in [n.name for n in profile.nodes]:
+        return [], None
+    from bac_cockpit.relay import publish_cockpit
 
+    extra, published = publish_cockpit(profile.params_files, overrides.get("cockpit"))
+    logging.getLogger("bac.launch").info("cockpit published at %s (relayed into the graph's network namespace)",
+                                         published.url)  # fmt: skip
+    return extra, published
+
+
+def announce_cockpit(campaign_dir: Path, timeout_s: float = 300.0) -> threading.Thread:
+    """Print the cockpit's address (``cockpit: URL``, from the node's ``<campaign>/cockpit.json``) as soon as the
+    node has started, whether its output goes to the terminal or to a log file (``--log-dir``)."""
+    path = campaign_dir / "cockpit.json"
+    started = time.time()
+
+    def watch() -> None:
+        deadline = time.monotonic() + timeout_s
+        while time.monotonic() < deadline:
+            try:
+                if path.stat().st_mtime >= started:  # this launch's node, not a file left by an earlier one
+                    url = json.loads(path.read_text())["url"]
+                    logging.getLogger("bac.launch").info("cockpit: %s", url)
+                    return
+            except (OSError, ValueError, KeyError):
+                pass  # not there yet, or being written
+            time.sleep(0.2)
+
+    thread = threading.Thread(target=watch, name="bac-cockpit-address", daemon=True)
+    thread.start()
+    return thread
+
+
+def default_campaign_dir(profile_name: str) -> Path:
     return Path("campaigns") / f"{profile_name}-{time.strftime('%Y%m%d-%H%M%S')}"
 
 

@@ -112,6 +112,25 @@ class JournalFollower:
             out(f"campaign FAILED: {e.get('reason')}")
 
 
+class CockpitAddress:
+    """Prints the cockpit's address once its node has started (``<campaign>/cockpit.json``)."""
+
+    def __init__(self, campaign_dir: Path) -> None:
+        self.path = campaign_dir / "cockpit.json"
+        self.path.unlink(missing_ok=True)  # left by a graph that did not stop cleanly: this launch writes its own
+        self.shown = False
+
+    def poll(self) -> None:
+        if self.shown or not self.path.exists():
+            return
+        try:
+            url = json.loads(self.path.read_text())["url"]
+        except (OSError, ValueError, KeyError):
+            return  # being written
+        self.shown = True
+        out(f"  cockpit: {url}  (open it in a browser: the page follows the campaign live; `bac watch` in a terminal)")
+
+
 def run_campaign(
     campaign_dir: Path,
     params_files: list[Path],
@@ -144,23 +163,45 @@ def run_campaign(
     if single_process:
         cmd.append("--single-process")
     env = None
+    published = None
     if private and not netns.in_private_netns():
-        cmd, env = netns.wrap_command(cmd), netns.private_env()
+        # the cockpit's port inside the private namespace is out of the browser's reach: it is published here,
+        # outside, on 127.0.0.1:8765 and relayed to the node through a Unix socket (bac_cockpit.relay)
+        extra, published = publish_cockpit(params_files, overrides)
+        cmd, env = netns.wrap_command(cmd + extra), netns.private_env()
     follower = JournalFollower(campaign_dir / "journal.jsonl")
+    cockpit = CockpitAddress(campaign_dir)
     launcher_log = campaign_dir / "logs" / "launcher.log"
     launcher_log.parent.mkdir(parents=True, exist_ok=True)
-    with launcher_log.open("wb") as log:
-        proc = subprocess.Popen(cmd, stdout=log, stderr=subprocess.STDOUT, env=env)
-        try:
-            while proc.poll() is None:
-                follower.poll()
-                time.sleep(0.2)
-        except KeyboardInterrupt:
-            proc.send_signal(2)
-            proc.wait()
-            raise
+    try:
+        with launcher_log.open("wb") as log:
+            proc = subprocess.Popen(cmd, stdout=log, stderr=subprocess.STDOUT, env=env)
+            try:
+                while proc.poll() is None:
+                    cockpit.poll()
+                    follower.poll()
+                    time.sleep(0.2)
+            except KeyboardInterrupt:
+                proc.send_signal(2)
+                proc.wait()
+                raise
+    finally:
+        if published is not None:
+            published.close()
     follower.poll()
     return int(proc.returncode)
+
+
+def publish_cockpit(params_files: list[Path], overrides: list[str]) -> tuple[list[str], Any]:
+    """Start the relay of the sim profile's cockpit (its host and port from the profile's parameter files, the
+    demo's and ``cockpit.*`` overrides); returns the launch's extra ``-p`` arguments and the relay."""
+    from bac_bringup.cli import parse_assignment
+    from bac_bringup.profile import load_profile
+    from bac_cockpit.relay import publish_cockpit as publish
+
+    files = [*load_profile("sim").params_files, *params_files]
+    mine = {param: value for node, param, value in map(parse_assignment, overrides) if node == "cockpit"}
+    return publish(files, mine)
 
 
 def published_rates(log: Path) -> list[float]:
@@ -266,7 +307,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     )
     out(
         f"  the node graph: vehicle_sim (+ its ECU on CAN), imu_ingest, run_segmenter, kpi_scorer, ecu_bridge, "
-        f"campaign_recorder, bo_agent, {layout}"
+        f"campaign_recorder, cockpit, bo_agent, {layout}"
         + (", in a private network namespace (--visible: where ROS tools see it)" if private else "")
     )
     out(f"  campaign folder: {camp}")
@@ -343,6 +384,7 @@ def main(argv: Sequence[str] | None = None) -> int:
             + (f", for good after {r2:.0f} runs" if math.isfinite(r2) else "")
         )
     out(f"report: {result['html']}")
+    out(f"cockpit of the finished campaign: bac cockpit {camp}")
     out(f"recommendation_gap_pct {100 * s['gap']:.2f}")
     return 0
 
