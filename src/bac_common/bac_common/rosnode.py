@@ -303,14 +303,22 @@ def run_node(
         executor.add_node(node)
         code = spin_until_done(executor, [node])
     except (KeyboardInterrupt, ExternalShutdownException):
+        if node is None or executor is None:
+            rclpy.logging.get_logger(getattr(node_cls, "__name__", "bac")).info("interrupted while starting")
         code = 0
     except Exception:
         msg = traceback.format_exc()
-        if node is not None:
+        if not rclpy.ok():
+            # SIGINT (Ctrl-C, the launcher's stop) while the node was still starting: rclpy's handler shut the
+            # context down under the constructor, whose next rcl call then fails. An interrupted start, not a crash.
+            rclpy.logging.get_logger(getattr(node_cls, "__name__", "bac")).info("interrupted while starting")
+            code = 0
+        elif node is not None:
             node.get_logger().fatal(f"node crashed:\n{msg}")
+            code = 1
         else:
             rclpy.logging.get_logger(getattr(node_cls, "__name__", "bac")).fatal(f"node failed to start:\n{msg}")
-        code = 1
+            code = 1
     finally:
         name = node.get_name() if node is not None else getattr(node_cls, "__name__", "bac")
         own = node.cleanup_time_s() if isinstance(node, BacNode) else 0.0
