@@ -39,6 +39,7 @@ from rclpy.qos import (
     ReliabilityPolicy,
     qos_profile_sensor_data,
 )
+from rclpy.utilities import ok as rclpy_ok
 from rclpy.utilities import try_shutdown
 
 # sensor streams: best effort, keep last 5 (what IMU drivers publish with)
@@ -308,7 +309,7 @@ def run_node(
         code = 0
     except Exception:
         msg = traceback.format_exc()
-        if not rclpy.ok():
+        if not rclpy_ok():
             # SIGINT (Ctrl-C, the launcher's stop) while the node was still starting: rclpy's handler shut the
             # context down under the constructor, whose next rcl call then fails. An interrupted start, not a crash.
             rclpy.logging.get_logger(getattr(node_cls, "__name__", "bac")).info("interrupted while starting")
