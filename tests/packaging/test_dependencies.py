@@ -46,6 +46,9 @@ KEY_OF_IMPORT = {
     "threadpoolctl": "python3-threadpoolctl-pip",
     "dask": "python3-dask-pip",
     "distributed": "python3-distributed-pip",
+    "numba": "python3-numba",
+    "cma": "python3-cma-pip",
+    "SALib": "python3-salib-pip",
     "pytest": "python3-pytest",
     "sklearn": "python3-sklearn",
 }

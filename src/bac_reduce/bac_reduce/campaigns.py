@@ -6,7 +6,7 @@ campaigns of a *group* run in lock-step: at each step every campaign of the grou
 next point(s) (the GP part) and the group's asks are simulated as **one** batch (the
 simulation part). Groups are independent: locally they run in parallel worker processes (one
 per core by default), on a Dask cluster as one task each. A campaign's result does not depend
-on which group it ran in except through the run noise, which is drawn per group.
+on which group it ran in: each campaign draws its runs' noise from its own generator.
 
 Each step a campaign asks: its whole remaining initial design at once (space filling, needs
 no model), then ``batch`` points (1 = the paper's sequential BO; 2 = two points per step, the
@@ -208,7 +208,9 @@ def run_group(
     definition = objective.definition
     engines = [Engine(definition, settings.engine_config(s.seed)) for s in specs]  # (their initial designs)
     names = engines[0].names
-    rng = np.random.default_rng([int(noise_seed), *(int(s.index) for s in specs)])
+    # each campaign's runs draw their noise from the campaign's own generator: a campaign's runs do not depend on
+    # which group (process, Dask task) it ran in
+    rngs = [np.random.default_rng([int(noise_seed), int(s.index)]) for s in specs]
     sim_s, sim_cpu = 0.0, 0.0
     gp_s, gp_cpu = time.perf_counter() - t_start, time.process_time() - c_start
     steps = 0
@@ -226,7 +228,7 @@ def run_group(
             break
         t1 = time.perf_counter()
         thetas = np.array([[p[n] for n in names] for _, p in asks])
-        values = np.asarray(objective.evaluate(thetas, rng), dtype=float).ravel()
+        values = np.asarray(objective.evaluate(thetas, [rngs[k] for k, _ in asks]), dtype=float).ravel()
         sim_s += time.perf_counter() - t1
         c2 = time.process_time()
         sim_cpu += c2 - c1
@@ -456,6 +458,22 @@ def _drain(q: Any, on_progress: Callable[[Progress], None] | None) -> None:
             on_progress(item)
 
 
+def _dask_task(
+    objective: BatchObjective,
+    settings: CampaignSettings,
+    specs: Sequence[CampaignSpec],
+    noise_seed: int,
+    group: int,
+    sink: Sink,
+) -> GroupResult:
+    """A group on a Dask worker: its batches simulated in the worker's process (a worker process is daemonic
+    and may not start the simulator's process pool; each worker thread is one core's share of the cluster)."""
+    from bac_sim.parallel import in_this_process
+
+    with in_this_process():
+        return run_group(objective, settings, specs, noise_seed, group, sink)
+
+
 def _call(fn: Any, *args: Any, **kwargs: Any) -> Any:
     """Call an untyped function of an optional dependency (dask.distributed)."""
     return fn(*args, **kwargs)
@@ -507,7 +525,7 @@ def _run_dask(
 
         client.subscribe_topic(topic, handler)
         futures = [
-            client.submit(run_group, objective, settings, g, noise_seed, i, _DaskSink(topic), pure=False)
+            client.submit(_dask_task, objective, settings, g, noise_seed, i, _DaskSink(topic), pure=False)
             for i, g in enumerate(parts)
         ]
         results: dict[int, GroupResult] = {}

@@ -229,20 +229,46 @@ class ControllerII:
         self._weights = np.vstack([np.ones(b), P["p07"], P["p10"]])  # (3, B)
         w0 = np.asarray(x0[7:10], dtype=float)
         floor0 = np.repeat(self._floor.mean(axis=0, keepdims=True), N_CORNERS, axis=0)
+        # the filter states in one array (the compiled step loop updates it in place, bac_sim.kernels), and views
+        st = np.zeros((22, b))
+        st[0:3] = w0
+        st[14:18] = floor0
+        st[18:22] = floor0
+        self._st = st
         self._state = {
-            "w_prev": np.array(w0, copy=True),
-            "hp": np.zeros((3, b)),
+            "w_prev": st[0:3],
+            "hp": st[3:6],
             "w3": np.zeros((3, b)),
             "zsky": np.zeros((N_CORNERS, b)),
             "tmp": np.zeros((N_CORNERS, b)),
             "tmp2": np.zeros((N_CORNERS, b)),
             "flag": np.zeros((N_CORNERS, b), dtype=bool),
-            "v_f": np.zeros((N_CORNERS, b)),
-            "acc_f": np.zeros((N_CORNERS, b)),
+            "v_f": st[6:10],
+            "acc_f": st[10:14],
             "cmd": np.zeros((N_CORNERS, b)),
-            "cmd_f": floor0.copy(),
-            "c_act": floor0.copy(),
+            "cmd_f": st[14:18],
+            "c_act": st[18:22],
         }
+
+    def kernel_arrays(self) -> tuple[FloatArray, FloatArray, FloatArray]:
+        """(modal (4, 3), parameters (21, B), filter states (22, B)) for :func:`bac_sim.kernels.steps_controller_ii`;
+        the states are the arrays :meth:`command` updates (call after :meth:`reset`)."""
+        b = self.batch
+        par = np.empty((21, b))
+        par[0:4] = self._gain
+        par[4:8] = self._floor
+        par[8] = self._cap[0]
+        par[9] = self._a_hp[0]
+        par[10] = self._a_v[0]
+        par[11] = self._a_cmd[0]
+        par[12] = self._a_add[0]
+        par[13] = self._db[0]
+        par[14] = self._endstop[0]
+        par[15] = self._a_act
+        par[16:19] = self._weights
+        par[19] = self._gh[0]
+        par[20] = self._add[0]
+        return np.ascontiguousarray(self._modal), par, self._st
 
     def command(
         self, x: FloatArray, v: FloatArray, travel: FloatArray, acc: FloatArray, phi_min: FloatArray, dphi: FloatArray

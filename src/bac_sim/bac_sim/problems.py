@@ -29,7 +29,7 @@ from __future__ import annotations
 import itertools
 import json
 import math
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field, replace
 from functools import lru_cache
 from pathlib import Path
@@ -138,8 +138,14 @@ class Problem:
         az2, q2, cnt = self._run(raw, drive, duration, None)
         return np.asarray(np.sqrt(az2 / cnt) + np.sqrt(q2 / cnt))
 
-    def noisy_j(self, thetas: FloatArray, rng: np.random.Generator) -> FloatArray:
-        """J (n,) of simulated runs with run-to-run noise (driver, alignment, IMU)."""
+    def noisy_j(self, thetas: FloatArray, rng: np.random.Generator | Sequence[np.random.Generator]) -> FloatArray:
+        """J (n,) of simulated runs with run-to-run noise (driver, alignment, IMU).
+
+        ``rng``: one generator for the whole batch, or one per run (a sequence of n, the same generator may
+        appear several times): then each run's noise comes from its own generator, in the order of the rows,
+        so a run's J does not depend on the other runs simulated in the same batch (e.g. campaigns of a
+        simulation phase batched together on one core or spread over a cluster).
+        """
         raw = self.raw(thetas)
         n = raw.shape[0]
         sc = self.scenario
@@ -148,18 +154,33 @@ class Problem:
         driver = replace(self.driver, start_offset_std=min(self.driver.start_offset_std, 0.2 * lead_m))
         slowest = sc.speed * (1 - 4 * driver.speed_error_std / sc.speed - 0.02)
         run_s = (1.6 * lead_m + sc.window_length_s * sc.speed) / slowest + sc.tail_s
-        drive, _ = driver.draw(sc.speed, start, run_s + 0.2, n, rng)
-        if sc.mode == "distance":
-            shift = self.noise.align_m * rng.standard_normal(n)
+        align = self.noise.align_m if sc.mode == "distance" else self.noise.align_s
+        if isinstance(rng, np.random.Generator):
+            drive, _ = driver.draw(sc.speed, start, run_s + 0.2, n, rng)
+            shift = align * rng.standard_normal(n)
         else:
-            shift = self.noise.align_s * rng.standard_normal(n)
+            rngs = list(rng)
+            if len(rngs) != n:
+                raise SimError(f"{self.name}: {len(rngs)} random generators for {n} runs")
+            drives = [driver.draw(sc.speed, start, run_s + 0.2, 1, g)[0] for g in rngs]
+            drive = Drive(drives[0].t, np.hstack([d.v for d in drives]), np.hstack([d.s for d in drives]))
+            shift = align * np.array([g.standard_normal() for g in rngs])
         az2, q2, cnt = self._run(raw, drive, run_s, shift)
         ms_a = az2 / cnt
         ms_q = q2 / cnt
         # IMU white noise: exact distribution of the measured mean square over cnt samples
         for mean_square, sigma in ((ms_a, self.noise.accel_noise), (ms_q, self.noise.gyro_noise)):
-            cross = 2 * sigma * np.sqrt(mean_square / cnt) * rng.standard_normal(n)
-            power = sigma**2 * rng.chisquare(cnt) / cnt
+            if isinstance(rng, np.random.Generator):
+                z = rng.standard_normal(n)
+                chi = rng.chisquare(cnt)
+            else:
+                z = np.empty(n)
+                chi = np.empty(n)
+                for i, g in enumerate(rngs):
+                    z[i] = g.standard_normal()
+                    chi[i] = g.chisquare(cnt[i])
+            cross = 2 * sigma * np.sqrt(mean_square / cnt) * z
+            power = sigma**2 * chi / cnt
             np.add(mean_square, cross + power, out=mean_square)
         return np.asarray(np.sqrt(np.maximum(ms_a, 0)) + np.sqrt(np.maximum(ms_q, 0)))
 
