@@ -2,7 +2,7 @@
 
 ::
 
-    from bac_sim.problems import get_problem, PROBLEM_NAMES   # "bump_c1", "road_c1", "road_c2"
+    from bac_sim.problems import get_problem, PROBLEM_NAMES   # "bump_c1", "road_c1", "road_c2", "road_c2b"
     p = get_problem("road_c1")
     p.names, p.dim, p.bounds          # tuned dimensions, d, (d, 2) [lower, upper]
     p.true_j(thetas)                  # (n, d) -> (n,) noise-free J
@@ -38,7 +38,12 @@ from typing import Any
 import numpy as np
 
 from bac_common.paramspace import CalibrationDefinition
-from bac_sim.controllers import controller_i_definition, controller_ii_definition, make_controller
+from bac_sim.controllers import (
+    controller_i_definition,
+    controller_ii_definition,
+    controller_iib_definition,
+    make_controller,
+)
 from bac_sim.driver import Drive, DriverModel, constant_drive
 from bac_sim.engine import BatchResult, make_model, simulate
 from bac_sim.errors import SimError
@@ -47,9 +52,9 @@ from bac_sim.scenarios import Scenario, get_scenario
 
 FloatArray = np.ndarray[Any, Any]
 
-PROBLEM_NAMES = ("bump_c1", "road_c1", "road_c2")
+PROBLEM_NAMES = ("bump_c1", "road_c1", "road_c2", "road_c2b")
 GROUND_TRUTH_PATH = Path(__file__).resolve().parent / "data" / "ground_truth.json"
-_SCENARIO_OF = {"bump_c1": "bump", "road_c1": "road", "road_c2": "road"}
+_SCENARIO_OF = {"bump_c1": "bump", "road_c1": "road", "road_c2": "road", "road_c2b": "road"}
 # batches at least this many run-seconds long are split over the worker processes
 PARALLEL_MIN_RUN_SECONDS = 1200.0
 
@@ -274,7 +279,8 @@ def get_problem(name: str) -> Problem:
     """One of :data:`PROBLEM_NAMES`."""
     if name not in PROBLEM_NAMES:
         raise SimError(f"unknown problem {name!r}; known: {', '.join(PROBLEM_NAMES)}")
-    definition = controller_ii_definition() if name.endswith("c2") else controller_i_definition()
+    definitions = {"c1": controller_i_definition, "c2": controller_ii_definition, "c2b": controller_iib_definition}
+    definition = definitions[name.split("_")[1]]()
     truth = load_ground_truth().get(name, {})
     scenario = get_scenario(_SCENARIO_OF[name])
     # at 30 km/h most cruise controls are off: the driver holds the speed by foot
