@@ -24,6 +24,7 @@ from __future__ import annotations
 
 import json
 import math
+import os
 import time
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
@@ -403,6 +404,14 @@ def _log_nothing(_: str) -> None:
     pass
 
 
+def _load_average() -> float:
+    """The machine's 1-minute load average (NaN where the OS has none): the conditions of the timings."""
+    try:
+        return float(os.getloadavg()[0])
+    except (AttributeError, OSError):
+        return math.nan
+
+
 def run_reduction(
     config: ReduceConfig,
     objective: BatchObjective | None = None,
@@ -415,6 +424,7 @@ def run_reduction(
     """Run the whole phase (see the module doc); with ``campaigns`` (e.g. from an earlier result.json)
     the campaigns are not run again and only the analysis, the file and the checks are made."""
     t_start = time.perf_counter()
+    load_start = _load_average()
     obj = objective if objective is not None else make_objective(config.problem)
     base = obj.definition
     if base.meta or set(base.tuned) != set(base.parameter_names):
@@ -560,6 +570,8 @@ def run_reduction(
         result.validation = validate(obj, result, log=log, on_progress=on_progress, client=client)
         timings["validate_s"] = result.validation.seconds
     timings["total_s"] = time.perf_counter() - t_start
+    timings["load_start"], timings["load_end"] = load_start, _load_average()
+    timings["cores"] = float(os.cpu_count() or 1)
     v = result.validation
     timings["sim_s"] = (
         timings["campaigns_sim_s"]

@@ -221,6 +221,11 @@ def format_report(result: ReductionResult) -> str:
     if "validate_s" in t and v is not None:
         add(f"validation: {t['validate_s']:.1f} s (simulation {v.sim_s:.1f} s, GP {v.gp_s:.1f} s)")
     add(f"total: {t['total_s'] / 60:.2f} min; simulation {t['sim_s']:.1f} s, GP {t['gp_s']:.1f} s (worker-seconds)")
+    if "load_start" in t:
+        add(
+            f"machine: {t.get('cores', math.nan):.0f} cores, load average {t['load_start']:.1f} at the start, "
+            f"{t['load_end']:.1f} at the end (the wall times above move with it)"
+        )
     return "\n".join(lines)
 
 
