@@ -138,7 +138,8 @@ def format_report(result: ReductionResult) -> str:
         if only_oat or only_glob:
             verdict = "disagrees: "
             if only_oat:
-                verdict += f"kept from θ̄ but globally minor: {', '.join(only_oat)} (they matter at the optimum); "
+                verdict += f"kept from θ̄ but globally minor: {', '.join(only_oat)} (they matter at the optimum)"
+                verdict += "; " if only_glob else ""
             if only_glob:
                 verdict += (
                     f"globally significant but discarded: {', '.join(only_glob)} (they matter over the box, "
@@ -279,7 +280,8 @@ def with_best_guess(result: ReductionResult) -> Any:
     dims = {d.name: d for d in result.definition.dimensions}
     if set(guess) != set(dims):
         return result.definition
-    guess = {n: min(max(float(x), dims[n].lower), dims[n].upper) for n, x in guess.items()}
+    # within the bounds, on the raw parameters' resolution (0.01 for Controller II: the value the ECU would hold)
+    guess = {n: round(min(max(float(x), dims[n].lower), dims[n].upper), 2) for n, x in guess.items()}
     return replace(result.definition, best_guess=guess)
 
 
