@@ -351,7 +351,8 @@ def polish_many(
     seed: int = 0,
 ) -> tuple[FloatArray, FloatArray, NDArray[np.int_], list[tuple[FloatArray, FloatArray]]]:
     """CMA-ES from each row of ``starts`` (k, d) on the noise-free ``true_j``, the k searches in lock-step (their
-    populations simulated as one batch), at most ``config.evals`` runs each. Returns the best points (k, d), their
+    populations simulated as one batch), about ``config.evals`` runs each (a search stops after the generation
+    that reaches them: at most ``config.evals + config.popsize - 1``). Returns the best points (k, d), their
     J (k,), the runs each spent and each search's runs (points in the units of ``bounds``, J); a start is kept when
     nothing beats it."""
     import cma
