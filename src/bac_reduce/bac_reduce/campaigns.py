@@ -62,17 +62,17 @@ class CampaignSettings:
     def __post_init__(self) -> None:
         if self.optimizer not in OPTIMIZERS:
             raise ReductionError(f"optimizer must be one of {OPTIMIZERS}, got {self.optimizer!r}")
-        try:
-            self.turbo_config(0)
-            PolishConfig(**dict(self.polish))
-        except (TypeError, ValueError) as exc:
-            raise ReductionError(f"bad turbo or polish configuration: {exc}") from exc
         if self.trials < 2:
             raise ReductionError(f"a campaign needs at least 2 trials, got {self.trials}")
         if self.n_initial < 0 or self.n_initial > self.trials:
             raise ReductionError(f"n_initial must be in [0, trials], got {self.n_initial}")
         if self.batch < 1:
             raise ReductionError(f"batch (asks per step) must be >= 1, got {self.batch}")
+        try:
+            self.turbo_config(0)
+            PolishConfig(**dict(self.polish))
+        except (TypeError, ValueError) as exc:
+            raise ReductionError(f"bad turbo or polish configuration: {exc}") from exc
         try:
             self.engine_config(0)
         except (TypeError, ValueError) as exc:
