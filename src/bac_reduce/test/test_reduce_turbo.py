@@ -77,6 +77,7 @@ def test_the_polish_finds_each_start_s_minimum_in_lock_step() -> None:
     x, j, spent, runs = polish_many(true_j, starts, bounds, PolishConfig(evals=1500, sigma=0.1), seed=0)
     j0 = obj.raw_j(starts)
     assert np.all(j < j0) and np.all(j <= 1.0 + 1e-3), (j0, j)
+    assert np.allclose(obj.raw_j(x), j) and np.all((x >= 0.0) & (x <= 1000.0))  # the points of those values
     assert np.all(spent <= 1500 + PolishConfig().popsize - 1) and [r[0].shape[0] for r in runs] == list(spent)
     assert max(calls[1:]) == 2 * PolishConfig().popsize  # both searches' populations in one batch
     # no polish: the starts come back
