@@ -8,13 +8,17 @@ Prints, for the 1.5 km test road at 60 km/h (90 s of driving per run):
   batch problem API (vectorized over the batch, split over the cores), for Controller I and II, with
   noise-free runs (one shared drive) and noisy runs (each run its own driver, speed profile and
   alignment);
+* with ``--baseline``: the same batches with the numpy reference loop (``BAC_SIM_KERNEL=numpy``) in the same
+  run, and the speed-up of the numba-compiled loop (bac_sim.kernels) over it;
 * last line: ``aggregate_realtime_factor <x>`` for 1000 noisy runs of Controller I, the runs a
-  calibration campaign or a benchmark of optimizers makes. Goal: x >= 10000 on a 2-core machine.
+  calibration campaign or a benchmark of optimizers makes. Goals on a quiet 2-core machine: x >= 20000, and
+  >= 10000 for Controller II's noisy batch.
 """
 
 from __future__ import annotations
 
 import argparse
+import os
 import time
 
 import numpy as np
@@ -33,7 +37,9 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--runs", type=int, default=1000)
     ap.add_argument("--repeat", type=int, default=2, help="repetitions of each batch (the best is kept)")
+    ap.add_argument("--baseline", action="store_true", help="also time the numpy reference loop, same batches")
     args = ap.parse_args()
+    load0 = os.getloadavg()[0]
     rng = np.random.default_rng(0)
     c1 = get_problem("road_c1")
     c2 = get_problem("road_c2")
@@ -61,6 +67,23 @@ def main() -> None:
         results[label] = agg
         print(f"{label:<26} {n} runs in {wall:6.2f} s: aggregate rtf {agg:9.0f}  ({agg / single:5.0f} x single run)")
     shutdown()
+    if args.baseline:
+        os.environ["BAC_SIM_KERNEL"] = "numpy"  # the worker pool is started again, with the reference loop
+        c1.true_j(th1[:16])
+        for label, fn, th in (
+            ("controller_ii noisy", lambda t: c2.noisy_j(t, np.random.default_rng(1)), th2),
+            ("controller_i noisy", lambda t: c1.noisy_j(t, np.random.default_rng(1)), th1),
+        ):
+            wall = min(timed(fn, th)[1] for _ in range(args.repeat))
+            agg = n * drive_s / wall
+            print(
+                f"{label + ' (numpy loop)':<26} {n} runs in {wall:6.2f} s: aggregate rtf {agg:9.0f}  "
+                f"(numba loop {results[label] / agg:4.1f} x faster)"
+            )
+        shutdown()
+        del os.environ["BAC_SIM_KERNEL"]
+    print(f"load average {load0:.1f} at the start, {os.getloadavg()[0]:.1f} at the end ({os.cpu_count()} cores)")
+    print(f"controller_ii_noisy_realtime_factor {results['controller_ii noisy']:.0f}")
     print(f"aggregate_realtime_factor {results['controller_i noisy']:.0f}")
 
 

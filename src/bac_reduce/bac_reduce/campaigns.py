@@ -6,7 +6,7 @@ campaigns of a *group* run in lock-step: at each step every campaign of the grou
 next point(s) (the GP part) and the group's asks are simulated as **one** batch (the
 simulation part). Groups are independent: locally they run in parallel worker processes (one
 per core by default), on a Dask cluster as one task each. A campaign's result does not depend
-on which group it ran in except through the run noise, which is drawn per group.
+on which group it ran in: each campaign draws its runs' noise from its own generator.
 
 Each step a campaign asks: its whole remaining initial design at once (space filling, needs
 no model), then ``batch`` points (1 = the paper's sequential BO; 2 = two points per step, the
@@ -38,8 +38,10 @@ from numpy.typing import NDArray
 from bac_agent.bo import Engine, EngineConfig
 from bac_reduce.analysis import ReductionError
 from bac_reduce.objectives import BatchObjective
+from bac_reduce.turbo import PolishConfig, TrustRegion, TurboConfig, polish_many
 
 FloatArray = NDArray[np.float64]
+OPTIMIZERS = ("agent", "turbo")
 
 
 @dataclass(frozen=True)
@@ -47,17 +49,30 @@ class CampaignSettings:
     """How each campaign runs: trials N, initial design, asks per step, the engine's configuration."""
 
     trials: int = 100
-    n_initial: int = 0  # 0 = the engine's automatic size (d + 1 beyond 4 dimensions)
+    n_initial: int = 0  # 0 = the engine's automatic size (d + 1 beyond 4 dimensions; turbo: 2 d)
     batch: int = 1  # asks per campaign per step after the initial design
     engine: Mapping[str, Any] = field(default_factory=dict)  # EngineConfig fields ({"gp": {...}} too)
+    # "agent": the agent's engine (bac_agent.bo, one GP over the box, fantasized asks); "turbo": batch trust-region
+    # BO (bac_reduce.turbo), configured by ``turbo`` (TurboConfig fields)
+    optimizer: str = "agent"
+    turbo: Mapping[str, Any] = field(default_factory=dict)
+    # the recommendation polished on the noise-free simulator (PolishConfig fields; evals 0 = no polish)
+    polish: Mapping[str, Any] = field(default_factory=dict)
 
     def __post_init__(self) -> None:
+        if self.optimizer not in OPTIMIZERS:
+            raise ReductionError(f"optimizer must be one of {OPTIMIZERS}, got {self.optimizer!r}")
         if self.trials < 2:
             raise ReductionError(f"a campaign needs at least 2 trials, got {self.trials}")
         if self.n_initial < 0 or self.n_initial > self.trials:
             raise ReductionError(f"n_initial must be in [0, trials], got {self.n_initial}")
         if self.batch < 1:
             raise ReductionError(f"batch (asks per step) must be >= 1, got {self.batch}")
+        try:
+            self.turbo_config(0)
+            PolishConfig(**dict(self.polish))
+        except (TypeError, ValueError) as exc:
+            raise ReductionError(f"bad turbo or polish configuration: {exc}") from exc
         try:
             self.engine_config(0)
         except (TypeError, ValueError) as exc:
@@ -71,8 +86,25 @@ class CampaignSettings:
         base.update({"budget": self.trials, "n_initial": self.n_initial, "seed": int(seed), "gp": gp})
         return EngineConfig.from_dict(base)
 
+    def turbo_config(self, seed: int) -> TurboConfig:
+        over = {k: v for k, v in dict(self.turbo).items() if k not in ("budget", "n_initial", "batch", "seed")}
+        return TurboConfig.from_dict(
+            {**over, "budget": self.trials, "n_initial": self.n_initial, "batch": self.batch, "seed": int(seed)}
+        )
+
+    def polish_config(self) -> PolishConfig:
+        return PolishConfig(**dict(self.polish))
+
     def to_dict(self) -> dict[str, Any]:
-        return {"trials": self.trials, "n_initial": self.n_initial, "batch": self.batch, "engine": dict(self.engine)}
+        return {
+            "trials": self.trials,
+            "n_initial": self.n_initial,
+            "batch": self.batch,
+            "engine": dict(self.engine),
+            "optimizer": self.optimizer,
+            "turbo": dict(self.turbo),
+            "polish": dict(self.polish),
+        }
 
 
 @dataclass(frozen=True)
@@ -93,7 +125,11 @@ class CampaignResult:
     theta: FloatArray  # (d,) recommendation
     j_pred: float  # posterior mean at the recommendation (the campaign's J_i)
     j_std: float
-    engine_state: str  # Engine.to_json() at the end
+    engine_state: str  # Engine.to_json() at the end (turbo: the same JSON for the posterior)
+    theta_bo: FloatArray | None = None  # the optimizer's recommendation before the polish (None: no polish)
+    j_true: float = math.nan  # noise-free J of theta (when the campaign measured it: the polish)
+    j_true_bo: float = math.nan  # noise-free J of theta_bo
+    polish_runs: int = 0  # noise-free runs of the polish
 
     @property
     def best_so_far(self) -> FloatArray:
@@ -113,6 +149,10 @@ class CampaignResult:
             "j_pred": self.j_pred,
             "j_std": self.j_std,
             "engine_state": self.engine_state,
+            "theta_bo": None if self.theta_bo is None else self.theta_bo.tolist(),
+            "j_true": self.j_true,
+            "j_true_bo": self.j_true_bo,
+            "polish_runs": self.polish_runs,
         }
 
     @classmethod
@@ -128,9 +168,17 @@ class CampaignResult:
                 j_pred=float(d["j_pred"]),
                 j_std=float(d["j_std"]),
                 engine_state=str(d["engine_state"]),
+                theta_bo=None if d.get("theta_bo") is None else np.asarray(d["theta_bo"], dtype=float),
+                j_true=_float_or_nan(d.get("j_true")),
+                j_true_bo=_float_or_nan(d.get("j_true_bo")),
+                polish_runs=int(d.get("polish_runs") or 0),
             )
         except (KeyError, TypeError, ValueError) as exc:
             raise ReductionError(f"a stored campaign is incomplete ({exc}); re-run the campaigns") from exc
+
+
+def _float_or_nan(x: Any) -> float:
+    return math.nan if x is None else float(x)
 
 
 @dataclass
@@ -202,13 +250,17 @@ def run_group(
     sink: Sink | None = None,
 ) -> GroupResult:
     """Run the campaigns ``specs`` in lock-step on ``objective`` (in this process)."""
+    if settings.optimizer == "turbo":
+        return _run_turbo_group(objective, settings, specs, noise_seed, group, sink)
     t_start = time.perf_counter()
     c_start = time.process_time()
     started = time.time()
     definition = objective.definition
     engines = [Engine(definition, settings.engine_config(s.seed)) for s in specs]  # (their initial designs)
     names = engines[0].names
-    rng = np.random.default_rng([int(noise_seed), *(int(s.index) for s in specs)])
+    # each campaign's runs draw their noise from the campaign's own generator: a campaign's runs do not depend on
+    # which group (process, Dask task) it ran in
+    rngs = [np.random.default_rng([int(noise_seed), int(s.index)]) for s in specs]
     sim_s, sim_cpu = 0.0, 0.0
     gp_s, gp_cpu = time.perf_counter() - t_start, time.process_time() - c_start
     steps = 0
@@ -226,7 +278,7 @@ def run_group(
             break
         t1 = time.perf_counter()
         thetas = np.array([[p[n] for n in names] for _, p in asks])
-        values = np.asarray(objective.evaluate(thetas, rng), dtype=float).ravel()
+        values = np.asarray(objective.evaluate(thetas, [rngs[k] for k, _ in asks]), dtype=float).ravel()
         sim_s += time.perf_counter() - t1
         c2 = time.process_time()
         sim_cpu += c2 - c1
@@ -278,6 +330,143 @@ def run_group(
         started,
         time.time(),
     )
+
+
+def _run_turbo_group(
+    objective: BatchObjective,
+    settings: CampaignSettings,
+    specs: Sequence[CampaignSpec],
+    noise_seed: int,
+    group: int,
+    sink: Sink | None,
+) -> GroupResult:
+    """The campaigns of a group with batch trust-region BO in lock-step (each step all their batches simulated as
+    one), then each recommendation polished on the noise-free simulator (the polishes in lock-step too)."""
+    t_start = time.perf_counter()
+    c_start = time.process_time()
+    started = time.time()
+    definition = objective.definition
+    trs = [TrustRegion(definition, settings.turbo_config(s.seed)) for s in specs]
+    names = tuple(d.name for d in definition.dimensions)
+    rngs = [np.random.default_rng([int(noise_seed), int(s.index)]) for s in specs]
+    sim_s = sim_cpu = 0.0
+    gp_s, gp_cpu = time.perf_counter() - t_start, time.process_time() - c_start
+    steps = 0
+    while True:
+        c0, t0 = time.process_time(), time.perf_counter()
+        asks = [tr.ask() for tr in trs]
+        gp_s += time.perf_counter() - t0
+        gp_cpu += time.process_time() - c0
+        sizes = [a.shape[0] for a in asks]
+        if sum(sizes) == 0:
+            break
+        c1, t1 = time.process_time(), time.perf_counter()
+        row_rngs = [rngs[k] for k, n in enumerate(sizes) for _ in range(n)]
+        values = np.asarray(objective.evaluate(np.vstack(asks), row_rngs), dtype=float).ravel()
+        sim_s += time.perf_counter() - t1
+        sim_cpu += time.process_time() - c1
+        if values.shape != (sum(sizes),):
+            raise ReductionError(f"the objective returned {values.shape} values for {sum(sizes)} calibrations")
+        c2, t2 = time.process_time(), time.perf_counter()
+        pos = 0
+        for tr, X in zip(trs, asks, strict=True):
+            if X.shape[0]:
+                tr.tell(X, values[pos : pos + X.shape[0]])
+            pos += X.shape[0]
+        gp_s += time.perf_counter() - t2
+        gp_cpu += time.process_time() - c2
+        steps += 1
+        if sink is not None:
+            best = min((float(tr.y.min()) for tr in trs if tr.n_told), default=math.nan)
+            sink.put(Progress(group, min(tr.n_told for tr in trs), settings.trials, best, sim_s, gp_s))
+    c3, t3 = time.process_time(), time.perf_counter()
+    recs = []
+    for s, tr in zip(specs, trs, strict=True):
+        if tr.n_told == 0:
+            raise ReductionError(f"campaign {s.index}: every run failed; nothing to recommend")
+        recs.append(tr.recommend())
+    gp_s += time.perf_counter() - t3
+    gp_cpu += time.process_time() - c3
+    thetas = np.array([r[0] for r in recs])
+    pol = settings.polish_config()
+    c4, t4 = time.process_time(), time.perf_counter()
+    bounds = np.array([[d.lower, d.upper] for d in definition.dimensions], dtype=float)
+    if pol.evals > 0:
+        polished, j_pol, spent, pruns = polish_many(objective.true_j, thetas, bounds, pol, seed=int(specs[0].seed))
+        j_bo = np.array([float(f[0]) for _, f in pruns])  # the first run of each polish is its start
+        for tr, (Xp, fp) in zip(trs, pruns, strict=True):
+            keep = _keep_runs(fp, pol.keep)
+            tr.tell(Xp[keep], fp[keep], update=False)  # the polish's runs join the campaign's (for its posterior)
+    else:
+        j_bo = np.full(len(specs), math.nan)
+        polished, j_pol, spent = thetas, j_bo, np.zeros(len(specs), dtype=int)
+    sim_s += time.perf_counter() - t4
+    sim_cpu += time.process_time() - c4
+    c5, t5 = time.process_time(), time.perf_counter()
+    results = []
+    for k, (s, tr) in enumerate(zip(specs, trs, strict=True)):
+        theta = np.asarray(polished[k], dtype=float)
+        state = tr.engine_state(theta)
+        results.append(
+            CampaignResult(
+                index=s.index,
+                seed=s.seed,
+                names=names,
+                X=np.asarray(tr.space.from_unit(tr.U), dtype=float),
+                y=tr.y.copy(),
+                theta=theta,
+                j_pred=math.nan,
+                j_std=math.nan,
+                engine_state=state,
+                theta_bo=thetas[k] if pol.evals > 0 else None,
+                j_true=float(j_pol[k]),
+                j_true_bo=float(j_bo[k]),
+                polish_runs=int(spent[k]),
+            )
+        )
+    # J_i: each campaign's posterior (as J_mu rebuilds it) at its recommendation
+    for r in results:
+        mean, std = _posterior_at(r, r.theta)
+        r.j_pred, r.j_std = mean, std
+    gp_s += time.perf_counter() - t5
+    gp_cpu += time.process_time() - c5
+    return GroupResult(
+        results,
+        sim_s,
+        gp_s,
+        time.perf_counter() - t_start,
+        sim_cpu,
+        gp_cpu,
+        steps,
+        f"{socket.gethostname()}:{os.getpid()}",
+        started,
+        time.time(),
+    )
+
+
+def _keep_runs(f: FloatArray, keep: int) -> NDArray[np.intp]:
+    """Which of a polish's runs join the campaign's: the best half of ``keep`` and the rest spread over the polish."""
+    n = f.size
+    if n <= keep:
+        return np.arange(n)
+    best = np.argsort(f)[: keep // 2]
+    rest = np.setdiff1d(np.arange(n), best)
+    spread = rest[np.linspace(0, rest.size - 1, keep - best.size).round().astype(int)]
+    return np.sort(np.concatenate([best, spread]))
+
+
+def _posterior_at(c: CampaignResult, theta: FloatArray) -> tuple[float, float]:
+    """The posterior mean and std of a campaign (rebuilt from its state and runs, as J_mu does) at ``theta``."""
+    import json
+
+    from bac_agent.bo import GP, Hyper, SearchSpace
+
+    state = json.loads(c.engine_state)
+    space = SearchSpace.from_dict(state["space"])
+    cfg = EngineConfig.from_dict(state["config"])
+    gp = GP(cfg.gp).condition(space.to_unit(c.X), c.y, Hyper.from_dict(state["hyper"]))
+    m, sd = gp.predict(space.to_unit(np.atleast_2d(theta)))
+    return float(m[0]), float(sd[0])
 
 
 # --- spreading groups ------------------------------------------------------------------------------
@@ -456,6 +645,22 @@ def _drain(q: Any, on_progress: Callable[[Progress], None] | None) -> None:
             on_progress(item)
 
 
+def _dask_task(
+    objective: BatchObjective,
+    settings: CampaignSettings,
+    specs: Sequence[CampaignSpec],
+    noise_seed: int,
+    group: int,
+    sink: Sink,
+) -> GroupResult:
+    """A group on a Dask worker: its batches simulated in the worker's process (a worker process is daemonic
+    and may not start the simulator's process pool; each worker thread is one core's share of the cluster)."""
+    from bac_sim.parallel import in_this_process
+
+    with in_this_process():
+        return run_group(objective, settings, specs, noise_seed, group, sink)
+
+
 def _call(fn: Any, *args: Any, **kwargs: Any) -> Any:
     """Call an untyped function of an optional dependency (dask.distributed)."""
     return fn(*args, **kwargs)
@@ -507,7 +712,7 @@ def _run_dask(
 
         client.subscribe_topic(topic, handler)
         futures = [
-            client.submit(run_group, objective, settings, g, noise_seed, i, _DaskSink(topic), pure=False)
+            client.submit(_dask_task, objective, settings, g, noise_seed, i, _DaskSink(topic), pure=False)
             for i, g in enumerate(parts)
         ]
         results: dict[int, GroupResult] = {}

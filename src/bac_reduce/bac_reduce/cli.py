@@ -8,14 +8,15 @@ meta-parameters, and writes the meta-parameter file that the ECU bridge, the age
 simulated car load for the experimental phase. Then it checks the reduction on the noise-free
 simulator and validates it (BO on the reduced problem beside the full one).
 
-    bac reduce                                    # M = 10, N = 100 on road_c2, on the local cores
+    bac reduce                                    # M = 10, N = 320 on road_c2, on the local cores
     bac reduce -M 40 --scheduler tcp://head:8786  # on a Dask cluster
     bac reduce --problem synthetic -M 4 -N 30     # a cheap analytic problem with known answer
 
 Writes into --out (default ``reduce_out/``): the meta-parameter file (``<name>.yaml``, or
 --definition-out), ``result.json`` (everything), ``report.txt`` and the plots (PNG). The last
-line printed is ``reduce_minutes <t> params_kept <k> loss_pct <l>`` (k = tuned dimensions of
-the reduced problem, l = how much worse its optimum is than the full problem's, in %).
+line printed is ``reduce_minutes <t> params_kept <k> loss_pct <l> loss_vs_phase_pct <l2>`` (k = tuned
+dimensions of the reduced problem, l = how much worse its optimum is than the full problem's best known
+J* on the simulator, l2 = than the full optimum the phase found, in %).
 """
 
 from __future__ import annotations
@@ -52,14 +53,30 @@ def build_parser() -> argparse.ArgumentParser:
     ap.add_argument("--problem", default="road_c2", choices=list(objective_names()), help="what the campaigns run on")
     g = ap.add_argument_group("campaigns")
     g.add_argument("-M", "--campaigns", type=int, default=10, help="independent BO campaigns")
-    g.add_argument("-N", "--trials", type=int, default=100, help="trials per campaign")
+    g.add_argument("-N", "--trials", type=int, default=320, help="noisy runs per campaign")
     g.add_argument(
         "--batch",
         type=int,
-        default=4,
-        help="asks per campaign per lock-step after the initial design (1 = purely sequential BO)",
+        default=16,
+        help="runs per campaign per lock-step after the initial design (1 = purely sequential BO)",
     )
-    g.add_argument("--n-initial", type=int, default=0, help="initial design size (0 = automatic: d + 1)")
+    g.add_argument(
+        "--n-initial", type=int, default=0, help="initial design size (0 = automatic: 2 d for turbo, d + 1 for agent)"
+    )
+    g.add_argument(
+        "--optimizer",
+        choices=("turbo", "agent"),
+        default="turbo",
+        help="the campaigns' BO: batch trust-region BO (bac_reduce.turbo) or the agent's engine (bac_agent.bo)",
+    )
+    g.add_argument("--turbo-config", type=json.loads, default=None, help="TurboConfig fields as JSON")
+    g.add_argument(
+        "--polish-evals",
+        type=int,
+        default=1500,
+        help="noise-free simulator runs of the CMA-ES polish of each campaign's optimum (0 = no polish)",
+    )
+    g.add_argument("--polish-sigma", type=float, default=0.05, help="the polish's initial step, share of each range")
     g.add_argument("--seed", type=int, default=0)
     g.add_argument(
         "--engine-config",
@@ -108,6 +125,20 @@ def build_parser() -> argparse.ArgumentParser:
     g = ap.add_argument_group("checks")
     g.add_argument("--verify-points", type=int, default=11, help="noise-free simulator sweep from θ̄, points (0 = skip)")
     g.add_argument(
+        "--global-method",
+        choices=("morris", "sobol", "none"),
+        default="morris",
+        help="global sensitivity on the noise-free simulator (SALib), shown beside the one-at-a-time sweep",
+    )
+    g.add_argument("--global-runs", type=int, default=1000, help="noise-free runs of the global sensitivity")
+    g.add_argument(
+        "--loss-tol",
+        type=float,
+        default=0.005,
+        help="a reduction whose optimum loses more than this (share of J) against the best known J* on the "
+        "simulator is reported and the next best reduction is searched",
+    )
+    g.add_argument(
         "--validate-repeats", type=int, default=10, help="BO campaigns on the reduced problem (0 = no validation)"
     )
     g.add_argument("--validate-trials", type=int, default=30, help="trials of each validation campaign")
@@ -136,6 +167,10 @@ def main(argv: Sequence[str] | None = None) -> int:
             args.problem, args.campaigns, args.trials = old["problem"], len(stored), old["trials"]
             args.batch, args.n_initial, args.seed = old["batch"], old["n_initial"], old["seed"]
             args.engine_config = old["engine"]
+            args.optimizer = old.get("optimizer", "agent")
+            args.turbo_config = old.get("turbo") or {}
+            args.polish_evals = int(old.get("polish_evals", 0))
+            args.polish_sigma = float(old.get("polish_sigma", args.polish_sigma))
         config = ReduceConfig(
             problem=args.problem,
             campaigns=args.campaigns,
@@ -143,6 +178,10 @@ def main(argv: Sequence[str] | None = None) -> int:
             batch=args.batch,
             n_initial=args.n_initial,
             engine=dict(FAST_ENGINE) if args.engine_config is None else dict(args.engine_config),
+            optimizer=args.optimizer,
+            turbo=dict(args.turbo_config or {}),
+            polish_evals=args.polish_evals,
+            polish_sigma=args.polish_sigma,
             seed=args.seed,
             threshold=args.threshold,
             epsilon=args.epsilon,
@@ -153,6 +192,9 @@ def main(argv: Sequence[str] | None = None) -> int:
             surrogate=args.surrogate,
             theta_bar=args.theta_bar,
             verify_points=args.verify_points,
+            global_method=args.global_method,
+            global_runs=args.global_runs,
+            loss_tol=args.loss_tol,
             validate_repeats=args.validate_repeats,
             validate_trials=args.validate_trials,
             workers=args.workers,

@@ -24,6 +24,7 @@ from numpy.typing import NDArray
 from bac_common.paramspace import CalibrationDefinition, RawParameter
 
 FloatArray = NDArray[np.float64]
+Rng = np.random.Generator | Sequence[np.random.Generator]  # one for a batch, or one per row
 
 _CACHE: dict[tuple[str, str], Any] = {}
 
@@ -35,8 +36,9 @@ class BatchObjective(Protocol):
     @property
     def definition(self) -> CalibrationDefinition: ...
 
-    def evaluate(self, thetas: FloatArray, rng: np.random.Generator) -> FloatArray:
-        """(n, d) tuned values (the definition's dimensions, in order) -> (n,) noisy J."""
+    def evaluate(self, thetas: FloatArray, rng: Rng) -> FloatArray:
+        """(n, d) tuned values (the definition's dimensions, in order) -> (n,) noisy J; ``rng`` one generator for
+        the batch or one per row (each row's noise from its own generator, whatever else is in the batch)."""
         ...
 
     def true_j(self, thetas: FloatArray) -> FloatArray:
@@ -87,7 +89,7 @@ class SimulatedCar:
     def label(self) -> str:
         return f"{self.problem} ({self.definition.name}, {len(self.definition.dimensions)} tuned)"
 
-    def evaluate(self, thetas: FloatArray, rng: np.random.Generator) -> FloatArray:
+    def evaluate(self, thetas: FloatArray, rng: Rng) -> FloatArray:
         if not self.noisy:
             return self.true_j(thetas)
         return np.asarray(self._problem().noisy_j(np.atleast_2d(thetas), rng), dtype=float)
@@ -198,9 +200,13 @@ class SyntheticObjective:
     def true_j(self, thetas: FloatArray) -> FloatArray:
         return self.raw_j(self._raw(thetas))
 
-    def evaluate(self, thetas: FloatArray, rng: np.random.Generator) -> FloatArray:
+    def evaluate(self, thetas: FloatArray, rng: Rng) -> FloatArray:
         j = self.true_j(thetas)
-        return np.asarray(j * (1.0 + self.noise_rel * rng.standard_normal(j.shape)), dtype=float)
+        if isinstance(rng, np.random.Generator):
+            z = rng.standard_normal(j.shape)
+        else:
+            z = np.array([g.standard_normal() for g in rng])
+        return np.asarray(j * (1.0 + self.noise_rel * z), dtype=float)
 
     def with_definition(self, definition: CalibrationDefinition) -> SyntheticObjective:
         if definition.parameter_names != tuple(t.name for t in self.terms):

@@ -24,6 +24,7 @@ from __future__ import annotations
 
 import json
 import math
+import os
 import time
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
@@ -57,6 +58,7 @@ from bac_reduce.campaigns import (
     campaign_specs,
     run_campaigns,
 )
+from bac_reduce.global_sensitivity import GlobalSensitivity, global_sensitivity
 from bac_reduce.objectives import BatchObjective, make_objective
 
 FloatArray = NDArray[np.float64]
@@ -97,10 +99,14 @@ class ReduceConfig:
 
     problem: str = "road_c2"
     campaigns: int = 10  # M
-    trials: int = 100  # N
-    batch: int = 4  # asks per campaign per step (the validation campaigns too)
+    trials: int = 320  # N (noisy runs per campaign)
+    batch: int = 16  # runs per campaign per step
     n_initial: int = 0
     engine: Mapping[str, Any] = field(default_factory=lambda: dict(FAST_ENGINE))
+    optimizer: str = "turbo"  # the campaigns' optimizer: "turbo" (bac_reduce.turbo) or "agent" (bac_agent.bo)
+    turbo: Mapping[str, Any] = field(default_factory=dict)  # TurboConfig fields
+    polish_evals: int = 1500  # noise-free runs of each campaign's polish (0 = none)
+    polish_sigma: float = 0.05
     seed: int = 0
     threshold: float = DEFAULT_THRESHOLD  # T
     epsilon: float = DEFAULT_EPSILON  # ε, share of the range
@@ -111,9 +117,14 @@ class ReduceConfig:
     surrogate: str = "weighted"  # how J_mu averages the M posterior means: "weighted" (precision) or "mean"
     theta_bar: str = "simulator"  # θ̄ = the optimum with the least noise-free J ("simulator") or least J_i
     verify_points: int = 11  # noise-free simulator sweep from θ̄ (0 = skip)
+    global_method: str = "morris"  # global sensitivity on the noise-free simulator: "morris", "sobol" or "none"
+    global_runs: int = 1000
+    loss_tol: float = 0.005  # a reduction whose optimum loses more than this against the reference is repaired
+    max_repairs: int = 8  # rounds of the search for the next best reduction
     validate_repeats: int = 10  # BO campaigns on the reduced problem (0 = skip the validation)
     validate_trials: int = 30
-    polish_iterations: int = 8  # batched coordinate-search steps for the reduced optimum
+    validate_batch: int = 4  # asks per step of the validation campaigns (the agent's engine)
+    polish_iterations: int = 12  # batched coordinate-search steps for the reduced optimum
     workers: int | None = None
     scheduler: str | None = None
     group_size: int | None = None
@@ -130,15 +141,29 @@ class ReduceConfig:
             raise ReductionError(f"need M >= 1 campaigns, got {self.campaigns}")
         if self.validate_repeats < 0 or (self.validate_repeats and self.validate_trials < 2):
             raise ReductionError("validation needs repeats >= 0 and at least 2 trials per repeat")
+        if self.global_method not in ("morris", "sobol", "none"):
+            raise ReductionError(f"global_method must be morris, sobol or none, got {self.global_method!r}")
+        if not self.loss_tol >= 0:
+            raise ReductionError(f"loss_tol must be >= 0, got {self.loss_tol!r}")
+        self.settings()  # checks the campaign settings here, not in a worker
 
     def settings(self) -> CampaignSettings:
-        return CampaignSettings(self.trials, self.n_initial, self.batch, dict(self.engine))
+        return CampaignSettings(
+            self.trials,
+            self.n_initial,
+            self.batch,
+            dict(self.engine),
+            optimizer=self.optimizer,
+            turbo=dict(self.turbo),
+            polish={"evals": self.polish_evals, "sigma": self.polish_sigma},
+        )
 
     def to_dict(self) -> dict[str, Any]:
         from dataclasses import asdict
 
         d = asdict(self)
         d["engine"] = dict(self.engine)
+        d["turbo"] = dict(self.turbo)
         return d
 
 
@@ -223,13 +248,21 @@ class Validation:
 
     @property
     def loss_pct(self) -> float:
-        """How much worse the reduced problem's optimum is than the full problem's optimum found by the phase's
-        BO campaigns, in % (negative: better). What the reduction costs against calibrating all parameters."""
+        """How much worse the reduced problem's optimum is than the full problem's best known J* (the simulator's
+        ground truth), in %: what calibrating the few meta-parameters costs against the best the car can do.
+        Without a stored ground truth: against the phase's own full optimum (``loss_vs_phase_pct``)."""
+        if math.isfinite(self.j_star_known):
+            return self.loss_vs_known_pct
+        return self.loss_vs_phase_pct
+
+    @property
+    def loss_vs_phase_pct(self) -> float:
+        """The same against the full problem's optimum found by the phase's campaigns (negative: better)."""
         return 100.0 * (self.j_star_reduced - self.j_full_best) / self.j_full_best
 
     @property
     def loss_vs_known_pct(self) -> float:
-        """The same against the best known J* of the full problem (NaN without a stored ground truth)."""
+        """Against the best known J* of the full problem (NaN without a stored ground truth)."""
         return 100.0 * (self.j_star_reduced - self.j_star_known) / self.j_star_known
 
     @property
@@ -264,11 +297,39 @@ class Validation:
             "j_full_best": self.j_full_best,
             "j_star_known": self.j_star_known,
             "loss_pct": self.loss_pct,
+            "loss_vs_phase_pct": self.loss_vs_phase_pct,
             "loss_vs_known_pct": self.loss_vs_known_pct,
             "table_pct": self.table_pct,
             "seconds": self.seconds,
             "sim_s": self.sim_s,
             "gp_s": self.gp_s,
+        }
+
+
+@dataclass
+class ReductionCheck:
+    """A reduction checked on the noise-free simulator: its optimum (a batched coordinate search over its tuned
+    dimensions from θ̄) against the reference J (the best known J*, else the phase's best full optimum)."""
+
+    label: str
+    groups: list[Group]
+    dims: int
+    j_opt: float
+    optimum: dict[str, float]
+    loss_pct: float
+    runs: int
+    passed: bool
+
+    def to_dict(self) -> dict[str, Any]:
+        return {
+            "label": self.label,
+            "groups": [g.to_dict() for g in self.groups],
+            "dims": self.dims,
+            "j_opt": self.j_opt,
+            "optimum": dict(self.optimum),
+            "loss_pct": self.loss_pct,
+            "runs": self.runs,
+            "passed": self.passed,
         }
 
 
@@ -289,6 +350,9 @@ class ReductionResult:
     other_curves: SensitivityCurves | None = None  # the same sweep with the other average (for comparison)
     optima_true_j: FloatArray | None = None  # noise-free J of the M optima (when θ̄ is chosen by the simulator)
     validation: Validation | None = None
+    global_sensitivity: GlobalSensitivity | None = None  # Morris or Sobol' indices on the noise-free simulator
+    checks: list[ReductionCheck] = field(default_factory=list)  # the reductions checked on the simulator, in order
+    reference_j: float = math.nan  # what the checks are judged against: the best known J*, else the phase's best
 
     @property
     def j_i(self) -> FloatArray:
@@ -325,11 +389,27 @@ class ReductionResult:
             "other_curves": self.other_curves.to_dict() if self.other_curves is not None else None,
             "optima_true_j": self.optima_true_j.tolist() if self.optima_true_j is not None else None,
             "validation": self.validation.to_dict() if self.validation is not None else None,
+            "global_sensitivity": None if self.global_sensitivity is None else self.global_sensitivity.to_dict(),
+            "checks": [c.to_dict() for c in self.checks],
+            "reference_j": self.reference_j,
         }
+
+    @property
+    def repaired(self) -> bool:
+        """The reduction of J_mu lost more than the tolerance on the simulator and the file holds another one."""
+        return len(self.checks) > 1 and self.checks[0].groups != self.checks[-1].groups
 
 
 def _log_nothing(_: str) -> None:
     pass
+
+
+def _load_average() -> float:
+    """The machine's 1-minute load average (NaN where the OS has none): the conditions of the timings."""
+    try:
+        return float(os.getloadavg()[0])
+    except (AttributeError, OSError):
+        return math.nan
 
 
 def run_reduction(
@@ -344,6 +424,7 @@ def run_reduction(
     """Run the whole phase (see the module doc); with ``campaigns`` (e.g. from an earlier result.json)
     the campaigns are not run again and only the analysis, the file and the checks are made."""
     t_start = time.perf_counter()
+    load_start = _load_average()
     obj = objective if objective is not None else make_objective(config.problem)
     base = obj.definition
     if base.meta or set(base.tuned) != set(base.parameter_names):
@@ -391,7 +472,11 @@ def run_reduction(
     optima_true_j: FloatArray | None = None
     if config.theta_bar == "simulator":
         ts = time.perf_counter()
-        optima_true_j = np.asarray(obj.true_j(np.array([c.theta for c in campaigns])), dtype=float)
+        known = np.array([c.j_true for c in campaigns], dtype=float)
+        if np.all(np.isfinite(known)):  # the campaigns' polish measured them
+            optima_true_j = known
+        else:
+            optima_true_j = np.asarray(obj.true_j(np.array([c.theta for c in campaigns])), dtype=float)
         timings["theta_bar_sim_s"] = time.perf_counter() - ts
         ibar = int(np.argmin(optima_true_j))
     else:
@@ -426,6 +511,39 @@ def run_reduction(
     t_analysis = time.perf_counter() - t1
     log(f"J_mu and reduction in {t_analysis:.1f} s: kept {len(kept)}/{len(names)}, {len(groups)} tuned dimensions")
 
+    # the noise-free simulator: the one-at-a-time sweep (does the surrogate tell the truth?) and a global method
+    true_curves = None
+    if config.verify_points:
+        t2 = time.perf_counter()
+        true_curves = sensitivity_curves(obj.true_j, theta_bar, bounds, names, config.verify_points)
+        timings["verify_s"] = time.perf_counter() - t2
+        log(f"noise-free one-at-a-time check in {timings['verify_s']:.1f} s")
+    glob = None
+    if config.global_method != "none":
+        glob = global_sensitivity(obj.true_j, names, bounds, config.global_method, config.global_runs, config.seed)
+        timings["global_s"] = glob.seconds
+        log(f"global sensitivity ({glob.method}, {glob.runs} noise-free runs) in {glob.seconds:.1f} s")
+
+    # the reduction checked on the noise-free simulator before the file is written; repaired when it loses too much
+    ref = getattr(obj, "reference", lambda: None)()
+    reference_j = float(ref[0]) if ref is not None else float(np.min(optima_true_j if optima_true_j is not None else
+                                                                       obj.true_j(theta_bar[None, :])))  # fmt: skip
+    t3 = time.perf_counter()
+    checks = check_reduction(
+        obj, base, curves, groups, kept, fixed_values, theta_bar, reference_j, config, true_curves, glob, log=log
+    )
+    timings["check_s"] = time.perf_counter() - t3
+    final = next((c for c in checks if c.passed), min(checks, key=lambda c: c.loss_pct))
+    if final.groups != groups:  # ``kept`` stays the significance decision of J_mu; the file tunes ``groups``
+        groups = final.groups
+        summary = (
+            f"{base.name} reduced by bac reduce: M={config.campaigns} N={config.trials} T={config.threshold:g} "
+            f"eps={config.epsilon:g}; the reduction of J_mu lost {checks[0].loss_pct:.2f} % on the simulator, this "
+            f"is the next best ({final.label}): {sum(len(g.members) for g in groups)} of {len(names)} parameters, "
+            f"{len(groups)} tuned dimensions"
+        )
+        definition = reduced_definition(base, groups, fixed_values, config.name or None, summary)
+
     timings["analysis_s"] = t_analysis
     result = ReductionResult(
         config,
@@ -441,22 +559,140 @@ def run_reduction(
         backend,
         other_curves=other_curves,
         optima_true_j=optima_true_j,
+        true_curves=true_curves,
+        global_sensitivity=glob,
+        checks=checks,
+        reference_j=reference_j,
     )
 
-    # 5. checks on the noise-free simulator
-    if config.verify_points:
-        t2 = time.perf_counter()
-        result.true_curves = sensitivity_curves(obj.true_j, theta_bar, bounds, names, config.verify_points)
-        timings["verify_s"] = time.perf_counter() - t2
-        log(f"noise-free one-at-a-time check in {timings['verify_s']:.1f} s")
+    # 5. the validation table
     if config.validate_repeats:
         result.validation = validate(obj, result, log=log, on_progress=on_progress, client=client)
         timings["validate_s"] = result.validation.seconds
     timings["total_s"] = time.perf_counter() - t_start
+    timings["load_start"], timings["load_end"] = load_start, _load_average()
+    timings["cores"] = float(os.cpu_count() or 1)
     v = result.validation
-    timings["sim_s"] = timings["campaigns_sim_s"] + timings.get("verify_s", 0.0) + (v.sim_s if v else 0.0)
+    timings["sim_s"] = (
+        timings["campaigns_sim_s"]
+        + timings.get("verify_s", 0.0)
+        + timings.get("global_s", 0.0)
+        + timings.get("check_s", 0.0)
+        + (v.sim_s if v else 0.0)
+    )
     timings["gp_s"] = timings["campaigns_gp_s"] + t_analysis + (v.gp_s if v else 0.0)
     return result
+
+
+# --- the reduction on the noise-free simulator ---------------------------------------------------------------
+def _reduced_optimum(
+    obj: BatchObjective,
+    definition: CalibrationDefinition,
+    groups: Sequence[Group],
+    curves: SensitivityCurves,
+    theta_bar: FloatArray,
+    iterations: int,
+) -> tuple[FloatArray, float, int]:
+    """The reduced problem's optimum: a batched coordinate search from θ̄ seen through the reduction (each meta-
+    parameter at its tied-sweep value or at its members' mean position in θ̄, whichever is better)."""
+    reduced = obj.with_definition(definition)
+    dims = definition.dimensions
+    rb = np.array([[d.lower, d.upper] for d in dims])
+    pos = {n: i for i, n in enumerate(curves.names)}
+    metas = {tuple(m.members): m for m in definition.meta}
+    rel = curves.relative(theta_bar)
+    starts: list[list[float]] = []
+    for use_mean in (False, True):
+        row: list[float] = []
+        for g in groups:
+            if g.is_meta:
+                m = metas[tuple(g.members)]
+                u = float(np.mean([rel[pos[n]] for n in g.members])) if use_mean else g.value
+                row.append(m.lower + u * (m.upper - m.lower))
+            else:
+                row.append(float(theta_bar[pos[g.members[0]]]))
+        starts.append(row)
+    X0 = np.clip(np.array(starts), rb[:, 0], rb[:, 1])
+    j0 = np.asarray(reduced.true_j(X0), dtype=float)
+    x, j, evals = polish(reduced.true_j, X0[int(np.argmin(j0))], rb, iterations)
+    return x, j, evals + 2
+
+
+def check_reduction(
+    obj: BatchObjective,
+    base: CalibrationDefinition,
+    curves: SensitivityCurves,
+    groups: list[Group],
+    kept: Sequence[str],
+    fixed_values: Mapping[str, float],
+    theta_bar: FloatArray,
+    reference_j: float,
+    config: ReduceConfig,
+    true_curves: SensitivityCurves | None = None,
+    glob: GlobalSensitivity | None = None,
+    *,
+    log: Callable[[str], None] = _log_nothing,
+) -> list[ReductionCheck]:
+    """Check the reduction on the noise-free simulator; while it loses more than ``config.loss_tol`` against
+    ``reference_j``, look for the next best one: each round tries every reduction one step larger (a meta-parameter's
+    member that is farthest from the group's value in θ̄ tuned alone; or a discarded parameter tuned alone, the four
+    that matter most by J_mu, the noise-free sweep and the global index) and keeps the one that loses least.
+    Returns the checks in order: the first is the reduction of J_mu, the last the one the file holds."""
+    names = curves.names
+    pos = {n: i for i, n in enumerate(names)}
+    rel = curves.relative(theta_bar)
+
+    def evaluate(label: str, gs: list[Group]) -> ReductionCheck:
+        d = reduced_definition(base, gs, fixed_values)
+        x, j, runs = _reduced_optimum(obj, d, gs, curves, theta_bar, config.polish_iterations)
+        loss = 100.0 * (j - reference_j) / reference_j
+        opt = {dim.name: float(v) for dim, v in zip(d.dimensions, x, strict=True)}
+        return ReductionCheck(label, list(gs), len(gs), float(j), opt, loss, runs, loss <= 100.0 * config.loss_tol)
+
+    first = evaluate("the reduction of J_mu", groups)
+    checks = [first]
+    log(f"reduction checked on the simulator: {first.dims} tuned, optimum {first.j_opt:.5f} ({first.loss_pct:+.2f} %)")
+    current = first
+    score = np.asarray(curves.loss, dtype=float).copy()
+    if true_curves is not None:
+        score = np.maximum(score, true_curves.loss)
+    if glob is not None:
+        score = np.maximum(score, glob.relative(curves.j_bar))
+    for _ in range(config.max_repairs):
+        if current.passed:
+            break
+        in_use = {m for g in current.groups for m in g.members}
+        candidates: list[tuple[str, list[Group]]] = []
+        for gi, g in enumerate(current.groups):
+            if not g.is_meta:
+                continue
+            far = max(g.members, key=lambda n: abs(rel[pos[n]] - g.value))
+            rest = tuple(m for m in g.members if m != far)
+            ng = [*current.groups[:gi], *current.groups[gi + 1 :]]
+            ivs = dict(zip(g.members, g.intervals, strict=True))
+            if len(rest) > 1:
+                ng.append(Group(rest, g.value, tuple(ivs[m] for m in rest), math.nan, g.epsilon))
+            else:
+                ng.append(Group(rest, float(rel[pos[rest[0]]]), (ivs[rest[0]],), math.nan, g.epsilon))
+            ng.append(Group((far,), float(rel[pos[far]]), (ivs[far],), math.nan, g.epsilon))
+            candidates.append((f"{far} out of {{{', '.join(g.members)}}}", ng))
+        for i in [int(i) for i in np.argsort(-score) if names[int(i)] not in in_use][:4]:
+            n = names[i]
+            iv = curves.optimal_intervals(config.flat_tol)[i]
+            g1 = Group((n,), float(rel[i]), ((float(iv[0]), float(iv[1])),), math.nan, config.epsilon)
+            candidates.append((f"{n} tuned too", [*current.groups, g1]))
+        if not candidates:
+            break
+        tried = [
+            evaluate(f"{current.label}; {label}" if current is not first else label, gs) for label, gs in candidates
+        ]
+        best = min(tried, key=lambda c: c.loss_pct)
+        log(f"  next best reduction: {best.label}: {best.dims} tuned, {best.loss_pct:+.2f} %")
+        checks.append(best)
+        current = best
+    for c in checks:
+        c.groups = sorted(c.groups, key=lambda g: min(pos[m] for m in g.members))
+    return checks
 
 
 # --- validation -------------------------------------------------------------------------------------------
@@ -530,7 +766,7 @@ def validate(
         full_true = np.asarray(obj.true_j(result.thetas), dtype=float)
         sim_s += time.perf_counter() - ts
 
-    settings = CampaignSettings(cfg.validate_trials, 0, cfg.batch, {})
+    settings = CampaignSettings(cfg.validate_trials, 0, cfg.validate_batch, {})
     specs = [s for s in campaign_specs(cfg.validate_repeats, cfg.seed + 1)]
     log(f"validation: {cfg.validate_repeats} BO campaigns of {cfg.validate_trials} trials on the reduced problem")
     outcome = run_campaigns(
@@ -560,6 +796,10 @@ def validate(
     j_med = float(np.median(jj[len(rthetas) + 1 :]))
     candidates = np.vstack([rthetas, x0[None, :]])
     jc = jj[: len(rthetas) + 1]
+    if result.checks and set(result.checks[-1].optimum) == set(rnames):  # the check's optimum of this reduction
+        xc = np.array([result.checks[-1].optimum[n] for n in rnames])
+        candidates = np.vstack([candidates, xc[None, :]])
+        jc = np.append(jc, result.checks[-1].j_opt)
     best = int(np.argmin(jc))
     ts = time.perf_counter()
     x_opt, j_opt, _ = polish(reduced.true_j, candidates[best], rbounds, cfg.polish_iterations)

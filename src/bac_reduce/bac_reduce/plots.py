@@ -2,7 +2,8 @@
 
 * ``optima_boxplot.png``: the M campaigns' optima per parameter (relative to the range), θ̄ marked;
 * ``worst_loss.png``: each parameter's worst loss from θ̄ (surrogate J_mu; the noise-free simulator
-  beside it when checked), the threshold T, kept parameters coloured by group;
+  beside it when checked) and its global index over the whole box (Morris or Sobol', SALib), the threshold T,
+  kept parameters coloured by group;
 * ``sensitivity_kept.png``: the one-at-a-time curves s_i of the kept parameters, one panel per
   group (members overlaid, as the paper's fig. 17 shows them), the near-optimal intervals shaded;
 * ``campaigns.png``: the best observed J of each campaign against trials;
@@ -72,33 +73,35 @@ def worst_loss_bars(result: ReductionResult, path: Path) -> Path:
     c = result.curves
     colors = _group_colors(result)
     T = result.config.threshold
-    fig, ax = plt.subplots(figsize=(max(8.0, 0.45 * c.dim + 2), 4.2))
+    fig, ax = plt.subplots(figsize=(max(9.0, 0.55 * c.dim + 2), 4.4))
     xs = np.arange(c.dim)
-    w = 0.4 if result.true_curves is not None else 0.7
-    ax.bar(
-        xs - (w / 2 if result.true_curves is not None else 0),
-        100 * c.loss,
-        w,
-        color=[colors.get(n, "0.7") for n in c.names],
-        edgecolor="k",
-        linewidth=0.5,
-        label="J_mu (surrogate: the decision)",
-    )
+    series: list[tuple[str, Any, str | None]] = [("J_mu from θ̄ (the decision)", 100 * c.loss, None)]
     if result.true_curves is not None:
+        series.append(("simulator from θ̄ (check)", 100 * result.true_curves.loss, "//"))
+    glob = result.global_sensitivity
+    if glob is not None:
+        what = "Morris mu*/J(θ̄), whole box" if glob.method == "morris" else "Sobol' ST, whole box"
+        series.append((f"{what} (global)", 100 * glob.relative(c.j_bar), ".."))
+    w = 0.8 / len(series)
+    for k, (label, vals, hatch) in enumerate(series):
         ax.bar(
-            xs + w / 2,
-            100 * result.true_curves.loss,
+            xs + (k - (len(series) - 1) / 2) * w,
+            vals,
             w,
-            color="white",
+            color=[colors.get(n, "0.7") for n in c.names] if hatch is None else "white",
             edgecolor="k",
-            hatch="//",
+            hatch=hatch,
             linewidth=0.5,
-            label="noise-free simulator (check)",
+            label=label,
         )
     ax.axhline(100 * T, color="tab:red", ls="--", lw=1.2, label=f"T = {100 * T:g} %")
     ax.set_xticks(xs, list(c.names), rotation=60 if c.dim > 12 else 0)
-    ax.set_ylabel("worst loss from θ̄ (%)")
-    ax.set_title("Significance: (max s_i − J_mu(θ̄)) / J_mu(θ̄); kept parameters coloured by group")
+    ax.set_ylabel("% of J(θ̄)")
+    ax.set_title(
+        "Significance: worst loss (max s_i − J_mu(θ̄)) / J_mu(θ̄) one at a time from θ̄, beside the global index;\n"
+        "kept parameters coloured by group",
+        fontsize=9,
+    )
     ax.legend(fontsize=8)
     ax.grid(axis="y", alpha=0.3)
     return _save(fig, path)

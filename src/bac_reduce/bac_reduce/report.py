@@ -21,13 +21,42 @@ def format_report(result: ReductionResult) -> str:
     add = lines.append
     v = result.validation
 
-    add(f"== {len(result.campaigns)} BO campaigns of {cfg.trials} trials ({result.backend}) ==")
+    how_bo = (
+        f"batch trust-region BO, {cfg.batch} runs per step" if cfg.optimizer == "turbo" else "the agent's BO engine"
+    )
+    polished = any(c.polish_runs for c in result.campaigns)
+    add(
+        f"== {len(result.campaigns)} BO campaigns of {cfg.trials} noisy runs ({how_bo}"
+        + (
+            f"; each optimum polished by CMA-ES on the noise-free simulator, {cfg.polish_evals} runs"
+            if polished
+            else ""
+        )
+        + f"; {result.backend}) =="
+    )
     true_j = result.optima_true_j if result.optima_true_j is not None else (v.full_true_j if v is not None else None)
-    add("campaign  seed   J_i (posterior mean)  true J   best observed")
+    ref = result.reference_j
+    ref_name = "the best known J*" if v is None or math.isfinite(v.j_star_known) else "the phase's best"
+    add(
+        "campaign  seed   J_i (posterior mean)  true J   vs J* %"
+        + ("  true J before the polish" if polished else "")
+        + "  best observed"
+    )
     for k, cr in enumerate(result.campaigns):
         tj = f"{true_j[k]:.4f}" if true_j is not None else "   -  "
+        gap = f"{100 * (true_j[k] - ref) / ref:+7.2f}" if true_j is not None and math.isfinite(ref) else "    -  "
+        before = f"   {cr.j_true_bo:.4f}              " if polished else ""
         mark = "  <- θ̄" if k == result.theta_bar_index else ""
-        add(f"{cr.index:>8}  {cr.seed:>4}   {cr.j_pred:.4f} ± {cr.j_std:.4f}      {tj}   {cr.y.min():.4f}{mark}")
+        add(
+            f"{cr.index:>8}  {cr.seed:>4}   {cr.j_pred:.4f} ± {cr.j_std:.4f}      {tj}  {gap}{before}   "
+            f"{cr.y.min():.4f}{mark}"
+        )
+    if true_j is not None and math.isfinite(ref):
+        worst = 100 * (float(np.max(true_j)) - ref) / ref
+        add(
+            f"reference: {ref_name} {ref:.5f}; the M optima are {100 * (float(np.min(true_j)) - ref) / ref:+.2f} % "
+            f"... {worst:+.2f} % from it (std {float(np.std(true_j, ddof=1)) if len(true_j) > 1 else 0.0:.4f})"
+        )
 
     how = "least noise-free J" if cfg.theta_bar == "simulator" else "least J_i"
     add(f"θ̄ = the optimum of campaign {result.campaigns[result.theta_bar_index].index} ({how})")
@@ -41,11 +70,18 @@ def format_report(result: ReductionResult) -> str:
             group_of[m] = meta_of.get(tuple(g.members), m)
     sim = result.true_curves
     oth = result.other_curves
+    glob = result.global_sensitivity
+    g_rel = glob.relative(c.j_bar) if glob is not None else None
+    g_sig = set(glob.significant(cfg.threshold, c.j_bar)) if glob is not None else set()
     head = f"{'param':<8}{'θ̄':>9}{'best':>9}  {'optimal interval':<16}{'loss %':>8}"
     if oth is not None:
         head += f"{(cfg.surrogate == 'weighted' and 'mean %') or 'wtd %':>8}"
     if sim is not None:
         head += f"{'sim %':>8}"
+    if glob is not None:
+        head += (
+            f"{'mu* %' if glob.method == 'morris' else 'ST %':>8}{'sigma %' if glob.method == 'morris' else 'S1 %':>9}"
+        )
     head += "  kept  tuned as"
     add(head)
     spread = np.percentile(c.relative(result.thetas), [25, 75], axis=0)
@@ -59,7 +95,12 @@ def format_report(result: ReductionResult) -> str:
             row += f"{100 * oth.loss[i]:>8.2f}"
         if sim is not None:
             row += f"{100 * sim.loss[i]:>8.2f}"
+        if glob is not None and g_rel is not None:
+            spread_rel = glob.spread[i] / c.j_bar if glob.method == "morris" else glob.spread[i]
+            row += f"{100 * g_rel[i]:>8.2f}{100 * spread_rel:>9.2f}"
         row += f"  {'yes ' if n in result.kept else 'no  '}  {group_of.get(n, 'fixed')}"
+        if glob is not None and (n in g_sig) != (n in result.kept):
+            row += "   (global: " + ("significant" if n in g_sig else "not significant") + ")"
         lines.append(row)
     add(
         f"(loss %: J_mu = the {'precision-weighted' if cfg.surrogate == 'weighted' else 'plain'} average of the M "
@@ -78,9 +119,36 @@ def format_report(result: ReductionResult) -> str:
         + ")"
     )
     if sim is not None:
-        agree = set(result.kept) == {n for n, s in zip(sim.names, sim.loss, strict=True) if s > cfg.threshold}
-        add(f"the noise-free simulator {'agrees' if agree else 'DISAGREES'} on the kept set at T")
-
+        sim_kept = {n for n, s in zip(sim.names, sim.loss, strict=True) if s > cfg.threshold}
+        agree = set(result.kept) == sim_kept
+        add(
+            f"the noise-free one-at-a-time sweep {'agrees' if agree else 'disagrees'} on the kept set at T"
+            + (
+                ""
+                if agree
+                else f" (kept by J_mu only: {', '.join(sorted(set(result.kept) - sim_kept)) or '-'}; "
+                f"by the simulator only: {', '.join(sorted(sim_kept - set(result.kept))) or '-'})"
+            )
+        )
+    if glob is not None:
+        only_oat = [n for n in c.names if n in result.kept and n not in g_sig]
+        only_glob = [n for n in c.names if n in g_sig and n not in result.kept]
+        what = "mu*/J_mu(θ̄)" if glob.method == "morris" else "total Sobol' index ST"
+        verdict = "agrees with the one-at-a-time decision"
+        if only_oat or only_glob:
+            verdict = "disagrees: "
+            if only_oat:
+                verdict += f"kept from θ̄ but globally minor: {', '.join(only_oat)} (they matter at the optimum)"
+                verdict += "; " if only_glob else ""
+            if only_glob:
+                verdict += (
+                    f"globally significant but discarded: {', '.join(only_glob)} (they matter over the box, "
+                    "little once the others are at θ̄)"
+                )
+        add(
+            f"global sensitivity ({glob.method}, SALib, {glob.runs} noise-free runs over the whole box; significant "
+            f"when {what} > T): {verdict}"
+        )
     add("")
     add(f"== similarity: {len(result.kept)} kept parameters -> {len(result.groups)} tuned dimensions ==")
     for g in result.groups:
@@ -95,6 +163,25 @@ def format_report(result: ReductionResult) -> str:
     fixed = result.definition.fixed
     add(f"fixed ({len(fixed)}): " + ", ".join(f"{k}={val:g}" for k, val in fixed.items()))
 
+    if result.checks:
+        add("")
+        add(
+            f"== the reduction checked on the noise-free simulator (tolerance {100 * cfg.loss_tol:g} % against "
+            f"{ref_name} {result.reference_j:.5f}) =="
+        )
+        for ck in result.checks:
+            gtxt = "; ".join("{" + ", ".join(g.members) + "}" if g.is_meta else g.members[0] for g in ck.groups)
+            add(
+                f"{'passes' if ck.passed else 'LOSES '} {ck.loss_pct:+.3f} %  {ck.dims} tuned  optimum {ck.j_opt:.5f}  "
+                f"({ck.label}: {gtxt}; {ck.runs} runs)"
+            )
+        if result.repaired:
+            add(
+                f"the reduction of J_mu loses {result.checks[0].loss_pct:.2f} % (more than the tolerance): the file "
+                f"holds the next best reduction, {result.checks[-1].label}"
+                if any(ck.passed for ck in result.checks)
+                else "no reduction within the tolerance was found; the file holds the one that loses least"
+            )
     if v is not None:
         add("")
         add("== validation: BO on the reduced problem beside the full one ==")
@@ -107,15 +194,15 @@ def format_report(result: ReductionResult) -> str:
             f"the paper's comparison: BO on the reduced problem finds {v.table_pct:+.2f} % against BO on the full one "
             "(mean optimal J)"
         )
-        add(
-            f"the reduced problem's optimum {v.j_star_reduced:.4f} is {v.loss_pct:+.2f} % from the full problem's "
-            f"optimum found by the phase ({v.j_full_best:.4f}, the best of the M recommendations)"
-        )
         if math.isfinite(v.j_star_known):
             add(
-                f"and {v.loss_vs_known_pct:+.2f} % from the full problem's best known J* {v.j_star_known:.4f} "
-                "(the simulator's ground truth, which the M campaigns did not reach)"
+                f"the reduced problem's optimum {v.j_star_reduced:.4f} is {v.loss_vs_known_pct:+.3f} % from the full "
+                f"problem's best known J* {v.j_star_known:.5f} (the simulator's ground truth, bac ground-truth)"
             )
+        add(
+            f"and {v.loss_vs_phase_pct:+.3f} % from the full problem's optimum found by the phase "
+            f"({v.j_full_best:.5f}, the best of the M campaigns)"
+        )
         add("reduced optimum: " + ", ".join(f"{k}={x:.1f}" for k, x in v.reduced_optimum.items()))
 
     t = result.timings
@@ -127,16 +214,33 @@ def format_report(result: ReductionResult) -> str:
     )
     add(f"J_mu, sensitivity, grouping: {t['analysis_s']:.1f} s (GP)")
     if "verify_s" in t:
-        add(f"noise-free simulator check: {t['verify_s']:.1f} s (simulation)")
+        add(f"noise-free one-at-a-time sweep: {t['verify_s']:.1f} s (simulation)")
+    if "global_s" in t:
+        add(f"global sensitivity: {t['global_s']:.1f} s (simulation)")
+    if "check_s" in t:
+        add(f"the reduction checked (and repaired) on the simulator: {t['check_s']:.1f} s (simulation)")
     if "validate_s" in t and v is not None:
         add(f"validation: {t['validate_s']:.1f} s (simulation {v.sim_s:.1f} s, GP {v.gp_s:.1f} s)")
     add(f"total: {t['total_s'] / 60:.2f} min; simulation {t['sim_s']:.1f} s, GP {t['gp_s']:.1f} s (worker-seconds)")
+    if "load_start" in t:
+        add(
+            f"machine: {t.get('cores', math.nan):.0f} cores, load average {t['load_start']:.1f} at the start, "
+            f"{t['load_end']:.1f} at the end (the wall times above move with it)"
+        )
     return "\n".join(lines)
 
 
 def last_line(result: ReductionResult) -> str:
-    loss = result.validation.loss_pct if result.validation is not None else math.nan
-    return f"reduce_minutes {result.timings['total_s'] / 60:.2f} params_kept {result.dims_reduced} loss_pct {loss:.3f}"
+    """``reduce_minutes <t> params_kept <tuned dimensions> loss_pct <l> loss_vs_phase_pct <l2>``: l = the reduced
+    optimum against the full problem's best known J* (the phase's own optimum when none is stored), l2 = against
+    the phase's own full optimum, in %."""
+    v = result.validation
+    loss = v.loss_pct if v is not None else math.nan
+    phase = v.loss_vs_phase_pct if v is not None else math.nan
+    return (
+        f"reduce_minutes {result.timings['total_s'] / 60:.2f} params_kept {result.dims_reduced} "
+        f"loss_pct {loss:.3f} loss_vs_phase_pct {phase:.3f}"
+    )
 
 
 def definition_text(result: ReductionResult) -> str:
@@ -158,7 +262,8 @@ def definition_text(result: ReductionResult) -> str:
     if v is not None:
         head.append(
             f"# reduced problem: J* = {v.j_star_reduced:.5f}, J_med = {v.j_med_reduced:.5f} "
-            f"(best full optimum found {v.j_full_best:.5f}: {v.loss_pct:+.2f} %)"
+            f"({v.loss_pct:+.2f} % against the full problem's best known J*, {v.loss_vs_phase_pct:+.2f} % against the "
+            f"phase's best full optimum {v.j_full_best:.5f})"
         )
     head.append("# Load it with definition_file: <this path> (ecu_bridge, bo_agent, vehicle_sim).")
     head.append(
@@ -175,7 +280,8 @@ def with_best_guess(result: ReductionResult) -> Any:
     dims = {d.name: d for d in result.definition.dimensions}
     if set(guess) != set(dims):
         return result.definition
-    guess = {n: min(max(float(x), dims[n].lower), dims[n].upper) for n, x in guess.items()}
+    # within the bounds, on the raw parameters' resolution (0.01 for Controller II: the value the ECU would hold)
+    guess = {n: round(min(max(float(x), dims[n].lower), dims[n].upper), 2) for n, x in guess.items()}
     return replace(result.definition, best_guess=guess)
 
 

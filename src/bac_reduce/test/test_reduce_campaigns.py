@@ -203,3 +203,27 @@ def test_polish_finds_a_quadratic_minimum_with_batched_coordinate_steps() -> Non
     np.testing.assert_allclose(x, [310.0, 720.0, 55.0], atol=10.0)
     assert fx == pytest.approx(1.0, abs=1e-4)
     assert evals == sum(calls) and len(calls) == 31  # one batch per iteration (+ the start)
+
+
+def test_the_simulated_car_runs_on_a_cluster_of_worker_processes_as_locally() -> None:
+    """A Dask worker process is daemonic: the simulator may not open its own process pool there (it did, and
+    `bac reduce --scheduler` died with "daemonic processes are not allowed to have children"). Each group's first
+    batch (2 campaigns x 8 runs of the 1.5 km road) is big enough for the simulator to split it over processes."""
+    distributed = pytest.importorskip("distributed")
+    from bac_reduce.objectives import SimulatedCar
+
+    settings = CampaignSettings(trials=10, n_initial=8, batch=2, engine=QUICK)
+    specs = campaign_specs(4, seed=3)
+    with (
+        distributed.LocalCluster(
+            n_workers=2, threads_per_worker=1, processes=True, host="127.0.0.1", dashboard_address=None
+        ) as cluster,
+        distributed.Client(cluster) as client,
+    ):
+        remote = run_campaigns(SimulatedCar("road_c2"), settings, specs, client=client, group_size=2, noise_seed=5)
+    assert "2 tasks" in remote.backend
+    local = run_campaigns(SimulatedCar("road_c2"), settings, specs, workers=1, noise_seed=5)
+    for a, b in zip(remote.campaigns, local.campaigns, strict=True):
+        assert a.index == b.index and a.X.shape == (10, 20)
+        np.testing.assert_allclose(a.X, b.X, rtol=1e-9)
+        np.testing.assert_allclose(a.y, b.y, rtol=1e-9)

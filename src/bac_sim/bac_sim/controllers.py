@@ -56,9 +56,19 @@ def controller_ii_definition() -> CalibrationDefinition:
     )
 
 
+def controller_iib_definition() -> CalibrationDefinition:
+    """Controller II-B's definition (q01..q20 in [0, 1000]; see :data:`CONTROLLER_IIB_PARAMETERS`)."""
+    return CalibrationDefinition(
+        "controller_ii_b",
+        uniform_parameters("q", 20, 0.0, 1000.0, 500.0, 0.01),
+        description="Semi-active logic, another release (parameters in another order and on other scales)",
+    )
+
+
 @dataclass(frozen=True)
 class ParamSpec:
-    """Meaning of one Controller II parameter: value = lower + u (upper - lower), u = raw / 1000."""
+    """Meaning of one Controller II parameter: value = lower + u (upper - lower), u = raw / 1000 (``reverse``:
+    u = 1 - raw / 1000); ``slot``: the input of the logic it sets (default: ``name``, Controller II's own)."""
 
     name: str
     meaning: str
@@ -66,9 +76,17 @@ class ParamSpec:
     lower: float
     upper: float
     log: bool = False
+    slot: str = ""
+    reverse: bool = False
+
+    @property
+    def input(self) -> str:
+        return self.slot or self.name
 
     def physical(self, raw: FloatArray) -> FloatArray:
         u = np.asarray(raw, dtype=float) / 1000.0
+        if self.reverse:
+            u = 1.0 - u
         if self.log:
             return np.asarray(self.lower * (self.upper / self.lower) ** u)
         return np.asarray(self.lower + u * (self.upper - self.lower))
@@ -95,6 +113,47 @@ CONTROLLER_II_PARAMETERS: tuple[ParamSpec, ...] = (
     ParamSpec("p18", "skyhook gain factor at 120 km/h", "1", 0.3, 1.7),
     ParamSpec("p19", "cornering roll-control gain (per g of lateral acceleration)", "1/g", 0.0, 2.0),
     ParamSpec("p20", "end-stop protection threshold (travel from static)", "m", 0.015, 0.09),
+)
+# Controller II-B: the same logic in another software release (problem road_c2b, parameters q01..q20): another
+# order, nine parameters on reversed scales (a softness in place of a gain, a rate of decay in place of a corner
+# frequency, ...) and the skyhook gains over twice the range. Its optimal groups differ from Controller II's: the
+# simulation phase is judged on it too, so that the method is not tuned to one problem (docs/reduce.md).
+_IIB_LAYOUT: tuple[tuple[str, str, bool, float | None], ...] = (
+    # (name, Controller II input, reversed, new upper bound or None)
+    ("q01", "p14", True, None),
+    ("q02", "p05", False, 20000.0),
+    ("q03", "p11", True, None),
+    ("q04", "p20", False, None),
+    ("q05", "p03", True, None),
+    ("q06", "p08", True, None),
+    ("q07", "p16", False, None),
+    ("q08", "p01", False, None),
+    ("q09", "p06", True, 20000.0),
+    ("q10", "p19", False, None),
+    ("q11", "p09", False, None),
+    ("q12", "p02", True, None),
+    ("q13", "p12", True, None),
+    ("q14", "p07", False, None),
+    ("q15", "p17", True, None),
+    ("q16", "p04", False, None),
+    ("q17", "p13", False, None),
+    ("q18", "p10", True, None),
+    ("q19", "p15", False, None),
+    ("q20", "p18", False, None),
+)
+_II_BY_NAME = {s.name: s for s in CONTROLLER_II_PARAMETERS}
+CONTROLLER_IIB_PARAMETERS: tuple[ParamSpec, ...] = tuple(
+    ParamSpec(
+        name,
+        ("reversed: " if rev else "") + _II_BY_NAME[slot].meaning,
+        _II_BY_NAME[slot].unit,
+        _II_BY_NAME[slot].lower,
+        upper if upper is not None else _II_BY_NAME[slot].upper,
+        _II_BY_NAME[slot].log,
+        slot,
+        rev,
+    )
+    for name, slot, rev, upper in _IIB_LAYOUT
 )
 SPEED_TABLE_KMH = np.array([30.0, 60.0, 90.0, 120.0])
 ACTUATOR_BANDWIDTH_HZ = 15.0  # valve + current driver of the semi-active damper (first-order)
@@ -191,14 +250,21 @@ def _lowpass_alpha(corner_hz: FloatArray, dt: float) -> FloatArray:
 class ControllerII:
     """The 20-parameter semi-active logic (see the module doc and :data:`CONTROLLER_II_PARAMETERS`)."""
 
-    def __init__(self, raw: FloatArray, vehicle: VehicleParams | None = None) -> None:
-        raw = _as_batch(raw, len(CONTROLLER_II_PARAMETERS), "Controller II")
+    def __init__(
+        self,
+        raw: FloatArray,
+        vehicle: VehicleParams | None = None,
+        specs: Sequence[ParamSpec] = CONTROLLER_II_PARAMETERS,
+    ) -> None:
+        raw = _as_batch(raw, len(specs), "Controller II")
         if np.any(raw < 0) or np.any(raw > 1000):
             raise ControllerError("Controller II: parameters must lie in [0, 1000]")
         self.batch = raw.shape[0]
         self.constant: FloatArray | None = None
         vp = vehicle or VehicleParams()
-        P = {spec.name: spec.physical(raw[:, i]) for i, spec in enumerate(CONTROLLER_II_PARAMETERS)}
+        P = {spec.input: spec.physical(raw[:, i]) for i, spec in enumerate(specs)}
+        if set(P) != set(_II_BY_NAME):
+            raise ControllerError(f"Controller II: the parameter specs must set every input {sorted(_II_BY_NAME)}")
         self.P = P
         self._cx = -vp.corner_x[:, None]  # body height at corner = z - x theta + y phi
         self._cy = vp.corner_y[:, None]
@@ -229,20 +295,46 @@ class ControllerII:
         self._weights = np.vstack([np.ones(b), P["p07"], P["p10"]])  # (3, B)
         w0 = np.asarray(x0[7:10], dtype=float)
         floor0 = np.repeat(self._floor.mean(axis=0, keepdims=True), N_CORNERS, axis=0)
+        # the filter states in one array (the compiled step loop updates it in place, bac_sim.kernels), and views
+        st = np.zeros((22, b))
+        st[0:3] = w0
+        st[14:18] = floor0
+        st[18:22] = floor0
+        self._st = st
         self._state = {
-            "w_prev": np.array(w0, copy=True),
-            "hp": np.zeros((3, b)),
+            "w_prev": st[0:3],
+            "hp": st[3:6],
             "w3": np.zeros((3, b)),
             "zsky": np.zeros((N_CORNERS, b)),
             "tmp": np.zeros((N_CORNERS, b)),
             "tmp2": np.zeros((N_CORNERS, b)),
             "flag": np.zeros((N_CORNERS, b), dtype=bool),
-            "v_f": np.zeros((N_CORNERS, b)),
-            "acc_f": np.zeros((N_CORNERS, b)),
+            "v_f": st[6:10],
+            "acc_f": st[10:14],
             "cmd": np.zeros((N_CORNERS, b)),
-            "cmd_f": floor0.copy(),
-            "c_act": floor0.copy(),
+            "cmd_f": st[14:18],
+            "c_act": st[18:22],
         }
+
+    def kernel_arrays(self) -> tuple[FloatArray, FloatArray, FloatArray]:
+        """(modal (4, 3), parameters (21, B), filter states (22, B)) for :func:`bac_sim.kernels.steps_controller_ii`;
+        the states are the arrays :meth:`command` updates (call after :meth:`reset`)."""
+        b = self.batch
+        par = np.empty((21, b))
+        par[0:4] = self._gain
+        par[4:8] = self._floor
+        par[8] = self._cap[0]
+        par[9] = self._a_hp[0]
+        par[10] = self._a_v[0]
+        par[11] = self._a_cmd[0]
+        par[12] = self._a_add[0]
+        par[13] = self._db[0]
+        par[14] = self._endstop[0]
+        par[15] = self._a_act
+        par[16:19] = self._weights
+        par[19] = self._gh[0]
+        par[20] = self._add[0]
+        return np.ascontiguousarray(self._modal), par, self._st
 
     def command(
         self, x: FloatArray, v: FloatArray, travel: FloatArray, acc: FloatArray, phi_min: FloatArray, dphi: FloatArray
@@ -313,11 +405,12 @@ def make_controller(
     if set(names) == {"damping_front", "damping_rear"}:
         order = [names.index("damping_front"), names.index("damping_rear")]
         return ControllerI(raw[:, order])
-    expected = tuple(spec.name for spec in CONTROLLER_II_PARAMETERS)
-    if set(names) == set(expected):
-        order = [names.index(n) for n in expected]
-        return ControllerII(raw[:, order], vehicle)
+    for specs in (CONTROLLER_II_PARAMETERS, CONTROLLER_IIB_PARAMETERS):
+        expected = tuple(spec.name for spec in specs)
+        if set(names) == set(expected):
+            order = [names.index(n) for n in expected]
+            return ControllerII(raw[:, order], vehicle, specs)
     raise ControllerError(
-        f"no simulated controller for definition '{definition.name}' (parameters {list(names)}); "
-        "the simulator knows Controller I (damping_front, damping_rear) and Controller II (p01..p20)"
+        f"no simulated controller for definition '{definition.name}' (parameters {list(names)}); the simulator "
+        "knows Controller I (damping_front, damping_rear), Controller II (p01..p20) and Controller II-B (q01..q20)"
     )

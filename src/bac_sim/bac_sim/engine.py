@@ -20,6 +20,8 @@ with fine references within 0.15 % (see ``tests/sim/test_engine.py``).
 
 from __future__ import annotations
 
+from collections.abc import Iterator
+from contextlib import contextmanager
 from dataclasses import dataclass, field
 from functools import lru_cache
 from typing import Any
@@ -29,6 +31,7 @@ import numpy as np
 from bac_sim.controllers import BatchController
 from bac_sim.driver import Drive
 from bac_sim.errors import ScenarioError
+from bac_sim.kernels import chunk_outputs, drive_and_road, kernel_choice, steps_constant, steps_controller_ii
 from bac_sim.roads import Road
 from bac_sim.vehicle import (
     N_CORNERS,
@@ -222,6 +225,36 @@ def road_under_wheels(road: Road, s_front: FloatArray, wheelbase: float) -> Floa
     return np.ascontiguousarray(z.transpose(0, 1, 3, 2).reshape(s_front.shape[0], N_CORNERS, s_front.shape[1]))
 
 
+def _blas_limiter() -> Any:
+    """A context manager holding BLAS to one thread (threadpoolctl), or doing nothing without it.
+
+    A step's product is small ((35, 31) @ (31, B)): a multi-threaded OpenBLAS spends more on waking and
+    waiting for its threads than on the product, worst on a shared machine; batches are split over
+    processes instead (bac_sim.parallel).
+    """
+    holder: dict[str, Any] = {}
+
+    @contextmanager
+    def limit() -> Iterator[None]:
+        if "c" not in holder:
+            try:
+                from threadpoolctl import ThreadpoolController
+
+                holder["c"] = ThreadpoolController()
+            except Exception:  # pragma: no cover - threadpoolctl missing or unable to inspect the BLAS
+                holder["c"] = None
+        if holder["c"] is None:
+            yield
+            return
+        with holder["c"].limit(limits=1, user_api="blas"):
+            yield
+
+    return limit
+
+
+_one_blas_thread = _blas_limiter()
+
+
 def simulate(
     model: SimModel,
     road: Road,
@@ -233,6 +266,7 @@ def simulate(
     record: bool = False,
     window_shift: FloatArray | None = None,
     initial_offset: FloatArray | None = None,
+    kernel: str = "auto",
 ) -> BatchResult:
     """Simulate ``controller.batch`` runs for ``duration`` seconds.
 
@@ -240,7 +274,30 @@ def simulate(
     ``window`` selects the samples scored (all of them when None); ``window_shift`` (B,) moves each
     run's window (m in distance mode, s in event mode): the residual error of cutting and aligning.
     ``initial_offset`` (14,) is added to the static equilibrium the runs start from.
+    ``kernel``: the step loop compiled by numba (``"numba"``, :mod:`bac_sim.kernels`) or the numpy reference
+    loop (``"numpy"``); ``"auto"`` = numba when installed, unless ``BAC_SIM_KERNEL=numpy``. BLAS runs on one
+    thread meanwhile.
     """
+    with _one_blas_thread():
+        return _simulate(
+            model, road, controller, drive, duration, window, seat, record, window_shift, initial_offset, kernel
+        )
+
+
+def _simulate(
+    model: SimModel,
+    road: Road,
+    controller: BatchController,
+    drive: Drive,
+    duration: float,
+    window: KpiWindow | None = None,
+    seat: tuple[float, float, float] = SEAT_DEFAULT,
+    record: bool = False,
+    window_shift: FloatArray | None = None,
+    initial_offset: FloatArray | None = None,
+    kernel: str = "auto",
+) -> BatchResult:
+    """The body of :func:`simulate`."""
     B = controller.batch
     Bd = drive.batch
     if Bd not in (1, B):
@@ -342,12 +399,30 @@ def simulate(
     cmd_chunk = np.empty((CHUNK_STEPS, N_CORNERS, B)) if record else None
     u_prev = np.zeros((N_INPUTS, B))
     shared_road = Bd == 1 and B > 1
+    compiled = kernel_choice(kernel) == "numba" and (constant is not None or hasattr(controller, "kernel_arrays"))
+    if compiled:
+        W_c = np.ascontiguousarray(W)
+        G_road_c = np.ascontiguousarray(G_road[None])
+        if constant is None:
+            modal_c, par_c, st_c = controller.kernel_arrays()  # type: ignore[attr-defined]
+            rec_c_buf = cmd_chunk if cmd_chunk is not None else np.empty((1, N_CORNERS, B))
+        else:
+            const_c = np.ascontiguousarray(np.broadcast_to(constant, (N_CORNERS, B)), dtype=float)
+        drive_arrays = tuple(np.ascontiguousarray(a, dtype=float) for a in (drive.t, drive.v, drive.s))
+        road_tables = tuple(np.ascontiguousarray(a, dtype=float) for a in road._tables())
+        s_buf = np.empty((CHUNK_STEPS + 1, Bd))
+        r_buf = np.empty((CHUNK_STEPS + 1, N_CORNERS, Bd))
     k0 = 0
     while k0 < n_steps:
         n = min(CHUNK_STEPS, n_steps - k0)
         t = (k0 + np.arange(n + 1)) * dt
-        s_pos = drive.position(t)  # (n+1, Bd)
-        r = road_under_wheels(road, s_pos, p.wheelbase)  # (n+1, 4, Bd)
+        if compiled:
+            s_pos = s_buf[: n + 1]
+            r = r_buf[: n + 1]
+            drive_and_road(t, *drive_arrays, *road_tables, road.s0, 1.0 / road.ds, p.wheelbase, s_pos, r)
+        else:
+            s_pos = drive.position(t)  # (n+1, Bd)
+            r = road_under_wheels(road, s_pos, p.wheelbase)  # (n+1, 4, Bd)
         if shared_road:
             # the road is the same for every run: fold it into the constant column of the step matrix
             pre1 = np.matmul(model.R0, r[:-1, :, 0].T) + np.matmul(model.R1, r[1:, :, 0].T)  # (35, n)
@@ -356,7 +431,17 @@ def simulate(
         else:
             S[:n, :N_CORNERS] = r[:-1]
             S[:n, N_CORNERS:N_ROAD] = r[1:]
-        for i in range(n):
+        if compiled:
+            g_c = Gs if shared_road else G_road_c
+            if constant is None:
+                steps_controller_ii(
+                    S, g_c, shared_road, n, W_c, kr, kc, k_bs, tr, modal_c, par_c, st_c, rec_c_buf, record
+                )
+            else:
+                steps_constant(S, g_c, shared_road, n, W_c, kr, kc, k_bs, const_c)
+                if cmd_chunk is not None:
+                    cmd_chunk[:n] = const_c
+        for i in range(0 if compiled else n):
             o, v, stops, t1, t2, ty, fs, ft = views[i]
             if shared_road:
                 matmul(Gs[i], s_in[i], out=o)
@@ -387,6 +472,17 @@ def simulate(
                 add(fs, stop * k_bs, out=fs)
             # a tyre cannot pull the wheel down: cancel its tension (input scaled by the tyre rate)
             maximum(ty, 0.0, out=ft)
+        if compiled and not record:
+            where = s_pos[:n] if dist_window is not None else t[:n, None]
+            lo_w, hi_w = dist_window if dist_window is not None else (w_start, w_end)
+            chunk_outputs(
+                S, n, u_prev, seat_x, seat_u, seat_const, where, np.ascontiguousarray(lo_w),
+                np.ascontiguousarray(hi_w), p.travel_rebound, p.travel_compression,
+                sum_az2, sum_q2, count, max_travel, lift,
+            )  # fmt: skip
+            S[0] = S[n]
+            k0 += n
+            continue
         # outputs of the chunk: seat-rail vertical acceleration and pitch rate at t_k, k in chunk
         Xc = S[:n, XS]
         Uc = S[:n, U]

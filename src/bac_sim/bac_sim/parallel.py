@@ -4,6 +4,10 @@ A persistent process pool evaluates slices of a batch; each worker limits BLAS t
 the processes do not fight for the cores. The workers are forked when this process runs a single
 thread (fast, and scripts need no ``if __name__ == "__main__"`` guard), else started by a fork server
 (a threaded parent must not fork). ``BAC_SIM_WORKERS`` sets the number of workers (1 = always in this process).
+
+A daemonic process (a worker of a ``multiprocessing`` pool, or of a ``dask.distributed`` cluster) may not start
+processes of its own, and a process that already is one of many workers (``in_this_process``) should not: there
+every batch is simulated in the process itself.
 """
 
 from __future__ import annotations
@@ -12,8 +16,9 @@ import atexit
 import multiprocessing
 import os
 import threading
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Iterator, Sequence
 from concurrent.futures import Executor, ProcessPoolExecutor
+from contextlib import contextmanager
 from typing import Any, TypeVar
 
 T = TypeVar("T")
@@ -26,7 +31,25 @@ class _PoolHolder:
     size = 0
 
 
+_LOCAL = threading.local()
+
+
+@contextmanager
+def in_this_process() -> Iterator[None]:
+    """Within this block (this thread), batches are simulated in this process: no worker pool."""
+    depth = getattr(_LOCAL, "serial", 0)
+    _LOCAL.serial = depth + 1
+    try:
+        yield
+    finally:
+        _LOCAL.serial = depth
+
+
 def worker_count() -> int:
+    """Processes a big batch is split over: ``BAC_SIM_WORKERS``, else one per core; 1 in a daemonic process
+    (it may not have children) and inside :func:`in_this_process`."""
+    if getattr(_LOCAL, "serial", 0) or multiprocessing.current_process().daemon:
+        return 1
     env = os.environ.get("BAC_SIM_WORKERS", "").strip()
     if env:
         try:

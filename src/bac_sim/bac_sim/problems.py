@@ -2,7 +2,7 @@
 
 ::
 
-    from bac_sim.problems import get_problem, PROBLEM_NAMES   # "bump_c1", "road_c1", "road_c2"
+    from bac_sim.problems import get_problem, PROBLEM_NAMES   # "bump_c1", "road_c1", "road_c2", "road_c2b"
     p = get_problem("road_c1")
     p.names, p.dim, p.bounds          # tuned dimensions, d, (d, 2) [lower, upper]
     p.true_j(thetas)                  # (n, d) -> (n,) noise-free J
@@ -29,7 +29,7 @@ from __future__ import annotations
 import itertools
 import json
 import math
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field, replace
 from functools import lru_cache
 from pathlib import Path
@@ -38,7 +38,12 @@ from typing import Any
 import numpy as np
 
 from bac_common.paramspace import CalibrationDefinition
-from bac_sim.controllers import controller_i_definition, controller_ii_definition, make_controller
+from bac_sim.controllers import (
+    controller_i_definition,
+    controller_ii_definition,
+    controller_iib_definition,
+    make_controller,
+)
 from bac_sim.driver import Drive, DriverModel, constant_drive
 from bac_sim.engine import BatchResult, make_model, simulate
 from bac_sim.errors import SimError
@@ -47,9 +52,9 @@ from bac_sim.scenarios import Scenario, get_scenario
 
 FloatArray = np.ndarray[Any, Any]
 
-PROBLEM_NAMES = ("bump_c1", "road_c1", "road_c2")
+PROBLEM_NAMES = ("bump_c1", "road_c1", "road_c2", "road_c2b")
 GROUND_TRUTH_PATH = Path(__file__).resolve().parent / "data" / "ground_truth.json"
-_SCENARIO_OF = {"bump_c1": "bump", "road_c1": "road", "road_c2": "road"}
+_SCENARIO_OF = {"bump_c1": "bump", "road_c1": "road", "road_c2": "road", "road_c2b": "road"}
 # batches at least this many run-seconds long are split over the worker processes
 PARALLEL_MIN_RUN_SECONDS = 1200.0
 
@@ -138,8 +143,14 @@ class Problem:
         az2, q2, cnt = self._run(raw, drive, duration, None)
         return np.asarray(np.sqrt(az2 / cnt) + np.sqrt(q2 / cnt))
 
-    def noisy_j(self, thetas: FloatArray, rng: np.random.Generator) -> FloatArray:
-        """J (n,) of simulated runs with run-to-run noise (driver, alignment, IMU)."""
+    def noisy_j(self, thetas: FloatArray, rng: np.random.Generator | Sequence[np.random.Generator]) -> FloatArray:
+        """J (n,) of simulated runs with run-to-run noise (driver, alignment, IMU).
+
+        ``rng``: one generator for the whole batch, or one per run (a sequence of n, the same generator may
+        appear several times): then each run's noise comes from its own generator, in the order of the rows,
+        so a run's J does not depend on the other runs simulated in the same batch (e.g. campaigns of a
+        simulation phase batched together on one core or spread over a cluster).
+        """
         raw = self.raw(thetas)
         n = raw.shape[0]
         sc = self.scenario
@@ -148,18 +159,33 @@ class Problem:
         driver = replace(self.driver, start_offset_std=min(self.driver.start_offset_std, 0.2 * lead_m))
         slowest = sc.speed * (1 - 4 * driver.speed_error_std / sc.speed - 0.02)
         run_s = (1.6 * lead_m + sc.window_length_s * sc.speed) / slowest + sc.tail_s
-        drive, _ = driver.draw(sc.speed, start, run_s + 0.2, n, rng)
-        if sc.mode == "distance":
-            shift = self.noise.align_m * rng.standard_normal(n)
+        align = self.noise.align_m if sc.mode == "distance" else self.noise.align_s
+        if isinstance(rng, np.random.Generator):
+            drive, _ = driver.draw(sc.speed, start, run_s + 0.2, n, rng)
+            shift = align * rng.standard_normal(n)
         else:
-            shift = self.noise.align_s * rng.standard_normal(n)
+            rngs = list(rng)
+            if len(rngs) != n:
+                raise SimError(f"{self.name}: {len(rngs)} random generators for {n} runs")
+            drives = [driver.draw(sc.speed, start, run_s + 0.2, 1, g)[0] for g in rngs]
+            drive = Drive(drives[0].t, np.hstack([d.v for d in drives]), np.hstack([d.s for d in drives]))
+            shift = align * np.array([g.standard_normal() for g in rngs])
         az2, q2, cnt = self._run(raw, drive, run_s, shift)
         ms_a = az2 / cnt
         ms_q = q2 / cnt
         # IMU white noise: exact distribution of the measured mean square over cnt samples
         for mean_square, sigma in ((ms_a, self.noise.accel_noise), (ms_q, self.noise.gyro_noise)):
-            cross = 2 * sigma * np.sqrt(mean_square / cnt) * rng.standard_normal(n)
-            power = sigma**2 * rng.chisquare(cnt) / cnt
+            if isinstance(rng, np.random.Generator):
+                z = rng.standard_normal(n)
+                chi = rng.chisquare(cnt)
+            else:
+                z = np.empty(n)
+                chi = np.empty(n)
+                for i, g in enumerate(rngs):
+                    z[i] = g.standard_normal()
+                    chi[i] = g.chisquare(cnt[i])
+            cross = 2 * sigma * np.sqrt(mean_square / cnt) * z
+            power = sigma**2 * chi / cnt
             np.add(mean_square, cross + power, out=mean_square)
         return np.asarray(np.sqrt(np.maximum(ms_a, 0)) + np.sqrt(np.maximum(ms_q, 0)))
 
@@ -253,7 +279,8 @@ def get_problem(name: str) -> Problem:
     """One of :data:`PROBLEM_NAMES`."""
     if name not in PROBLEM_NAMES:
         raise SimError(f"unknown problem {name!r}; known: {', '.join(PROBLEM_NAMES)}")
-    definition = controller_ii_definition() if name.endswith("c2") else controller_i_definition()
+    definitions = {"c1": controller_i_definition, "c2": controller_ii_definition, "c2b": controller_iib_definition}
+    definition = definitions[name.split("_")[1]]()
     truth = load_ground_truth().get(name, {})
     scenario = get_scenario(_SCENARIO_OF[name])
     # at 30 km/h most cruise controls are off: the driver holds the speed by foot

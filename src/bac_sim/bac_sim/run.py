@@ -33,6 +33,7 @@ from bac_common.paramspace import CalibrationDefinition
 from bac_sim.controllers import (
     controller_i_definition,
     controller_ii_definition,
+    controller_iib_definition,
     make_controller,
     raw_matrix,
 )
@@ -123,12 +124,12 @@ class RunRecording:
 
 def definition_for(calibration: Mapping[str, float]) -> CalibrationDefinition:
     """The simulated controller's definition that ``calibration``'s names belong to."""
-    for d in (controller_i_definition(), controller_ii_definition()):
+    for d in (controller_i_definition(), controller_ii_definition(), controller_iib_definition()):
         if set(calibration) == set(d.parameter_names):
             return d
     raise ControllerError(
         f"calibration names {sorted(calibration)[:6]}... match neither Controller I (damping_front, damping_rear) "
-        "nor Controller II (p01..p20); pass the definition"
+        "nor Controller II (p01..p20, or q01..q20 for II-B); pass the definition"
     )
 
 
