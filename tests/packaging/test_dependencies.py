@@ -41,6 +41,7 @@ KEY_OF_IMPORT = {
     "yaml": "python3-yaml",
     "can": "python3-can",
     "cantools": "python3-cantools-pip",
+    "crccheck": "python-crccheck-pip",
     "rosbags": "python3-rosbags-pip",
     "msgpack": "python3-msgpack",
     "threadpoolctl": "python3-threadpoolctl-pip",

@@ -108,7 +108,7 @@ def _common(receiver: str, ops: dict[Op, str]) -> list[Signal]:
             "Crc8",
             0,
             8,
-            "CRC-8/SAE-J1850 (poly 0x1D, init 0xFF, xorout 0xFF) over data bytes 1..7",
+            "CRC-8/AUTOSAR (poly 0x2F, init 0xFF, xorout 0xFF) over data bytes 1..7",
             receiver=receiver,
         ),
         _sig("Op", 8, 8, "Opcode: multiplexes the frame", multiplexer=True, choices=ops, receiver=receiver),
