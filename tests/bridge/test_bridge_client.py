@@ -15,7 +15,17 @@ from bac_common.paramspace import CalibrationDefinition, RawParameter
 from bac_ecu_bridge.client import CalibrationClient, ClientConfig
 from bac_ecu_bridge.errors import BridgeError, BusError, ErrorCode
 from bac_ecu_bridge.faults import FaultConfig
-from bac_ecu_bridge.protocol import Ack, CalibrationCodec, Commit, Op, Reason, decode_request, encode
+from bac_ecu_bridge.protocol import (
+    Ack,
+    CalibrationCodec,
+    Commit,
+    Op,
+    Reason,
+    Value,
+    decode_request,
+    decode_response,
+    encode,
+)
 
 II = load("controller_ii")
 
@@ -229,6 +239,37 @@ def test_an_ecu_that_acknowledges_without_applying_is_caught_by_the_read_back(ma
     assert err.value.code == ErrorCode.CRC_MISMATCH
     assert err.value.uncertain
     assert rig.ecu.active == {"damping_front": 0.5, "damping_rear": 0.5}
+
+
+class EchoTrustingClient(CalibrationClient):
+    """A client whose read-back takes any value the ECU reports (to see what the result is built from)."""
+
+    def _match_read_expected(self, raw: dict[int, int]) -> Any:
+        return lambda resp: (resp.index, resp.raw) if isinstance(resp, Value) and resp.index in raw else None
+
+    def _check_read_back(self, got: Any, crc: int) -> None:
+        pass
+
+
+def test_the_result_reports_what_the_ecu_echoed_not_the_request(make_rig: RigFactory) -> None:
+    rig = make_rig("controller_i")
+    engine = rig.ecu.engine
+    honest = engine.handle
+
+    def off_by_one(data: bytes) -> list[bytes]:  # the ECU reads damping_front back one LSB higher
+        out = honest(data)
+        resp = decode_response(out[0]) if out else None
+        if isinstance(resp, Value) and resp.index == 0:
+            return [encode(Value(resp.seq, 0, resp.raw + 1))]
+        return out
+
+    engine.handle = off_by_one  # type: ignore[method-assign]
+    client = EchoTrustingClient(rig.bridge_bus, rig.codec, config=FAST)
+    res = client.apply({"damping_front": 0.2, "damping_rear": 0.5})
+    assert res.raw == {0: 2001, 1: 5000}  # the read-back, not the request's 2000
+    assert res.values == {"damping_front": pytest.approx(0.2001), "damping_rear": 0.5}
+    assert res.crc == rig.ecu.active_crc  # the CRC the ECU acknowledged
+    assert rig.ecu.active == {"damping_front": 0.2, "damping_rear": 0.5}  # (what it really holds)
 
 
 def test_sequence_numbers_resynchronize_with_the_ecu(make_rig: RigFactory) -> None:

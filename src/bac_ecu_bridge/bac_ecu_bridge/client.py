@@ -95,9 +95,9 @@ class ClientConfig:
 class ApplyResult:
     """A calibration the ECU confirmed."""
 
-    values: dict[str, float]  # what the ECU holds, decoded, by name in index order
+    values: dict[str, float]  # what the ECU said it holds (read back, else echoed when staged), by name, index order
     raw: dict[int, int]  # the same as raw values by index
-    crc: int  # set CRC-32 (echoed in the ACK)
+    crc: int  # set CRC-32 the ECU acknowledged for its active values
     attempts: int  # transactions tried
     latency_s: float
     seq: int
@@ -285,12 +285,14 @@ class CalibrationClient:
         crc = set_crc(raw)
         self._drain()
         self._exchange("BEGIN", seq, {0: Begin(seq, n)}, self._match_begin(n), deadline)
-        self._exchange(
+        staged: dict[int, int] = self._exchange(
             "WRITE", seq, {i: Write(seq, i, r) for i, r in sorted(raw.items())}, self._match_write(raw), deadline
         )
         state.commit_undecided = True
         try:
-            self._exchange("COMMIT", seq, {0: Commit(seq, n, crc)}, self._match_commit(n, crc, state), deadline)
+            acked = self._exchange(
+                "COMMIT", seq, {0: Commit(seq, n, crc)}, self._match_commit(n, crc, state), deadline
+            )
         except _RetryableError as r:
             if state.commit_decided:
                 state.commit_undecided = False
@@ -300,19 +302,28 @@ class CalibrationClient:
                 state.commit_undecided = False
             raise
         read_back = False
+        # what the result reports is what the ECU said, never the request: the values it read back, else the
+        # values it echoed when staging them (whose CRC it acknowledged for its active set)
+        echoed = staged
         if self.config.verify_readback:
             # the ECU acknowledged the CRC of its active values; reading each one back confirms them
-            got = self._exchange(
+            got: dict[int, int] = self._exchange(
                 "READ", seq, {i: Read(seq, i) for i in sorted(raw)}, self._match_read_expected(raw), deadline
             )
-            if set_crc(got) != crc:  # cannot differ when every value matched; kept as the last word
-                raise _RetryableError(AcknowledgeMismatchError("the read-back set's CRC differs from the written one"))
+            self._check_read_back(got, crc)
+            echoed = got
             read_back = True
         state.commit_undecided = False
-        values = self.codec.decode_set(raw)
+        echoed = dict(sorted(echoed.items()))
+        values = self.codec.decode_set(echoed)
         latency = self._clock() - t0
-        self._log.debug("seq %d: %d parameters applied, crc 0x%08X, %.1f ms", seq, n, crc, latency * 1e3)
-        return ApplyResult(values, dict(sorted(raw.items())), crc, attempts, latency, seq, read_back)
+        ack_crc = int(acked[0].crc)
+        self._log.debug("seq %d: %d parameters applied, crc 0x%08X, %.1f ms", seq, n, ack_crc, latency * 1e3)
+        return ApplyResult(values, echoed, ack_crc, attempts, latency, seq, read_back)
+
+    def _check_read_back(self, got: Mapping[int, int], crc: int) -> None:
+        if set_crc(got) != crc:  # cannot differ when every value matched; kept as the last word
+            raise _RetryableError(AcknowledgeMismatchError("the read-back set's CRC differs from the written one"))
 
     # --- matchers: a reply of the current sequence number -> (key, result) | _Resend | None -----------
     def _nack_error(self, nack: Nack, message: str, code: ErrorCode) -> EcuRejectedError:
