@@ -17,8 +17,10 @@ from bac_ecu_bridge.errors import BridgeError, BusError, ErrorCode
 from bac_ecu_bridge.faults import FaultConfig
 from bac_ecu_bridge.protocol import (
     Ack,
+    Begin,
     CalibrationCodec,
     Commit,
+    Nack,
     Op,
     Reason,
     Value,
@@ -279,6 +281,41 @@ def test_sequence_numbers_resynchronize_with_the_ecu(make_rig: RigFactory) -> No
     res = late.apply({"damping_front": 0.3, "damping_rear": 0.3})
     assert res.attempts == 2 and res.seq == 11
     assert late.stats.nack_reasons == {"SEQUENCE": 1}
+
+
+def test_a_refused_begin_never_resynchronizes_onto_the_refused_number(make_rig: RigFactory) -> None:
+    """Transaction 10 is open at the ECU for 1 parameter; a bridge whose next number is 10 asks for 2."""
+    rig = make_rig("controller_i")
+    assert rig.ecu.engine.handle(encode(Begin(10, 1)))  # an earlier bridge opened 10 and went away
+    client = CalibrationClient(rig.bridge_bus, rig.codec, config=FAST, seq=9)
+    res = client.apply({"damping_front": 0.3, "damping_rear": 0.3})
+    assert res.attempts == 2 and res.seq != 10
+    assert client.apply({"damping_front": 0.4, "damping_rear": 0.4}).attempts == 1  # and every apply after it
+    assert rig.ecu.active == {"damping_front": 0.4, "damping_rear": 0.4}
+
+
+def test_the_client_ignores_a_resynchronization_onto_a_number_refused_in_the_same_apply(
+    make_rig: RigFactory,
+) -> None:
+    """An ECU that names the very number it refused (the first engine did) does not trap the bridge."""
+    rig = make_rig("controller_i")
+    engine = rig.ecu.engine
+    honest = engine.handle
+
+    def names_the_refused(data: bytes) -> list[bytes]:
+        out = honest(data)
+        req = decode_request(data) if len(data) == 8 else None
+        resp = decode_response(out[0]) if out else None
+        if isinstance(req, Begin) and isinstance(resp, Nack) and resp.reason == Reason.SEQUENCE:
+            return [encode(Nack(resp.seq, resp.request_op, resp.reason, 0, req.seq))]
+        return out
+
+    engine.handle = names_the_refused  # type: ignore[method-assign]
+    CalibrationClient(rig.bridge_bus, rig.codec, config=FAST, seq=9).apply({"damping_front": 0.2, "damping_rear": 0.2})
+    late = CalibrationClient(rig.bridge_bus, rig.codec, config=FAST, seq=9)  # reuses 10: refused, "use 10"
+    res = late.apply({"damping_front": 0.3, "damping_rear": 0.3})
+    assert res.attempts == 2 and res.seq == 11
+    assert late.apply({"damping_front": 0.4, "damping_rear": 0.4}).attempts == 1
 
 
 class BrokenBus(can.BusABC):

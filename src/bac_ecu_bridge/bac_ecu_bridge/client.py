@@ -176,6 +176,7 @@ class CalibrationClient:
         self._seq = random.randrange(256) if seq is None else seq % 256
         self._clock = clock
         self._log = logger or logging.getLogger("bac_ecu_bridge.client")
+        self._refused: set[int] = set()  # sequence numbers whose BEGIN the ECU refused during this apply
 
     # --- public API -----------------------------------------------------------------------------
     @property
@@ -197,6 +198,7 @@ class CalibrationClient:
         attempts = 0
         uncertain = False
         last: BridgeError | None = None
+        self._refused = set()
         try:
             while attempts < self.config.max_attempts and self._clock() < deadline:
                 attempts += 1
@@ -334,6 +336,7 @@ class CalibrationClient:
             if isinstance(resp, BeginOk):
                 return (0, True) if resp.count == n else None
             if isinstance(resp, Nack) and resp.request_op == Op.BEGIN:
+                self._refused.add(resp.seq)
                 if resp.reason == Reason.BUSY:
                     raise self._nack_error(
                         resp,
@@ -348,8 +351,11 @@ class CalibrationClient:
                         f"definition '{self.codec.definition.name}' does not match this ECU",
                         ErrorCode.UNKNOWN_PARAMETER,
                     )
-                # a refused BEGIN names a sequence number the ECU accepts: the next transaction uses it
-                resync = (resp.detail - 1) % 256 if resp.reason == Reason.SEQUENCE and resp.detail <= 0xFF else None
+                # a refused BEGIN names a sequence number the ECU accepts: the next transaction uses it, unless
+                # it is a number the ECU refused in this apply (never resynchronize onto a refused number)
+                resync = None
+                if resp.reason == Reason.SEQUENCE and resp.detail <= 0xFF and resp.detail not in self._refused:
+                    resync = (resp.detail - 1) % 256
                 raise _RetryableError(
                     self._nack_error(
                         resp, f"the ECU refused to begin a transaction: {reason_text(resp.reason)}", _code(resp)

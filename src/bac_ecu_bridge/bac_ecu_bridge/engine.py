@@ -179,7 +179,8 @@ class EcuEngine:
             return self._nack(req, Reason.BUSY)
         if req.seq == self._staging_seq:
             if req.count != self._staging_count:
-                return self._nack(req, Reason.SEQUENCE, detail=req.seq)
+                # never name the refused number itself: a bridge resynchronizing onto it would be refused again
+                return self._nack(req, Reason.SEQUENCE, detail=self._free_seq())
             return BeginOk(req.seq, req.count)
         if req.seq in self._history:
             # the detail names a sequence number this ECU accepts next, so a bridge can resynchronize

@@ -184,3 +184,12 @@ def test_a_refused_begin_names_a_free_sequence_number() -> None:
     resp = ask(e, Begin(6, 1))
     assert isinstance(resp, Nack) and resp.reason == Reason.SEQUENCE and resp.detail == 8
     assert ask(e, Begin(8, 1)) == BeginOk(8, 1)
+
+
+def test_a_begin_repeating_the_open_number_with_another_count_names_another_free_number() -> None:
+    e = EcuEngine(DEF)
+    assert ask(e, Begin(10, 1)) == BeginOk(10, 1)  # transaction 10 open for one parameter
+    resp = ask(e, Begin(10, 3))  # the same number, another count: refused
+    assert isinstance(resp, Nack) and resp.reason == Reason.SEQUENCE
+    assert resp.detail != 10 and resp.detail == 11  # never the refused number itself
+    assert ask(e, Begin(resp.detail, 3)) == BeginOk(11, 3)
