@@ -12,6 +12,7 @@ from bridge_rig import FAST, RigFactory, load, make_rig_fixture  # noqa: F401  (
 
 from bac_common.errors import OutOfBoundsError, UnknownParameterError
 from bac_common.paramspace import CalibrationDefinition, RawParameter
+from bac_ecu_bridge.backend import Holds
 from bac_ecu_bridge.client import CalibrationClient, ClientConfig
 from bac_ecu_bridge.errors import BridgeError, BusError, ErrorCode
 from bac_ecu_bridge.faults import FaultConfig
@@ -125,7 +126,6 @@ def test_ecu_does_not_know_a_parameter(make_rig: RigFactory) -> None:
     ("reason", "code", "match"),
     [
         (Reason.CRC_MISMATCH, ErrorCode.CRC_MISMATCH, "CRC over the staged set does not match"),
-        (Reason.SEQUENCE, ErrorCode.SEQUENCE, "sequence error"),
         (Reason.COUNT_MISMATCH, ErrorCode.SEQUENCE, "incomplete"),
     ],
 )
@@ -138,6 +138,16 @@ def test_retryable_refusals_are_retried_then_reported(
     assert err.value.code == code
     assert err.value.attempts == FAST.max_attempts
     assert "gave up after 3 transaction(s)" in str(err.value)
+
+
+def test_a_commit_answered_with_a_sequence_error_is_settled_by_reading_the_ecu_back(make_rig: RigFactory) -> None:
+    # every ACK is replaced on the wire by a SEQUENCE refusal: the commit may or may not have been applied
+    rig = make_rig("controller_i", ecu_faults=FaultConfig(nack=int(Reason.SEQUENCE), direction="send"))
+    want = {"damping_front": 0.3, "damping_rear": 0.3}
+    res = rig.client.apply(want)
+    assert res.read_back and "read back" in res.note
+    assert res.values == rig.ecu.active == rig.codec.quantize(want)  # it was: the read-back says so
+    assert rig.client.stats.settled == 1
 
 
 def test_a_silent_ecu_times_out_within_the_bound(make_rig: RigFactory) -> None:
@@ -158,14 +168,63 @@ def test_a_silent_ecu_times_out_within_the_bound(make_rig: RigFactory) -> None:
     assert 0.12 <= time.monotonic() - t0 < 1.0  # the 0.12 s limit plus scheduling on a loaded machine
 
 
-def test_lost_acknowledgments_leave_the_state_uncertain(make_rig: RigFactory) -> None:
+def test_lost_acknowledgments_are_settled_by_reading_the_ecu_back(make_rig: RigFactory) -> None:
     rig = make_rig("controller_i", ecu_faults=FaultConfig(drop=1.0, ops=(int(Op.ACK),), direction="send"))
     want = {"damping_front": 0.3, "damping_rear": 0.7}
+    res = rig.client.apply(want)  # the ECU did apply it, only its word is missing: the read-back says so
+    assert res.values == rig.ecu.active == rig.codec.quantize(want)
+    assert "read back" in res.note and rig.client.stats.settled == 1
+    assert rig.ecu.engine.staging_seq is None
+
+
+class LateCommits(can.BusABC):
+    """The bridge's bus, on which every COMMIT reaches the ECU ``late_s`` late (held in an adapter's queue)."""
+
+    def __init__(self, inner: can.BusABC, late_s: float) -> None:
+        super().__init__(channel="late")
+        self.inner, self.late_s, self.channel_info = inner, late_s, "late-commits"
+        self.in_flight: list[threading.Timer] = []
+
+    def send(self, msg: can.Message, timeout: float | None = None) -> None:
+        if len(msg.data) == 8 and msg.data[1] == Op.COMMIT:
+            timer = threading.Timer(self.late_s, self.inner.send, args=(msg,))
+            self.in_flight.append(timer)
+            timer.start()
+        else:
+            self.inner.send(msg, timeout)
+
+    def _recv_internal(self, timeout: float | None) -> tuple[can.Message | None, bool]:
+        return self.inner.recv(timeout), False
+
+    def landed(self) -> bool:
+        return not any(t.is_alive() for t in self.in_flight)
+
+
+def test_a_late_commit_never_changes_the_ecu_after_the_bridge_reported_its_state(make_rig: RigFactory) -> None:
+    """The review's hole: commits arriving after the bridge gave up made staged values active afterwards."""
+    rig = make_rig("controller_i")
+    client = rig.client
+    client.apply({"damping_front": 0.1, "damping_rear": 0.1})
+    engine = rig.ecu.engine
+    refused = engine.stats.by_reason.get("SEQUENCE", 0)
+    late = LateCommits(rig.bridge_bus, late_s=0.15)
+    client.bus = late
+    client.config = ClientConfig(step_timeout_s=0.01, step_retries=1, max_attempts=1, timeout_s=0.05)
     with pytest.raises(BridgeError) as err:
-        rig.client.apply(want)
-    assert err.value.code == ErrorCode.TIMEOUT
-    assert err.value.uncertain  # the ECU did apply it: only its word is missing
-    assert rig.ecu.active == rig.codec.quantize(want)
+        client.apply({"damping_front": 0.9, "damping_rear": 0.9})
+    assert err.value.uncertain
+    state = err.value.ecu_state
+    assert state is not None and state.read_back and state.holds is Holds.PREVIOUS
+    deadline = time.monotonic() + 5.0
+    while not late.landed() and time.monotonic() < deadline:  # every late COMMIT reaches the ECU
+        time.sleep(0.01)
+    assert late.landed()
+    while engine.stats.by_reason.get("SEQUENCE", 0) < refused + len(late.in_flight) and time.monotonic() < deadline:
+        time.sleep(0.01)  # ... and is refused: its staged set was aborted
+    assert engine.stats.by_reason.get("SEQUENCE", 0) >= refused + len(late.in_flight) >= 1
+    assert rig.ecu.active == state.values == {"damping_front": 0.1, "damping_rear": 0.1}
+    assert rig.ecu.commits == 1 and rig.ecu.engine.staging_seq is None
+    late.shutdown()
 
 
 def test_a_lost_acknowledgment_is_recovered_by_repeating_the_commit(make_rig: RigFactory) -> None:

@@ -33,8 +33,10 @@ BRIDGE_NODE = "BAC_Bridge"
 ECU_NODE = "ECU"
 PARAM_PREFIX = "P_"
 
-_REQUEST_OP_NAMES = {op: op.name for op in (Op.BEGIN, Op.WRITE, Op.COMMIT, Op.READ, Op.STATUS)}
-_RESPONSE_OP_NAMES = {op: op.name for op in (Op.BEGIN_OK, Op.STAGED, Op.ACK, Op.VALUE, Op.STATUS_OK, Op.NACK)}
+_REQUEST_OP_NAMES = {op: op.name for op in (Op.BEGIN, Op.WRITE, Op.COMMIT, Op.READ, Op.STATUS, Op.ABORT)}
+_RESPONSE_OP_NAMES = {
+    op: op.name for op in (Op.BEGIN_OK, Op.STAGED, Op.ACK, Op.VALUE, Op.STATUS_OK, Op.ABORTED, Op.NACK)
+}
 
 
 def _choices(table: dict[Any, str]) -> OrderedDict[int, str | NamedSignalValue]:
@@ -197,6 +199,15 @@ def build_database(definition: CalibrationDefinition, ids: CanIds | None = None)
             32,
             "CRC-32 over the ECU's whole active table",
             mux=[Op.STATUS_OK],
+            mux_signal="Op",
+            receiver=BRIDGE_NODE,
+        ),
+        _sig(
+            "AbortCount",
+            24,
+            8,
+            "Number of staged values the ABORT dropped (0: nothing was staged)",
+            mux=[Op.ABORTED],
             mux_signal="Op",
             receiver=BRIDGE_NODE,
         ),

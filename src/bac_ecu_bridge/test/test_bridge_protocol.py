@@ -16,6 +16,8 @@ from bac_common.errors import DefinitionError, OutOfBoundsError, UnknownParamete
 from bac_common.paramspace import CalibrationDefinition, MetaParameter, RawParameter, uniform_parameters
 from bac_ecu_bridge.errors import FrameError, InvalidRequestError, ProtocolConfigError
 from bac_ecu_bridge.protocol import (
+    Abort,
+    Aborted,
     Ack,
     Begin,
     BeginOk,
@@ -42,6 +44,8 @@ from bac_ecu_bridge.protocol import (
 )
 
 ALL_PDUS = [
+    Abort(7),
+    Aborted(7, 20),
     Begin(7, 20),
     Write(7, 3, 123456),
     Commit(7, 20, 0xDEADBEEF),
@@ -92,7 +96,11 @@ def test_three_bit_errors_autosar_misses_none_sae_j1850_misses_198() -> None:
 
 
 def test_every_three_bit_flip_of_real_frames_is_detected() -> None:
-    for pdu in (Write(7, 3, 123456), Ack(7, 20, 0xDEADBEEF), Nack(7, int(Op.WRITE), int(Reason.OUT_OF_RANGE), 4, 0x1234)):
+    for pdu in (
+        Write(7, 3, 123456),
+        Ack(7, 20, 0xDEADBEEF),
+        Nack(7, int(Op.WRITE), int(Reason.OUT_OF_RANGE), 4, 0x1234),
+    ):
         data = encode(pdu)
         for flips in itertools.combinations(range(64), 3):
             garbled = bytearray(data)
