@@ -326,6 +326,8 @@ def test_each_negative_reason_surfaces_as_a_service_error(
     resp = caller.apply(ramp())
     assert not resp.success and resp.error_code == ErrorCode.BUS
     assert "cannot open CAN interface socketcan:bacnope0" in resp.message
+    rd = caller.read()  # what bo_agent asks before trial 1 (it waits, telling the driver this)
+    assert not rd.success and "is the adapter plugged in and 'bacnope0' up" in rd.message
 
 
 def test_faulty_bus_across_processes_never_acknowledges_falsely(

@@ -40,6 +40,7 @@ from bac_common.errors import BacError
 
 RECOMMENDATION_NAME = "recommendation.json"
 ERROR_ECU_BUSY = 4  # bac_msgs/srv/ApplyCalibration ERROR_ECU_BUSY: the ECU refuses while the vehicle moves
+ERROR_BUS = 8  # bac_msgs/srv/ApplyCalibration ERROR_BUS: the CAN link to the ECU is down (adapter missing, failed)
 
 
 class CampaignError(BacError):
@@ -105,6 +106,8 @@ class CampaignConfig:
     max_consecutive_failures: int = 3
     busy_retry_s: float = 2.0  # an ECU that answers "busy" (vehicle moving) is asked again after this long
     busy_timeout_s: float = 120.0  # ... until it has been busy this long (ROS time): then a failed try
+    link_retry_s: float = 2.0  # the CAN link is down (ERROR_BUS): the campaign pauses and asks again after this long
+    link_timeout_s: float = 600.0  # ... until it has been down this long (ROS time): then the campaign stops, resumable
     extra: Mapping[str, Any] = field(default_factory=dict)  # journaled with the start (n_initial, grid_size, ...)
 
     def __post_init__(self) -> None:
@@ -185,6 +188,7 @@ class _Trial:
     apply_try: int = 0  # apply requests sent (each answer is matched to its request)
     failed_applies: int = 0  # failed tries (an ECU busy within busy_timeout_s is not one)
     busy_since: float = math.nan
+    link_since: float = math.nan  # the CAN link went down while applying this trial (the campaign is paused)
     confirmed: bool = False
     phase: State = State.PROPOSED
     last_reason: str = ""
@@ -474,7 +478,11 @@ class Campaign:
         if success:
             t.confirmed = True
             t.busy_since = math.nan
+            t.link_since = math.nan
             return self._ready(t)
+        if error_code == ERROR_BUS:
+            return self._link_down(t, message)
+        t.link_since = math.nan
         if error_code == ERROR_ECU_BUSY:
             now = self.clock()
             if math.isnan(t.busy_since):
@@ -489,6 +497,31 @@ class Campaign:
                     ),
                 ]
         return self._apply_failed(t, reason)
+
+    def _link_down(self, t: _Trial, message: str) -> list[Action]:
+        """The CAN link to the ECU is down: the campaign pauses (no trial fails) until it is back, within bounds."""
+        now = self.clock()
+        if math.isnan(t.link_since):
+            t.link_since = now
+            self._j("link_lost", trial_id=t.trial_id, message=message)
+        down = now - t.link_since
+        if down < self.cfg.link_timeout_s:
+            return [
+                Log("warn", f"trial {t.trial_id}: the ECU link is down ({message}); paused, asking again"),
+                *self._apply(
+                    t,
+                    self.cfg.link_retry_s,
+                    f"Wait: the campaign is paused, the CAN link to the ECU is down ({message[:200]}). Check that "
+                    "the adapter is plugged in and its interface up; the campaign goes on by itself.",
+                ),
+            ]
+        self._j("campaign_paused", trial_id=t.trial_id, down_s=down, message=message)
+        self.finished = True
+        text = (
+            f"The ECU link stayed down for {down:.0f} s ({message[:200]}): the campaign stops here, no trial failed. "
+            f"Fix the link and launch again with the same campaign folder ({self.campaign_dir}) to resume it."
+        )
+        return [Log("error", text), self._status(State.IDLE, text, message), Finish(2, None)]
 
     def on_apply_timeout(self, trial_id: int, apply_try: int, reason: str) -> list[Action]:
         """No answer from the bridge within the time limit (or the service is not there)."""
