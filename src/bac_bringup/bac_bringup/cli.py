@@ -31,6 +31,7 @@ SUBCOMMANDS: dict[str, tuple[str, str, str]] = {
     "report": ("bac_campaign.report", "main", "make a campaign's report (PNG + HTML)"),
     "reduce": ("bac_reduce.cli", "main", "simulation phase: find the parameters that matter (paper sec. III-D)"),
     "ground-truth": ("bac_sim.ground_truth", "main", "recompute the simulator's true optima by dense grids"),
+    "definition": ("bac_ecu_bridge.definition_cli", "main", "calibration definitions from an ECU's A2L file"),
 }
 
 

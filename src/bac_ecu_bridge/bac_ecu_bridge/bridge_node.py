@@ -59,6 +59,7 @@ from bac_ecu_bridge.core import BridgeCore
 from bac_ecu_bridge.errors import BridgeError, BusError, ErrorCode, InvalidRequestError
 from bac_ecu_bridge.faults import FaultConfig, FaultyBus
 from bac_ecu_bridge.protocol import DEFAULT_REQUEST_ID, DEFAULT_RESPONSE_ID, CalibrationCodec, CanIds, resolve_request
+from bac_ecu_bridge.xcp.client import XcpCalibrationClient, XcpConfig, XcpSettings
 from bac_msgs.msg import Calibration
 from bac_msgs.srv import ApplyCalibration, ReadCalibration
 
@@ -70,6 +71,14 @@ class EcuBridgeNode(BacNode):
 
     def __init__(self, **kwargs: Any) -> None:
         super().__init__("ecu_bridge", **kwargs)
+        self.protocol = self.declare_str(
+            "protocol",
+            "bac",
+            "the ECU's calibration protocol: bac (bac's own, docs/ecu_bridge.md section 1) or xcp (ASAM XCP on CAN, "
+            "the definition's parameters carrying their A2L addresses)",
+            choices=("bac", "xcp"),
+            read_only=True,
+        )
         definition_file = self.declare_str(
             "definition_file",
             "controller_i",
@@ -124,6 +133,50 @@ class EcuBridgeNode(BacNode):
             ),
             self.declare_bool("can.extended_id", False, "29-bit CAN identifiers", read_only=True),
         )
+        xcp_overrides = {
+            "can_id_master": self.declare_int(
+                "xcp.can_id_master",
+                -1,
+                "XCP: CAN id of the commands (bridge -> ECU, the A2L's CAN_ID_MASTER); -1 = the definition's, "
+                "else 0x7E0",
+                -1,
+                MAX_CAN_ID,
+                read_only=True,
+            ),
+            "can_id_slave": self.declare_int(
+                "xcp.can_id_slave",
+                -1,
+                "XCP: CAN id of the ECU's responses (CAN_ID_SLAVE); -1 = the definition's, else 0x7E1",
+                -1,
+                MAX_CAN_ID,
+                read_only=True,
+            ),
+            "pages": self.declare_str(
+                "xcp.pages",
+                "auto",
+                "XCP: the calibration segment has a reference and a working page (true), one page (false), or as "
+                "the definition says (auto; default true)",
+                choices=("auto", "true", "false"),
+                read_only=True,
+            ),
+            "key_algorithm": self.declare_str(
+                "xcp.key_algorithm",
+                "",
+                "XCP seed & key: xor:<hex secret>, or module.path:function(resource, seed) -> key; '' = the "
+                "definition's (none)",
+                read_only=True,
+            ),
+        }
+        self.declare_float("xcp.t7_s", 0.02, "XCP t7: wait before repeating a command the ECU found busy, s", 0.0, 5.0)
+        self.declare_float(
+            "xcp.settle_s",
+            0.06,
+            "XCP: after an anomaly (a timeout, a late or duplicated answer) the final checks wait this long for "
+            "frames still on the way, s (longer than any frame stays in the adapter's queues)",
+            0.0,
+            5.0,
+        )
+        self.declare_bool("xcp.block_mode", True, "XCP: DOWNLOAD in master block mode when the ECU offers it")
         self.trace_file = self.declare_str(
             "can.trace_file",
             "",
@@ -177,10 +230,21 @@ class EcuBridgeNode(BacNode):
             self.definition = CalibrationDefinition.load(resolve_definition(definition_file))
             self.codec = CalibrationCodec(self.definition)
             self.faults = FaultConfig.parse(fault_spec)
+            self.xcp_settings: XcpSettings | None = None
+            if self.protocol == "xcp":
+                from bac_ecu_bridge.xcp.layout import XcpLayout
+
+                XcpLayout(self.definition)  # every parameter has its XCP address, none overlap
+                pages = xcp_overrides.pop("pages")
+                given = {k: v for k, v in xcp_overrides.items() if v not in (-1, "")}
+                if pages != "auto":
+                    given["pages"] = pages == "true"
+                self.xcp_settings = XcpSettings.of(self.definition, **given)
+                s = self.xcp_settings
+                self.ids = CanIds(s.can_id_master, s.can_id_slave, s.extended_id)  # the ids the bus filters on
         except (BacError, ValueError) as exc:
             raise DefinitionError(f"ecu_bridge cannot start: {exc}") from exc
 
-        self.protocol = "bac"
         self._lock = threading.Lock()  # one CAN transaction at a time
         self._bus: can.BusABC | None = None
         self._ecu_status = "not polled yet"
@@ -212,9 +276,10 @@ class EcuBridgeNode(BacNode):
             except BusError:
                 pass  # reported below and on /diagnostics; every call tries again (and checks the ECU then)
         self.get_logger().info(
-            f"ecu_bridge: definition '{self.definition.name}' ({len(self.codec.params)} raw parameters, tuned: "
-            f"{', '.join(self.definition.tuned)}), CAN {self.settings.describe()}, request 0x{self.ids.request_id:X} "
-            f"/ response 0x{self.ids.response_id:X}{' (29-bit)' if self.ids.extended else ''}"
+            f"ecu_bridge ({self.protocol}): definition '{self.definition.name}' ({len(self.codec.params)} raw "
+            f"parameters, tuned: {', '.join(self.definition.tuned)}), CAN {self.settings.describe()}, "
+            f"request 0x{self.ids.request_id:X} / response 0x{self.ids.response_id:X}"
+            f"{' (29-bit)' if self.ids.extended else ''}"
             + (f", trace {self.trace_file}" if self.trace_file else "")
             + (f", INJECTED FAULTS {fault_spec}" if self.faults.any else "")
             + ("" if self._bus is not None else f"; CAN not open yet: {self.core.bus_error}")
@@ -242,6 +307,19 @@ class EcuBridgeNode(BacNode):
             verify_readback=bool(p("verify_readback").value),
         )
 
+    def _xcp_config(self) -> XcpConfig:
+        p = self.get_parameter
+        return XcpConfig(
+            step_timeout_s=float(p("step_timeout_s").value),
+            step_retries=int(p("step_retries").value),
+            max_attempts=int(p("max_attempts").value),
+            timeout_s=float(p("default_timeout_s").value),
+            verify_readback=bool(p("verify_readback").value),
+            t7_s=float(p("xcp.t7_s").value),
+            settle_s=float(p("xcp.settle_s").value),
+            block_mode=bool(p("xcp.block_mode").value),
+        )
+
     def _open_backend(self) -> CalibrationBackend:
         """Open the bus and the protocol's client on it; raises :class:`BusError`. Called with the lock held."""
         bus: can.BusABC = open_bus(self.settings, self.ids)
@@ -250,12 +328,20 @@ class EcuBridgeNode(BacNode):
         if self.trace_file:
             bus = TracedBus(bus, self.trace_file)
         self._bus = bus
-        return _OwnedBus(CalibrationClient(bus, self.codec, self.ids, self._config(), logger=None), bus)
+        client: CalibrationBackend
+        try:
+            if self.xcp_settings is not None:
+                client = XcpCalibrationClient(bus, self.definition, self.xcp_settings, self._xcp_config())
+            else:
+                client = CalibrationClient(bus, self.codec, self.ids, self._config(), logger=None)
+        except BaseException:
+            bus.shutdown()
+            raise
+        return _OwnedBus(client, bus)
 
     def _ensure(self) -> CalibrationBackend:
         backend = self.core.ensure()
-        if isinstance(backend, _OwnedBus) and isinstance(backend.client, CalibrationClient):
-            backend.client.config = self._config()  # ros2 param set takes effect at the next call
+        self._ensure_config()
         return backend
 
     # --- services -----------------------------------------------------------------------------------------
@@ -331,8 +417,11 @@ class EcuBridgeNode(BacNode):
     def _ensure_config(self) -> None:
         """Pass parameters changed at run time (ros2 param set) to an open backend."""
         backend = self.core.backend
-        if isinstance(backend, _OwnedBus) and isinstance(backend.client, CalibrationClient):
-            backend.client.config = self._config()
+        if isinstance(backend, _OwnedBus):
+            if isinstance(backend.client, CalibrationClient):
+                backend.client.config = self._config()
+            elif isinstance(backend.client, XcpCalibrationClient):
+                backend.client.config = self._xcp_config()
 
     def _on_read(self, request: ReadCalibration.Request, response: ReadCalibration.Response) -> Any:
         with self._lock:
