@@ -47,6 +47,7 @@ KEY_OF_IMPORT = {
     "construct": "python3-construct",
     "traitlets": "python3-traitlets-pip",
     "rosbags": "python3-rosbags-pip",
+    "asammdf": "python3-asammdf-pip",
     "msgpack": "python3-msgpack",
     "threadpoolctl": "python3-threadpoolctl-pip",
     "dask": "python3-dask-pip",

@@ -87,6 +87,15 @@ class BagPlayerNode(BacNode):
             60.0,
         )
         self.output = self.declare_str("output", "", "write recorded vs replayed J as JSON to this file")
+        channel_map = self.declare_str(
+            "channel_map",
+            "",
+            "MDF files: YAML mapping roles (accel_x ... gyro_z, speed, distance) to channels",
+            read_only=True,
+        )
+        channels = self.declare_str_list(
+            "channels", [], "MDF files: ROLE=CHANNEL pairs (win over channel_map)", read_only=True
+        )
         self.hold_s = self.declare_float(
             "hold_for_score_s",
             30.0,
@@ -99,6 +108,9 @@ class BagPlayerNode(BacNode):
             raise ValueError("bag_player: parameter 'bags' is empty: give campaign folders or bag paths")
         self.paths = expand_bag_paths(bags)
         self.topic_map = parse_topic_map(topic_map)
+        from bac_measure.mdfio import ChannelMap
+
+        self.channels = ChannelMap.load(channel_map or None, channels)
         self.queue, self.recorded = self._load()
         self.get_logger().info(
             f"{len(self.queue)} messages from {len(self.paths)} bags; {len(self.expected)} runs to rescore"
@@ -129,7 +141,7 @@ class BagPlayerNode(BacNode):
         recorded: dict[RunKey, float] = {}
         self.expected: set[RunKey] = set()
         for k, path in enumerate(self.paths, start=1):
-            msgs = list(iter_bag_messages(path, [*PLAY_TOPICS, TOPIC_RUN_SCORE], self.topic_map))
+            msgs = list(iter_bag_messages(path, [*PLAY_TOPICS, TOPIC_RUN_SCORE], self.topic_map, self.channels))
             play = [m for m in msgs if m.topic in PLAY_TOPICS]
             for m in msgs:
                 if m.topic == TOPIC_RUN_SCORE:

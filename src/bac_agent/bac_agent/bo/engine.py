@@ -383,16 +383,66 @@ class Engine:
         self.observations.append(Observation(p, v))
 
     def tell_failed(self, params: Mapping[str, float], reason: str) -> None:
-        """Record that ``params`` could not be evaluated (never re-proposed exactly)."""
+        """Record that ``params`` could not be evaluated (never re-proposed exactly).
+
+        The next ask fits the model again, as after a :meth:`tell` (the failure does not change the model's
+        data, but a fit cached from before it would make the engine's state depend on more than what was
+        told, the random generator and the last hyperparameters: see :meth:`ask_state`)."""
         x = self.space.to_array(params)
         self._drop_pending(x)
         self.failures.append(Failure(self.space.to_params(x), str(reason)))
+        self._gp_key = None
 
     def _drop_pending(self, x: FloatArray) -> None:
         for i, p in enumerate(self.pending):
             if np.allclose(self.space.to_array(p), x, rtol=0.0, atol=1e-12):
                 del self.pending[i]
                 return
+
+    def ask_state(self) -> dict[str, Any]:
+        """What the next asks depend on besides the tells, as JSON: the random generator and the last fitted
+        hyperparameters (the start of the next fit). A campaign journals it with each proposal; replaying the
+        tells and :meth:`restore_ask` then asks what the uninterrupted engine would have (every fit after a
+        tell or a failure starts again from these, so no other cached state matters)."""
+        h = self._gp.hyper
+        return {
+            "rng": self.rng.bit_generator.state,
+            "hyper": None
+            if h is None
+            else {
+                "lengthscales": h.lengthscales.tolist(),
+                "outputscale": h.outputscale,
+                "noise": h.noise,
+                "mean": h.mean,
+            },
+        }
+
+    def restore_ask(self, params: Mapping[str, float], state: Mapping[str, Any] | None) -> None:
+        """Replay an ask from a journal: ``params`` become pending as :meth:`ask` left them, and the random
+        generator and the last hyperparameters are those :meth:`ask_state` gave right after it (``None``: a
+        journal without them; the engine then goes on from its own state, and later asks differ from the
+        uninterrupted run's)."""
+        x = self.space.to_array(params)
+        self.pending.append(self.space.to_params(x))
+        if not state:
+            return
+        try:
+            self.rng.bit_generator.state = dict(state["rng"])
+            h = state.get("hyper")
+            hyper = (
+                None
+                if not h
+                else Hyper(
+                    np.asarray(h["lengthscales"], dtype=float),
+                    float(h["outputscale"]),
+                    float(h["noise"]),
+                    float(h.get("mean", 0.0)),
+                )
+            )
+        except (KeyError, TypeError, ValueError) as exc:
+            raise EngineError(f"malformed journaled optimizer state: {exc}") from exc
+        self._gp = GP(self._gp.config, hyper=hyper)
+        self._gp_key = None
 
     def forget_pending(self) -> None:
         """Drop every ask that was never told (e.g. abandoned trials)."""
