@@ -254,6 +254,8 @@ class XcpCalibrationClient:
         self._anomaly_at = -math.inf
         self._dirty = False
         self._degraded = False  # block transfers failed in this apply: one answered command per frame
+        self._talked = False
+        self._checksum_ok: bool | None = None  # the ECU implements BUILD_CHECKSUM (None: not asked yet)
         self._baseline = self.layout.quantize(definition.baseline_values())
         self.last_confirmed: dict[str, float] | None = None
         self._ecu_page: int | None = None  # what the bridge knows of the page the ECU application uses
@@ -425,7 +427,7 @@ class XcpCalibrationClient:
                 elif p == PreAction.SYNCH:
                     self._synch(deadline)
                 elif p in (PreAction.UNLOCK_SLAVE, PreAction.GET_SEED_UNLOCK):
-                    self._unlock(deadline)
+                    self._unlock(deadline, command)
                 # SET_MTA: a memory transfer sets its MTA again when repeated (self._dirty)
 
     def _refusal(self, command: str, error: int) -> XcpCommandError:
@@ -473,6 +475,7 @@ class XcpCalibrationClient:
     def _session(self, deadline: float) -> Any:
         m = self._open()
         if self._connected:
+            self._talked = True
             return m
         types = self._types
 
@@ -491,24 +494,19 @@ class XcpCalibrationClient:
         else:
             props.masterBlockMode = False
             props.maxBs = 0
+        self._talked = True
         status = self._cmd("GET_STATUS", m.getStatus, deadline)
         self._connected = True
         self._page_bytes = {}
-        if status is not None and status.resourceProtectionStatus.calpag:
-            self._unlock(deadline)
+        if status is not None and status.resourceProtectionStatus.calpag and self.key_algorithm is not None:
+            self._unlock(deadline)  # without an algorithm, a protected command will be refused and say so
         del types
         return m
 
-    def _unlock(self, deadline: float) -> None:
+    def _unlock(self, deadline: float, command: str = "UNLOCK") -> None:
         m = self._master
         if self.key_algorithm is None:
-            raise XcpCommandError(
-                "UNLOCK",
-                0x25,
-                "ERR_ACCESS_LOCKED",
-                "the ECU protects its calibration with seed & key",
-                ErrorCode.INVALID_REQUEST,
-            )
+            raise self._refusal(command, 0x25)  # the ECU's ERR_ACCESS_LOCKED: no algorithm to answer its seed
         seed = self._cmd("GET_SEED", lambda: m.getSeed(0x00, RESOURCE_CAL_PAG), deadline)
         data = bytes(seed.seed) if seed is not None else b""
         if not data:
@@ -647,6 +645,26 @@ class XcpCalibrationClient:
             out += self._cmd("SHORT_UPLOAD", one, deadline, _length(n))
         return out
 
+    def _crc_of(self, run: Run, deadline: float, strict: bool = True) -> int | None:
+        """The ECU's CRC-32 over a run, or None when it does not implement BUILD_CHECKSUM (ERR_CMD_UNKNOWN):
+        then the bridge verifies by read-back alone. ``strict=False`` (reading what the ECU holds): any other
+        refusal of BUILD_CHECKSUM also falls back to the read-back, the refusal is left to the apply to report."""
+        if self._checksum_ok is False:
+            return None
+        try:
+            crc = self._checksum(run, deadline)
+        except XcpCommandError as exc:
+            if exc.error != 0x20:
+                if strict:
+                    raise
+                self._log.warning("XCP: %s; verified by reading back instead", exc)
+                return None
+            self._checksum_ok = False
+            self._log.warning("XCP: the ECU does not implement BUILD_CHECKSUM: every write is verified by read-back")
+            return None
+        self._checksum_ok = True
+        return crc
+
     def _checksum(self, run: Run, deadline: float) -> int:
         m = self._master
 
@@ -676,8 +694,9 @@ class XcpCalibrationClient:
         byte read back must match. What differs is written again (DOWNLOAD by DOWNLOAD), within bounds."""
         crc = zlib.crc32(want) & 0xFFFF_FFFF
         for _ in range(REPAIR_ROUNDS):
-            matches = self._checksum(run, deadline) == crc
-            if matches and not read_back:
+            ecu_crc = self._crc_of(run, deadline)
+            matches = ecu_crc is None or ecu_crc == crc
+            if matches and not read_back and ecu_crc is not None:
                 return want
             got = self._read_run(run, deadline)
             if matches and got == want:
@@ -705,18 +724,30 @@ class XcpCalibrationClient:
         )
 
     def _read_page(self, page: int | None, deadline: float) -> dict[Run, bytes]:
-        """Every run of ``page`` (None: the page XCP accesses already), each checked by the ECU's checksum."""
-        if page is not None and self.settings.pages:
+        """Every run of ``page`` (None: the page XCP accesses already), each checked by the ECU's checksum (or,
+        without BUILD_CHECKSUM, read twice alike)."""
+        if page is not None and self.settings.pages and self._get_page(MODE_XCP, deadline) != page:
             self._set_page(MODE_XCP, page, deadline)
         out: dict[Run, bytes] = {}
         for run in self.layout.runs:
             got = self._read_run(run, deadline)
-            if self._checksum(run, deadline) != zlib.crc32(got) & 0xFFFF_FFFF:
+            crc = self._crc_of(run, deadline, strict=False)
+            if crc is None:
+                if self._read_run(run, deadline) != got:
+                    raise _MismatchError(f"XCP read of 0x{run.address:X}+{run.size}: two reads disagree")
+            elif crc != zlib.crc32(got) & 0xFFFF_FFFF:
                 raise _MismatchError(
                     f"XCP read of 0x{run.address:X}+{run.size}: the bytes do not match the ECU's CRC-32"
                 )
             out[run] = got
         return out
+
+    def _holds(self, run: Run, data: bytes, deadline: float) -> bool:
+        """The ECU's run holds ``data`` (its CRC-32, or the bytes read back)."""
+        crc = self._crc_of(run, deadline, strict=False)
+        if crc is None:
+            return self._read_run(run, deadline) == data
+        return crc == zlib.crc32(data) & 0xFFFF_FFFF
 
     def _wait_settled(self) -> None:
         """Frames still on the way after an anomaly land before the final checks."""
@@ -744,6 +775,7 @@ class XcpCalibrationClient:
         uncertain = False  # ... and its outcome is not known
         self._anomaly_at = -math.inf
         self._degraded = False
+        self._talked = False  # a session with the ECU was up during this apply
         while attempts < self.config.max_attempts and self._clock() < deadline:
             attempts += 1
             self.stats.attempts += 1
@@ -782,8 +814,10 @@ class XcpCalibrationClient:
         last.attempts = attempts
         last.uncertain = uncertain
         self.stats.applies_failed += 1
-        if not touched and self._anomaly_at == -math.inf:
-            last.ecu_state = self._kept(previous)  # nothing reached the ECU's page, nothing odd happened on the way
+        if not touched and (self._anomaly_at == -math.inf or not self._talked):
+            # nothing that changes what the ECU uses was sent, and nothing odd happened in a session with it (a
+            # garbled frame could become such a command; an ECU that never answered ignores them all)
+            last.ecu_state = self._kept(previous)
             raise last
         state_after = self.settle(want, previous)
         last.ecu_state = state_after
@@ -837,7 +871,11 @@ class XcpCalibrationClient:
                 # the controller runs on the reference page (the safe data set) while the working page is written
                 state.touched = state.in_doubt = True
                 self._ecu_page = None
-                self._set_page(MODE_ECU, s.reference_page, deadline)
+                try:
+                    self._set_page(MODE_ECU, s.reference_page, deadline)
+                except XcpCommandError:
+                    state.touched = state.in_doubt = False  # refused (and confirmed): nothing changed
+                    raise
                 self._ecu_page = s.reference_page
                 state.in_doubt = False
             self._set_page(MODE_XCP, s.working_page, deadline)
@@ -858,15 +896,13 @@ class XcpCalibrationClient:
         if s.pages and self._get_page(MODE_ECU, deadline) != s.working_page:
             raise _MismatchError("XCP GET_CAL_PAGE: the ECU application does not use the working page after the switch")
         for run, data in image.items():
-            if self._checksum(run, deadline) != zlib.crc32(data) & 0xFFFF_FFFF:
-                raise _MismatchError(f"XCP BUILD_CHECKSUM over 0x{run.address:X}+{run.size} changed after the commit")
+            if not self._holds(run, data, deadline):
+                raise _MismatchError(f"XCP: the memory at 0x{run.address:X}+{run.size} changed after the commit")
         if self._anomaly_at > -math.inf and self._clock() - self._anomaly_at < self.config.settle_s:
             self._wait_settled()  # an anomaly during the final checks: check once more after it settled
             for run, data in image.items():
-                if self._checksum(run, deadline) != zlib.crc32(data) & 0xFFFF_FFFF:
-                    raise _MismatchError(
-                        f"XCP BUILD_CHECKSUM over 0x{run.address:X}+{run.size} changed after the commit"
-                    )
+                if not self._holds(run, data, deadline):
+                    raise _MismatchError(f"XCP: the memory at 0x{run.address:X}+{run.size} changed after the commit")
         self._ecu_page = s.working_page if s.pages else 0
         state.in_doubt = False
         self._page_bytes[self._ecu_page] = dict(got)
@@ -893,6 +929,11 @@ class XcpCalibrationClient:
                 except BusError as exc:
                     problem = str(exc)
                     break
+                except XcpCommandError as exc:
+                    problem = str(exc)
+                    if exc.code == ErrorCode.ECU_BUSY:
+                        continue
+                    break  # the ECU refuses to be read (and said so): asking again until the deadline changes nothing
                 except BridgeError as exc:
                     problem = str(exc)
                     continue
@@ -975,7 +1016,7 @@ class XcpCalibrationClient:
             if known is not None:
                 if self.settings.pages:
                     self._set_page(MODE_XCP, page, deadline)
-                if all(self._checksum(r, deadline) == zlib.crc32(b) & 0xFFFF_FFFF for r, b in known.items()):
+                if all(self._holds(r, b, deadline) for r, b in known.items()):
                     values = self.layout.decode(known)
                     return EcuStatus(len(values), self._raw_crc(values)[1], self._clock() - t0)
         except _RestartError:
