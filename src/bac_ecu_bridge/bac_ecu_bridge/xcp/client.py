@@ -255,6 +255,7 @@ class XcpCalibrationClient:
         self._dirty = False
         self._degraded = False  # block transfers failed in this apply: one answered command per frame
         self._talked = False
+        self._byte_order: str | None = None  # as the ECU announced it in the first session
         self._checksum_ok: bool | None = None  # the ECU implements BUILD_CHECKSUM (None: not asked yet)
         self._baseline = self.layout.quantize(definition.baseline_values())
         self.last_confirmed: dict[str, float] | None = None
@@ -483,7 +484,8 @@ class XcpCalibrationClient:
             r = m.connect(0x00)
             return r
 
-        self._cmd("CONNECT", connect, deadline, check=lambda r: r is not None and int(r.maxCto) >= 8)
+        self._cmd("CONNECT", connect, deadline, check=self._plausible_connect)
+        self._byte_order = str(m.slaveProperties.byteOrder)
         self.stats.connects += 1
         props = m.slaveProperties
         if props.optionalCommMode:
@@ -502,6 +504,26 @@ class XcpCalibrationClient:
             self._unlock(deadline)  # without an algorithm, a protected command will be refused and say so
         del types
         return m
+
+    def _plausible_connect(self, r: Any) -> bool:
+        """A CONNECT answer XCP on classic CAN can give (XCP on CAN has no frame CRC of its own: a garbled answer
+        would set the session's frame sizes, address granularity or byte order, and a wrong UPLOAD size makes
+        pyxcp wait for frames that never come): else it is taken as garbled and CONNECT is asked again."""
+        if r is None:
+            return False
+        basic = r.commModeBasic
+        ok = (
+            int(r.maxCto) == 8
+            and int(r.maxDto) == 8
+            and int(r.protocolLayerVersion) == 1
+            and int(r.transportLayerVersion) == 1
+            and str(basic.addressGranularity) == "BYTE"
+        )
+        if ok and self._byte_order is not None and str(basic.byteOrder) != self._byte_order:
+            ok = False  # the ECU announced the other byte order in an earlier session
+        if not ok:
+            self._anomaly()
+        return ok
 
     def _unlock(self, deadline: float, command: str = "UNLOCK") -> None:
         m = self._master
@@ -878,6 +900,15 @@ class XcpCalibrationClient:
                     raise
                 self._ecu_page = s.reference_page
                 state.in_doubt = False
+            # asked every attempt, before a byte is written: the page the application uses must be the reference
+            # (a SET_CAL_PAGE garbled on the way, e.g. into another mode, may be answered positively)
+            if self._get_page(MODE_ECU, deadline) != s.reference_page:
+                self._ecu_page = None
+                state.touched = state.in_doubt = True
+                raise _MismatchError(
+                    "XCP GET_CAL_PAGE: the ECU application does not use its reference page: the working page is "
+                    "not written"
+                )
             self._set_page(MODE_XCP, s.working_page, deadline)
         else:
             state.touched = state.in_doubt = True  # one page: the writes change what the ECU uses at once
@@ -916,6 +947,7 @@ class XcpCalibrationClient:
         saved = self.config
         self.config = replace(saved, step_retries=max(saved.step_retries, 10))
         problem = "no time left"
+        refused = ""  # the last negative response while reading back
         try:
             while self._clock() < deadline:
                 self._wait_settled()
@@ -930,10 +962,9 @@ class XcpCalibrationClient:
                     problem = str(exc)
                     break
                 except XcpCommandError as exc:
-                    problem = str(exc)
-                    if exc.code == ErrorCode.ECU_BUSY:
-                        continue
-                    break  # the ECU refuses to be read (and said so): asking again until the deadline changes nothing
+                    # asked again until the deadline: on a bus that garbles frames a refusal may be a garbled answer
+                    problem = refused = str(exc)
+                    continue
                 except BridgeError as exc:
                     problem = str(exc)
                     continue
@@ -951,6 +982,8 @@ class XcpCalibrationClient:
             self.config = saved
         self.last_confirmed = None
         self._ecu_page = None
+        if refused and refused != problem:
+            problem = f"{problem}; before, {refused}"
         return EcuState(Holds.UNKNOWN, detail=f"reading the ECU back failed: {problem}")
 
     def read_active(self, timeout_s: float | None = None) -> ReadResult:
