@@ -199,7 +199,12 @@ def test_trial_1_waits_for_the_ecu_link_and_spends_no_trial_meanwhile(procs: Any
     cdir = tmp_path / "camp"
     start_standins(procs, tmp_path, bridge_args=["-p", "link_down_s:=6.0"])
     agent = start_agent(procs, "agent", cdir, "budget:=2", "link_wait_s:=120.0")
-    wait_for(lambda: "no link to the ECU yet" in procs.log("agent"), 60, what="the agent telling why it waits")
+    # the bridge's own reason, once its service is there (before, the agent says the service is not available)
+    wait_for(
+        lambda: "no link to the ECU yet (cannot open CAN interface" in procs.log("agent"),
+        60,
+        what="the agent telling why it waits",
+    )
     assert "is the adapter plugged in" in procs.log("agent")
     assert not [e for e in jsonl(cdir / "journal.jsonl") if e["event"] == "trial_proposed"]
     assert not [b for b in jsonl(tmp_path / "bridge.jsonl") if not b.get("read")]  # nothing applied

@@ -69,7 +69,7 @@ class Reporter(BacNode):
         self.get_logger().info("busy callback done")
 
     def cleanup_time_s(self) -> float:
-        return self.slow_destroy_s + 1.0
+        return self.slow_destroy_s  # the clean-up it takes beyond the default watchdog time
 
     def destroy_node(self) -> None:
         time.sleep(self.slow_destroy_s)  # e.g. the ECU bridge retrying a baseline restore the ECU refuses
