@@ -12,16 +12,17 @@ setup(
         ("share/ament_index/resource_index/packages", ["resource/" + package_name]),
         ("share/" + package_name, ["package.xml"]),
         ("share/" + package_name + "/dbc", sorted(glob("bac_ecu_bridge/dbc/*.dbc"))),
+        ("share/" + package_name + "/a2l", sorted(glob("bac_ecu_bridge/a2l/*.a2l"))),
     ],
-    package_data={package_name: ["py.typed", "dbc/*.dbc"]},
+    package_data={package_name: ["py.typed", "dbc/*.dbc", "a2l/*.a2l"]},
     install_requires=["setuptools"],
     extras_require={"test": ["pytest"]},  # colcon test runs pytest (tests_require is gone from setuptools)
     zip_safe=True,
     maintainer="bac developers",
     maintainer_email="bac@example.org",
     description=(
-        "The ECU bridge of bac: the CAN calibration protocol (DBC), a bounded apply/acknowledge "
-        "transaction and the ecu_bridge node."
+        "The ECU bridge of bac: the CAN calibration protocols (bac's own with its DBC, ASAM XCP on CAN with "
+        "the A2L), a bounded, verified apply and the ecu_bridge node."
     ),
     license="Apache-2.0",
     entry_points={

@@ -4,7 +4,10 @@
     python standins.py chain  --ros-args -p invalid_runs:=1:1 -p log_file:=/tmp/c.jsonl
 
 * ``bridge`` serves ecu_bridge/apply_calibration: success with the values echoed, except
-  for the trial ids in ``fail_trials`` (comma list), answered with ERROR_ECU_OUT_OF_RANGE.
+  for the trial ids in ``fail_trials`` (comma list), answered with ERROR_ECU_OUT_OF_RANGE;
+  and ecu_bridge/read_calibration. ``link_down_s``: for that long after start there is no CAN
+  link (reads fail, applies answer ERROR_BUS); ``bus_down_trial`` / ``bus_down_applies``: the
+  first applies of that trial answer ERROR_BUS (the link lost mid-campaign).
 * ``chain`` plays the driver, the segmenter and the scorer: on each READY_TO_DRIVE it
   publishes, after ``delay_s`` (wall), a RunScore with the same (campaign, trial, attempt)
   and J = 1 + (x0 - 0.3)^2 + (x1 - 0.6)^2 of the calibration in the Trial message,
@@ -16,15 +19,18 @@ from __future__ import annotations
 
 import json
 import sys
+import time
 from pathlib import Path
 from typing import Any
 
 from rclpy.clock import Clock, ClockType
 
-from bac_common.contracts import SRV_APPLY_CALIBRATION, TOPIC_RUN_SCORE, TOPIC_TRIAL
+from bac_common.contracts import SRV_APPLY_CALIBRATION, SRV_READ_CALIBRATION, TOPIC_RUN_SCORE, TOPIC_TRIAL
 from bac_common.rosnode import QOS_EVENTS, QOS_LATCHED, BacNode, run_node
 from bac_msgs.msg import RunScore, Trial
-from bac_msgs.srv import ApplyCalibration
+from bac_msgs.srv import ApplyCalibration, ReadCalibration
+
+NO_ADAPTER = "cannot open CAN interface socketcan:can0: No such device; is the adapter plugged in and 'can0' up?"
 
 
 def known_j(values: list[float]) -> float:
@@ -43,10 +49,32 @@ class FakeBridge(BacNode):
         super().__init__("ecu_bridge", **kwargs)
         self.fail = {int(x) for x in self.declare_str("fail_trials", "", "trial ids to refuse").split(",") if x}
         self.log_file = self.declare_str("log_file", "", "JSONL log of the requests")
+        self.link_down_s = self.declare_float("link_down_s", 0.0, "no CAN link for this long after start (wall), s")
+        self.bus_down_trial = self.declare_int("bus_down_trial", 0, "a trial whose first applies find the link down")
+        self.bus_down_left = self.declare_int("bus_down_applies", 0, "how many applies of it answer ERROR_BUS")
+        self.t0 = time.monotonic()
         self.srv = self.create_service(ApplyCalibration, SRV_APPLY_CALIBRATION, self._apply)
+        self.read_srv = self.create_service(ReadCalibration, SRV_READ_CALIBRATION, self._read)
+
+    def _link_down(self) -> bool:
+        return time.monotonic() - self.t0 < self.link_down_s
+
+    def _read(self, req: Any, res: Any) -> Any:
+        res.success = not self._link_down()
+        res.message = NO_ADAPTER if not res.success else ""
+        _log(self.log_file, {"read": True, "trial_id": 0, "success": res.success})
+        return res
 
     def _apply(self, req: Any, res: Any) -> Any:
         cal = req.calibration
+        if self._link_down() or (cal.trial_id == self.bus_down_trial and self.bus_down_left > 0):
+            if cal.trial_id == self.bus_down_trial:
+                self.bus_down_left -= 1
+            res.success = False
+            res.error_code = ApplyCalibration.Response.ERROR_BUS
+            res.message = NO_ADAPTER
+            _log(self.log_file, {"trial_id": cal.trial_id, "values": list(cal.values), "success": False, "bus": True})
+            return res
         ok = cal.trial_id not in self.fail
         res.success = ok
         res.error_code = 0 if ok else ApplyCalibration.Response.ERROR_ECU_OUT_OF_RANGE

@@ -177,10 +177,6 @@ def test_a_resume_with_another_configuration_is_refused_at_start(procs: Any, tmp
     assert (cdir / "journal.jsonl").read_bytes() == before
 
 
-if __name__ == "__main__":
-    sys.exit(pytest.main([__file__, "-q"]))
-
-
 def test_trial_1_waits_for_the_expected_readers_of_the_trial_topic(procs: Any, tmp_path: Path) -> None:
     cdir = tmp_path / "camp"
     procs.python("bridge", [str(HERE / "standins.py"), "bridge", "--ros-args", "-p",
@@ -196,3 +192,49 @@ def test_trial_1_waits_for_the_expected_readers_of_the_trial_topic(procs: Any, t
     assert wait_exit(agent, 120, "bo_agent to finish once a reader is there") == 0, procs.log("agent")
     chain = jsonl(tmp_path / "chain.jsonl")
     assert [c["trial_id"] for c in chain][:1] == [1]  # the reader saw trial 1 driven
+
+
+def test_trial_1_waits_for_the_ecu_link_and_spends_no_trial_meanwhile(procs: Any, tmp_path: Path) -> None:
+    """bac launch car without the CAN adapter: the agent burned 3 trials in 0.5 s and ended the campaign."""
+    cdir = tmp_path / "camp"
+    start_standins(procs, tmp_path, bridge_args=["-p", "link_down_s:=6.0"])
+    agent = start_agent(procs, "agent", cdir, "budget:=2", "link_wait_s:=120.0")
+    # the bridge's own reason, once its service is there (before, the agent says the service is not available)
+    wait_for(
+        lambda: "no link to the ECU yet (cannot open CAN interface" in procs.log("agent"),
+        60,
+        what="the agent telling why it waits",
+    )
+    assert "is the adapter plugged in" in procs.log("agent")
+    assert not [e for e in jsonl(cdir / "journal.jsonl") if e["event"] == "trial_proposed"]
+    assert not [b for b in jsonl(tmp_path / "bridge.jsonl") if not b.get("read")]  # nothing applied
+    assert wait_exit(agent, 120, "bo_agent to finish once the link is up") == 0, procs.log("agent")
+    ev = jsonl(cdir / "journal.jsonl")
+    assert not [e for e in ev if e["event"] == "trial_failed"]
+    assert [b["success"] for b in jsonl(tmp_path / "bridge.jsonl") if not b.get("read")][:1] == [True]
+
+
+def test_no_ecu_link_at_all_stops_before_spending_a_trial(procs: Any, tmp_path: Path) -> None:
+    cdir = tmp_path / "camp"
+    start_standins(procs, tmp_path, bridge_args=["-p", "link_down_s:=1000.0"])
+    agent = start_agent(procs, "agent", cdir, "budget:=2", "link_wait_s:=3.0")
+    assert wait_exit(agent, 60, "bo_agent to give up waiting") == 2, procs.log("agent")
+    assert "No ECU link after 3 s" in procs.log("agent")
+    assert not [e for e in jsonl(cdir / "journal.jsonl") if e["event"] == "trial_proposed"]
+
+
+def test_a_link_lost_mid_campaign_pauses_it_and_fails_no_trial(procs: Any, tmp_path: Path) -> None:
+    cdir = tmp_path / "camp"
+    start_standins(procs, tmp_path, bridge_args=["-p", "bus_down_trial:=2", "-p", "bus_down_applies:=4"])
+    agent = start_agent(procs, "agent", cdir, "budget:=3", "apply_retries:=0", "link_retry_s:=0.2")
+    assert wait_exit(agent, 120, "bo_agent to finish") == 0, procs.log("agent")
+    ev = jsonl(cdir / "journal.jsonl")
+    assert not [e for e in ev if e["event"] == "trial_failed"]
+    assert [e["trial_id"] for e in ev if e["event"] == "link_lost"] == [2]
+    bus = [b for b in jsonl(tmp_path / "bridge.jsonl") if b.get("bus")]
+    assert [b["trial_id"] for b in bus] == [2, 2, 2, 2]
+    assert len([e for e in ev if e["event"] == "trial_scored"]) == 3
+
+
+if __name__ == "__main__":
+    sys.exit(pytest.main([__file__, "-q"]))

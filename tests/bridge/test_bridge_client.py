@@ -12,10 +12,23 @@ from bridge_rig import FAST, RigFactory, load, make_rig_fixture  # noqa: F401  (
 
 from bac_common.errors import OutOfBoundsError, UnknownParameterError
 from bac_common.paramspace import CalibrationDefinition, RawParameter
+from bac_ecu_bridge.backend import Holds
 from bac_ecu_bridge.client import CalibrationClient, ClientConfig
 from bac_ecu_bridge.errors import BridgeError, BusError, ErrorCode
 from bac_ecu_bridge.faults import FaultConfig
-from bac_ecu_bridge.protocol import Ack, CalibrationCodec, Commit, Op, Reason, decode_request, encode
+from bac_ecu_bridge.protocol import (
+    Ack,
+    Begin,
+    CalibrationCodec,
+    Commit,
+    Nack,
+    Op,
+    Reason,
+    Value,
+    decode_request,
+    decode_response,
+    encode,
+)
 
 II = load("controller_ii")
 
@@ -113,7 +126,6 @@ def test_ecu_does_not_know_a_parameter(make_rig: RigFactory) -> None:
     ("reason", "code", "match"),
     [
         (Reason.CRC_MISMATCH, ErrorCode.CRC_MISMATCH, "CRC over the staged set does not match"),
-        (Reason.SEQUENCE, ErrorCode.SEQUENCE, "sequence error"),
         (Reason.COUNT_MISMATCH, ErrorCode.SEQUENCE, "incomplete"),
     ],
 )
@@ -126,6 +138,16 @@ def test_retryable_refusals_are_retried_then_reported(
     assert err.value.code == code
     assert err.value.attempts == FAST.max_attempts
     assert "gave up after 3 transaction(s)" in str(err.value)
+
+
+def test_a_commit_answered_with_a_sequence_error_is_settled_by_reading_the_ecu_back(make_rig: RigFactory) -> None:
+    # every ACK is replaced on the wire by a SEQUENCE refusal: the commit may or may not have been applied
+    rig = make_rig("controller_i", ecu_faults=FaultConfig(nack=int(Reason.SEQUENCE), direction="send"))
+    want = {"damping_front": 0.3, "damping_rear": 0.3}
+    res = rig.client.apply(want)
+    assert res.read_back and "read back" in res.note
+    assert res.values == rig.ecu.active == rig.codec.quantize(want)  # it was: the read-back says so
+    assert rig.client.stats.settled == 1
 
 
 def test_a_silent_ecu_times_out_within_the_bound(make_rig: RigFactory) -> None:
@@ -146,14 +168,63 @@ def test_a_silent_ecu_times_out_within_the_bound(make_rig: RigFactory) -> None:
     assert 0.12 <= time.monotonic() - t0 < 1.0  # the 0.12 s limit plus scheduling on a loaded machine
 
 
-def test_lost_acknowledgments_leave_the_state_uncertain(make_rig: RigFactory) -> None:
+def test_lost_acknowledgments_are_settled_by_reading_the_ecu_back(make_rig: RigFactory) -> None:
     rig = make_rig("controller_i", ecu_faults=FaultConfig(drop=1.0, ops=(int(Op.ACK),), direction="send"))
     want = {"damping_front": 0.3, "damping_rear": 0.7}
+    res = rig.client.apply(want)  # the ECU did apply it, only its word is missing: the read-back says so
+    assert res.values == rig.ecu.active == rig.codec.quantize(want)
+    assert "read back" in res.note and rig.client.stats.settled == 1
+    assert rig.ecu.engine.staging_seq is None
+
+
+class LateCommits(can.BusABC):
+    """The bridge's bus, on which every COMMIT reaches the ECU ``late_s`` late (held in an adapter's queue)."""
+
+    def __init__(self, inner: can.BusABC, late_s: float) -> None:
+        super().__init__(channel="late")
+        self.inner, self.late_s, self.channel_info = inner, late_s, "late-commits"
+        self.in_flight: list[threading.Timer] = []
+
+    def send(self, msg: can.Message, timeout: float | None = None) -> None:
+        if len(msg.data) == 8 and msg.data[1] == Op.COMMIT:
+            timer = threading.Timer(self.late_s, self.inner.send, args=(msg,))
+            self.in_flight.append(timer)
+            timer.start()
+        else:
+            self.inner.send(msg, timeout)
+
+    def _recv_internal(self, timeout: float | None) -> tuple[can.Message | None, bool]:
+        return self.inner.recv(timeout), False
+
+    def landed(self) -> bool:
+        return not any(t.is_alive() for t in self.in_flight)
+
+
+def test_a_late_commit_never_changes_the_ecu_after_the_bridge_reported_its_state(make_rig: RigFactory) -> None:
+    """The review's hole: commits arriving after the bridge gave up made staged values active afterwards."""
+    rig = make_rig("controller_i")
+    client = rig.client
+    client.apply({"damping_front": 0.1, "damping_rear": 0.1})
+    engine = rig.ecu.engine
+    refused = engine.stats.by_reason.get("SEQUENCE", 0)
+    late = LateCommits(rig.bridge_bus, late_s=0.15)
+    client.bus = late
+    client.config = ClientConfig(step_timeout_s=0.01, step_retries=1, max_attempts=1, timeout_s=0.05)
     with pytest.raises(BridgeError) as err:
-        rig.client.apply(want)
-    assert err.value.code == ErrorCode.TIMEOUT
-    assert err.value.uncertain  # the ECU did apply it: only its word is missing
-    assert rig.ecu.active == rig.codec.quantize(want)
+        client.apply({"damping_front": 0.9, "damping_rear": 0.9})
+    assert err.value.uncertain
+    state = err.value.ecu_state
+    assert state is not None and state.read_back and state.holds is Holds.PREVIOUS
+    deadline = time.monotonic() + 5.0
+    while not late.landed() and time.monotonic() < deadline:  # every late COMMIT reaches the ECU
+        time.sleep(0.01)
+    assert late.landed()
+    while engine.stats.by_reason.get("SEQUENCE", 0) < refused + len(late.in_flight) and time.monotonic() < deadline:
+        time.sleep(0.01)  # ... and is refused: its staged set was aborted
+    assert engine.stats.by_reason.get("SEQUENCE", 0) >= refused + len(late.in_flight) >= 1
+    assert rig.ecu.active == state.values == {"damping_front": 0.1, "damping_rear": 0.1}
+    assert rig.ecu.commits == 1 and rig.ecu.engine.staging_seq is None
+    late.shutdown()
 
 
 def test_a_lost_acknowledgment_is_recovered_by_repeating_the_commit(make_rig: RigFactory) -> None:
@@ -231,6 +302,37 @@ def test_an_ecu_that_acknowledges_without_applying_is_caught_by_the_read_back(ma
     assert rig.ecu.active == {"damping_front": 0.5, "damping_rear": 0.5}
 
 
+class EchoTrustingClient(CalibrationClient):
+    """A client whose read-back takes any value the ECU reports (to see what the result is built from)."""
+
+    def _match_read_expected(self, raw: dict[int, int]) -> Any:
+        return lambda resp: (resp.index, resp.raw) if isinstance(resp, Value) and resp.index in raw else None
+
+    def _check_read_back(self, got: Any, crc: int) -> None:
+        pass
+
+
+def test_the_result_reports_what_the_ecu_echoed_not_the_request(make_rig: RigFactory) -> None:
+    rig = make_rig("controller_i")
+    engine = rig.ecu.engine
+    honest = engine.handle
+
+    def off_by_one(data: bytes) -> list[bytes]:  # the ECU reads damping_front back one LSB higher
+        out = honest(data)
+        resp = decode_response(out[0]) if out else None
+        if isinstance(resp, Value) and resp.index == 0:
+            return [encode(Value(resp.seq, 0, resp.raw + 1))]
+        return out
+
+    engine.handle = off_by_one  # type: ignore[method-assign]
+    client = EchoTrustingClient(rig.bridge_bus, rig.codec, config=FAST)
+    res = client.apply({"damping_front": 0.2, "damping_rear": 0.5})
+    assert res.raw == {0: 2001, 1: 5000}  # the read-back, not the request's 2000
+    assert res.values == {"damping_front": pytest.approx(0.2001), "damping_rear": 0.5}
+    assert res.crc == rig.ecu.active_crc  # the CRC the ECU acknowledged
+    assert rig.ecu.active == {"damping_front": 0.2, "damping_rear": 0.5}  # (what it really holds)
+
+
 def test_sequence_numbers_resynchronize_with_the_ecu(make_rig: RigFactory) -> None:
     rig = make_rig("controller_i", seq=9)
     rig.client.apply({"damping_front": 0.2, "damping_rear": 0.2})  # transaction 10
@@ -238,6 +340,41 @@ def test_sequence_numbers_resynchronize_with_the_ecu(make_rig: RigFactory) -> No
     res = late.apply({"damping_front": 0.3, "damping_rear": 0.3})
     assert res.attempts == 2 and res.seq == 11
     assert late.stats.nack_reasons == {"SEQUENCE": 1}
+
+
+def test_a_refused_begin_never_resynchronizes_onto_the_refused_number(make_rig: RigFactory) -> None:
+    """Transaction 10 is open at the ECU for 1 parameter; a bridge whose next number is 10 asks for 2."""
+    rig = make_rig("controller_i")
+    assert rig.ecu.engine.handle(encode(Begin(10, 1)))  # an earlier bridge opened 10 and went away
+    client = CalibrationClient(rig.bridge_bus, rig.codec, config=FAST, seq=9)
+    res = client.apply({"damping_front": 0.3, "damping_rear": 0.3})
+    assert res.attempts == 2 and res.seq != 10
+    assert client.apply({"damping_front": 0.4, "damping_rear": 0.4}).attempts == 1  # and every apply after it
+    assert rig.ecu.active == {"damping_front": 0.4, "damping_rear": 0.4}
+
+
+def test_the_client_ignores_a_resynchronization_onto_a_number_refused_in_the_same_apply(
+    make_rig: RigFactory,
+) -> None:
+    """An ECU that names the very number it refused (the first engine did) does not trap the bridge."""
+    rig = make_rig("controller_i")
+    engine = rig.ecu.engine
+    honest = engine.handle
+
+    def names_the_refused(data: bytes) -> list[bytes]:
+        out = honest(data)
+        req = decode_request(data) if len(data) == 8 else None
+        resp = decode_response(out[0]) if out else None
+        if isinstance(req, Begin) and isinstance(resp, Nack) and resp.reason == Reason.SEQUENCE:
+            return [encode(Nack(resp.seq, resp.request_op, resp.reason, 0, req.seq))]
+        return out
+
+    engine.handle = names_the_refused  # type: ignore[method-assign]
+    CalibrationClient(rig.bridge_bus, rig.codec, config=FAST, seq=9).apply({"damping_front": 0.2, "damping_rear": 0.2})
+    late = CalibrationClient(rig.bridge_bus, rig.codec, config=FAST, seq=9)  # reuses 10: refused, "use 10"
+    res = late.apply({"damping_front": 0.3, "damping_rear": 0.3})
+    assert res.attempts == 2 and res.seq == 11
+    assert late.apply({"damping_front": 0.4, "damping_rear": 0.4}).attempts == 1
 
 
 class BrokenBus(can.BusABC):

@@ -15,6 +15,8 @@ from bac_common.paramspace import CalibrationDefinition, RawParameter
 from bac_ecu_bridge.canbus import TracedBus
 from bac_ecu_bridge.dbc import build_database, dbc_text, shipped_dbc
 from bac_ecu_bridge.protocol import (
+    Abort,
+    Aborted,
     Ack,
     Begin,
     BeginOk,
@@ -70,6 +72,8 @@ def expected_signals(pdu: object, codec: CalibrationCodec) -> dict[str, object]:
         out.update(AckCount=pdu.count, AckCrc32=pdu.crc)
     elif isinstance(pdu, StatusOk):
         out.update(TableCount=pdu.count, TableCrc32=pdu.crc)
+    elif isinstance(pdu, Aborted):
+        out["AbortCount"] = pdu.count
     elif isinstance(pdu, Read):
         out["ReadIndex"] = pdu.index
     elif isinstance(pdu, Nack):
@@ -95,12 +99,12 @@ def test_cantools_decodes_every_frame_type_to_the_codec_fields(definition: Calib
     db = cantools.database.load_string(dbc_text(definition, ids), "dbc")
     codec = CalibrationCodec(definition)
     top = max(codec.by_index)
-    requests = [Begin(3, len(codec.params)), Commit(3, 2, 0xCAFEBABE), Read(3, top), StatusRequest(200)]
+    requests = [Begin(3, len(codec.params)), Commit(3, 2, 0xCAFEBABE), Read(3, top), StatusRequest(200), Abort(7)]
     requests += [Write(3, p.index, raw) for p in codec.params for raw in (0, p.max_raw // 3, p.max_raw)]
-    responses = [BeginOk(3, 2), Ack(3, 2, 0x12345678), StatusOk(9, 2, 0xFFFFFFFF)]
+    responses = [BeginOk(3, 2), Ack(3, 2, 0x12345678), StatusOk(9, 2, 0xFFFFFFFF), Aborted(7, 20)]
     responses += [Staged(3, p.index, p.max_raw) for p in codec.params]
     responses += [Value(4, p.index, 1) for p in codec.params]
-    responses += [Nack(5, int(op), int(r), top, 0xABCD) for op in (Op.WRITE, Op.COMMIT) for r in Reason]
+    responses += [Nack(5, int(op), int(r), top, 0xABCD) for op in (Op.WRITE, Op.COMMIT, Op.ABORT) for r in Reason]
     for can_id, pdus in ((ids.request_id, requests), (ids.response_id, responses)):
         msg = db.get_message_by_frame_id(can_id)
         assert msg.is_extended_frame == ids.extended

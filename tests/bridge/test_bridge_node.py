@@ -246,6 +246,8 @@ def test_each_negative_reason_surfaces_as_a_service_error(
     start_bridge(procs, can_link, "bridge", "step_retries:=2", "max_attempts:=2", "poll_ecu:=false")
     caller = BridgeCaller(ros_context)
     caller.wait_ready()
+    # the bridge reads the ECU first (there is none yet): the bus is quiet once that is over
+    wait_for(lambda: "start: could not read the ECU" in procs.log("bridge"), 30, what="the check at start")
     sniffer = can.Bus(interface="udp_multicast", channel=group, port=port, fd=False)
     try:
         # refused before anything is sent
@@ -324,6 +326,8 @@ def test_each_negative_reason_surfaces_as_a_service_error(
     resp = caller.apply(ramp())
     assert not resp.success and resp.error_code == ErrorCode.BUS
     assert "cannot open CAN interface socketcan:bacnope0" in resp.message
+    rd = caller.read()  # what bo_agent asks before trial 1 (it waits, telling the driver this)
+    assert not rd.success and "is the adapter plugged in and 'bacnope0' up" in rd.message
 
 
 def test_faulty_bus_across_processes_never_acknowledges_falsely(
@@ -358,3 +362,25 @@ def test_faulty_bus_across_processes_never_acknowledges_falsely(
             false_acks += 1
     assert false_acks == 0
     assert successes >= 27
+
+
+def test_a_shutdown_while_the_vehicle_moves_restores_the_baseline_once_it_stops(
+    procs: Procs, ros_context: RosHarness, can_link: tuple[str, int]
+) -> None:
+    """The agent is killed mid-run: the bridge stops while the ECU refuses calibrations (vehicle moving)."""
+    ecu = start_ecu(procs, can_link)
+    bridge = start_bridge(procs, can_link, "bridge", "restore_pending_s:=30.0", "restore_retry_s:=0.1")
+    caller = BridgeCaller(ros_context)
+    caller.wait_ready()
+    assert caller.apply(ramp(), trial_id=4).success
+    os.killpg(ecu.pid, signal.SIGUSR1)  # the car drives the run
+    wait_for(lambda: "driving=True" in procs.log("ecu"), 10, what="the ECU to drive")
+    os.killpg(bridge.pid, signal.SIGINT)  # the graph stops mid-run
+    wait_for(lambda: "BASELINE RESTORE PENDING" in procs.log("bridge"), 20, what="the pending restore")
+    assert "trial 4's calibration" in procs.log("bridge") and "STOP THE VEHICLE" in procs.log("bridge")
+    assert bridge.poll() is None  # still there, retrying
+    os.killpg(ecu.pid, signal.SIGUSR2)  # the car stops
+    assert bridge.wait(timeout=20) == 0
+    assert "went through" in procs.log("bridge")
+    assert ecu_commits(procs.log("ecu"))[-1] == CODEC.crc(II.baseline_values())
+    stop(ecu)

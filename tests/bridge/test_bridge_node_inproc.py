@@ -115,7 +115,7 @@ def test_meta_parameters_are_expanded_to_the_raw_set(inproc: Any, tmp_path: Path
     assert resp.applied.crc32 == CalibrationCodec(definition).crc(applied)
 
 
-def test_an_apply_that_leaves_the_ecu_state_unknown_restores_the_baseline(inproc: Any) -> None:
+def test_an_apply_that_leaves_the_ecu_on_another_calibration_restores_the_baseline(inproc: Any) -> None:
     from bac_common.rosnode import QOS_LATCHED
     from bac_msgs.msg import Calibration
 
@@ -126,16 +126,20 @@ def test_an_apply_that_leaves_the_ecu_state_unknown_restores_the_baseline(inproc
     engine = rig.ecu.engine
     honest = engine.handle
 
-    def silent_after_commit(data: bytes) -> list[bytes]:  # applies the trial's set, never acknowledges it
+    def garbled_and_silent(data: bytes) -> list[bytes]:  # applies something else than asked, never acknowledges
         out = honest(data)
         req = decode_request(data)
-        return [] if isinstance(req, Commit) and req.crc == target else out
+        if isinstance(req, Commit) and req.crc == target:
+            engine.active = {**engine.active, 0: engine.active[0] + 7}
+            return []
+        return out
 
-    engine.handle = silent_after_commit  # type: ignore[method-assign]
+    engine.handle = garbled_and_silent  # type: ignore[method-assign]
     got: list[Any] = []
     rig.client_node.create_subscription(Calibration, "bac/calibration", got.append, QOS_LATCHED)
     resp = rig.apply(want, trial_id=5)
     assert not resp.success and resp.error_code == ErrorCode.TIMEOUT
+    assert "neither the requested, the previous nor the baseline" in resp.message  # settled by reading back
     assert "safe baseline was restored" in resp.message
     assert rig.ecu.active == {"damping_front": 0.5, "damping_rear": 0.5}
     wait_for(lambda: got and got[-1].trial_id == 0, 10, what="the restored baseline on bac/calibration")
@@ -185,3 +189,91 @@ def test_read_and_restore_services(inproc: Any) -> None:
     rig.ecu.set_driving(False)
     rs = rig.call(Trigger, "ecu_bridge/restore_baseline", Trigger.Request())
     assert rs.success and rig.ecu.active == {"damping_front": 0.5, "damping_rear": 0.5}
+
+
+def test_at_start_the_bridge_restores_a_calibration_left_on_the_ecu(ros_context: RosHarness) -> None:
+    from bac_common.rosnode import QOS_LATCHED
+    from bac_msgs.msg import Calibration
+
+    rig = InProc.__new__(InProc)
+    # the ECU still holds a trial's calibration (the last campaign was killed mid-run)
+    left = {"damping_front": 0.9, "damping_rear": 0.1}
+    made = _start_with_ecu(ros_context, rig, initial=left)
+    try:
+        assert rig.ecu.active == {"damping_front": 0.5, "damping_rear": 0.5}  # restored before anything else
+        got: list[Any] = []
+        rig.client_node.create_subscription(Calibration, "bac/calibration", got.append, QOS_LATCHED)
+        wait_for(lambda: got and got[-1].trial_id == 0, 10, what="the restored baseline on bac/calibration")
+        assert "other than the baseline" in rig.node.core.start_report
+    finally:
+        made()
+
+
+def test_at_start_a_busy_ecu_keeps_the_restore_pending_on_diagnostics_until_it_goes_through(
+    ros_context: RosHarness,
+) -> None:
+    from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
+
+    rig = InProc.__new__(InProc)
+    made = _start_with_ecu(ros_context, rig, initial={"damping_front": 0.9, "damping_rear": 0.1}, driving=True)
+    try:
+        seen: list[Any] = []
+        rig.client_node.create_subscription(DiagnosticArray, "/diagnostics", seen.append, 10)
+        st = diag_status(rig, seen, DiagnosticStatus.ERROR, "BASELINE RESTORE PENDING")
+        assert "STOP THE VEHICLE" in st.message
+        assert rig.ecu.active == {"damping_front": 0.9, "damping_rear": 0.1}
+        rig.ecu.set_driving(False)
+        wait_for(lambda: rig.ecu.active == {"damping_front": 0.5, "damping_rear": 0.5}, 10, what="the restore")
+        diag_status(rig, seen, DiagnosticStatus.OK, "ECU answering")
+    finally:
+        made()
+
+
+def test_a_shutdown_restore_refused_while_driving_waits_for_the_vehicle_to_stop(inproc: Any) -> None:
+    import threading
+
+    rig = inproc(restore_pending_s=20.0, restore_retry_s=0.05)
+    assert rig.apply({"damping_front": 0.2, "damping_rear": 0.8}, trial_id=6).success
+    rig.ecu.set_driving(True)
+    closing = threading.Thread(target=rig.node.close)
+    closing.start()
+    wait_for(lambda: rig.node.core.pending is not None and rig.node.core.pending.tries >= 2, 10, what="retries")
+    assert rig.ecu.active == {"damping_front": 0.2, "damping_rear": 0.8}
+    rig.ecu.set_driving(False)
+    closing.join(timeout=10)
+    assert not closing.is_alive()
+    assert rig.ecu.active == {"damping_front": 0.5, "damping_rear": 0.5}
+
+
+def _start_with_ecu(ros: RosHarness, rig: InProc, initial: dict[str, float], driving: bool = False) -> Any:
+    """Like InProc, but the ECU starts on ``initial`` (and moving when ``driving``) before the node exists."""
+    from rclpy.parameter import Parameter
+
+    from bac_ecu_bridge.bridge_node import EcuBridgeNode
+
+    definition = CALIBRATIONS / "controller_i.yaml"
+    rig.channel = f"node-inproc-{next(_CHANNELS)}"
+    rig.ecu_bus = can.Bus(interface="virtual", channel=rig.channel)
+    rig.ecu = SimulatedEcu(rig.ecu_bus, CalibrationDefinition.load(definition), initial=initial)
+    rig.ecu.set_driving(driving)
+    rig.ecu.start()
+    overrides = {
+        "definition_file": str(definition),
+        "can.interface": "virtual",
+        "can.channel": rig.channel,
+        "diagnostics_period_s": 0.1,
+        "restore_pending_s": 0.5,
+    }
+    rig.node = EcuBridgeNode(
+        context=ros.context, parameter_overrides=[Parameter(k, value=v) for k, v in overrides.items()]
+    )
+    ros.add(rig.node)
+    rig.ros = ros
+    rig.client_node = ros.node(f"inproc_client_{rig.channel.replace('-', '_')}")
+
+    def close() -> None:
+        rig.ecu.set_driving(False)
+        rig.node.close()
+        rig.close()
+
+    return close

@@ -157,6 +157,21 @@ def test_single_process_uses_the_virtual_bus(ros_env: dict[str, str], tmp_path: 
     assert a["netns"] == os.stat("/proc/self/ns/net").st_ino
 
 
+def test_a_node_with_a_stop_grace_may_take_longer_than_the_default_to_stop(
+    ros_env: dict[str, str], tmp_path: Path
+) -> None:
+    """The ECU bridge may retry a refused baseline restore at shutdown: stop_grace_s keeps SIGTERM away."""
+    slow = reporter("slow", tmp_path, slow_destroy_s=10.0)
+    slow["stop_grace_s"] = 20.0
+    p = launch(ros_env, str(make_profile(tmp_path, [slow])))
+    wait_for(lambda: report(tmp_path, "slow"), 60, what="the node started")
+    p.send_signal(signal.SIGINT)
+    out, _ = p.communicate(timeout=60)
+    text = out.decode(errors="replace")
+    assert p.returncode == 0 and "sent SIGTERM" not in text, text
+    assert report(tmp_path, "slow", "clean") is not None
+
+
 def shared_process_profile(tmp_path: Path, can: dict[str, Any]) -> Path:
     """Two CAN nodes sharing the process "car" (the ECU's side stops last), a third node in its own process."""
     nodes = [
@@ -243,6 +258,8 @@ def test_profiles_shipped_load() -> None:
     assert len(sim.one_process_per_node().can_processes) == 2
     car = load_profile("car")
     assert not car.use_sim_time and "vehicle_sim" not in [n.name for n in car.nodes]
+    bridge = next(n for n in car.nodes if n.name == "ecu_bridge")
+    assert bridge.stop_grace_s > 60.0  # beyond the bridge's restore_pending_s (params/car.yaml)
 
 
 def test_bad_profiles_are_refused(tmp_path: Path) -> None:

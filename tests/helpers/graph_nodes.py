@@ -30,6 +30,7 @@ class Reporter(BacNode):
         self.can_interface = self.declare_str("can.interface", "", "CAN interface given by the launcher")
         busy = self.declare_float("busy_callback_s", -1.0, "a callback 0.1 s after start that runs this long")
         self.hang_on_destroy = self.declare_bool("hang_on_destroy", False, "destroy_node never returns")
+        self.slow_destroy_s = self.declare_float("slow_destroy_s", 0.0, "destroy_node takes this long (a clean-up)")
         self._callback_done = False
         report = {
             "name": self.get_name(),
@@ -67,7 +68,11 @@ class Reporter(BacNode):
         self._callback_done = True
         self.get_logger().info("busy callback done")
 
+    def cleanup_time_s(self) -> float:
+        return self.slow_destroy_s  # the clean-up it takes beyond the default watchdog time
+
     def destroy_node(self) -> None:
+        time.sleep(self.slow_destroy_s)  # e.g. the ECU bridge retrying a baseline restore the ECU refuses
         report = {"callback_done": self._callback_done}
         _write_atomically(self.out_dir / f"{self.get_name()}.clean.json", json.dumps(report))
         while self.hang_on_destroy:  # an rclpy clean-up that never returns

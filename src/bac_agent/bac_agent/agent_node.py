@@ -41,19 +41,21 @@ from bac_agent.campaign import (
     Campaign,
     CampaignConfig,
     Finish,
+    Kind,
     Log,
     Optimizer,
     Publish,
+    State,
     TrialStatus,
 )
 from bac_agent.journal import Journal
-from bac_common.contracts import SRV_APPLY_CALIBRATION, TOPIC_RUN_SCORE, TOPIC_TRIAL
+from bac_common.contracts import SRV_APPLY_CALIBRATION, SRV_READ_CALIBRATION, TOPIC_RUN_SCORE, TOPIC_TRIAL
 from bac_common.errors import BacError
 from bac_common.paramspace import CalibrationDefinition
 from bac_common.paths import resolve_definition
 from bac_common.rosnode import QOS_EVENTS, QOS_LATCHED, BacNode, run_node
 from bac_msgs.msg import Calibration, RunScore, Trial
-from bac_msgs.srv import ApplyCalibration
+from bac_msgs.srv import ApplyCalibration, ReadCalibration
 
 STRATEGIES = ("bo", "grid", "random")
 BACKSTOP_RUN_TIMEOUT_S = 3600.0  # run_timeout_s 0: the segmenter's verdict decides; this only guards a dead chain
@@ -185,6 +187,25 @@ class BoAgentNode(BacNode):
         busy_timeout = self.declare_float(
             "busy_timeout_s", 120.0, "ROS time an ECU may stay busy before the apply counts as failed, s", 0.0, 1e6
         )
+        self.link_wait_s = self.declare_float(
+            "link_wait_s",
+            120.0,
+            "before trial 1, wait this long for the ECU link (ecu_bridge/read_calibration answering), telling the "
+            "driver why on bac/trial; then stop without having spent a trial, s (0: do not wait)",
+            0.0,
+            86400.0,
+        )
+        link_retry = self.declare_float(
+            "link_retry_s", 2.0, "the ECU link is down (ERROR_BUS): ask again after this long, paused, s", 0.05, 600.0
+        )
+        link_timeout = self.declare_float(
+            "link_timeout_s",
+            600.0,
+            "ROS time the ECU link may stay down mid-campaign (paused, no trial fails) before the campaign stops, "
+            "resumable, s",
+            0.0,
+            1e6,
+        )
         resume = self.declare_bool(
             "resume", True, "continue the campaign in campaign_dir's journal (false: refuse an existing one)", True
         )
@@ -234,6 +255,8 @@ class BoAgentNode(BacNode):
             max_consecutive_failures=max_failures,
             busy_retry_s=busy_retry,
             busy_timeout_s=busy_timeout,
+            link_retry_s=link_retry,
+            link_timeout_s=link_timeout,
             extra={
                 "n_initial": n_initial,
                 "grid_size": grid_size,
@@ -269,6 +292,7 @@ class BoAgentNode(BacNode):
         self._group = MutuallyExclusiveCallbackGroup()
         self.pub_trial = self.create_publisher(Trial, TOPIC_TRIAL, QOS_LATCHED)
         self.client = self.create_client(ApplyCalibration, SRV_APPLY_CALIBRATION, callback_group=self._group)
+        self.read_client = self.create_client(ReadCalibration, SRV_READ_CALIBRATION, callback_group=self._group)
         self.sub_score = self.create_subscription(
             RunScore, TOPIC_RUN_SCORE, self._on_score, QOS_EVENTS, callback_group=self._group
         )
@@ -281,6 +305,7 @@ class BoAgentNode(BacNode):
         self._run_deadline_ns = 0  # ROS time
         self._started = False
         self._wait_since: float | None = None
+        self._link = _LinkWait()
         self._tick = self.create_timer(
             0.05, self._on_tick, callback_group=self._group, clock=Clock(clock_type=ClockType.STEADY_TIME)
         )
@@ -346,7 +371,7 @@ class BoAgentNode(BacNode):
             if self.exit_code is not None:
                 return
             if not self._started:
-                if not self._readers_ready():
+                if not self._readers_ready() or not self._link_ready():
                     return
                 self._started = True
                 self._do(self.campaign.start())
@@ -371,6 +396,85 @@ class BoAgentNode(BacNode):
             "(is the whole graph running?): starting anyway"
         )
         return True
+
+    def _link_ready(self) -> bool:
+        """True once the bridge reads the ECU (the link works); until then bac/trial says why the campaign waits.
+
+        Bounded by ``link_wait_s``: then the node finishes with code 2 before a single trial was spent.
+        """
+        w = self._link
+        if self.link_wait_s <= 0 or w.ok:
+            return True
+        now = time.monotonic()
+        if w.since is None:
+            w.since = now
+            self.get_logger().info(f"waiting for the ECU link ({SRV_READ_CALIBRATION}) before trial 1")
+        if w.future is not None:
+            if not w.future.done():
+                if now - w.asked < 30.0:
+                    return False
+                self.read_client.remove_pending_request(w.future)
+                w.problem = f"{SRV_READ_CALIBRATION} did not answer within 30 s"
+            else:
+                try:
+                    res = w.future.result()
+                except Exception as exc:  # the call itself failed (the service went away)
+                    res, w.problem = None, f"reading the ECU failed: {exc}"
+                if res is not None and res.success:
+                    w.ok = True
+                    self.get_logger().info(f"ECU link up: the bridge reads the ECU ({now - w.since:.1f} s)")
+                    return True
+                if res is not None:
+                    w.problem = str(res.message) or "the bridge could not read the ECU"
+            w.future = None
+        elif not self.read_client.service_is_ready():
+            w.problem = f"service {SRV_READ_CALIBRATION} not available (is ecu_bridge running?)"
+        if now - w.since > self.link_wait_s:
+            text = (
+                f"No ECU link after {self.link_wait_s:g} s: {w.problem}. The campaign did not start and no trial was "
+                "spent; fix the link (is the adapter plugged in and its interface up?) and launch again."
+            )
+            self.get_logger().error(text)
+            self.pub_trial.publish(self._waiting_msg(text, w.problem))
+            self.campaign.journal.close()
+            self.finish(2)
+            return False
+        if w.problem and w.problem != w.told:
+            w.told = w.problem
+            text = (
+                f"Wait: no link to the ECU yet ({w.problem[:200]}). Check that the CAN adapter is plugged in and its "
+                "interface up; trial 1 starts as soon as the bridge reads the ECU."
+            )
+            self.get_logger().warning(text)
+            self.pub_trial.publish(self._waiting_msg(text, w.problem))
+        if w.future is None and now >= w.next_ask and self.read_client.service_is_ready():
+            w.future = self.read_client.call_async(ReadCalibration.Request())
+            w.asked = now
+            w.next_ask = now + 1.0
+        return False
+
+    def _waiting_msg(self, instruction: str, reason: str) -> Trial:
+        c = self.campaign
+        return self._trial_msg(
+            TrialStatus(
+                campaign_id=c.cfg.campaign_id,
+                trial_id=0,
+                attempt=0,
+                state=State.IDLE,
+                kind=Kind.OPTIMIZED,
+                params={},
+                budget=c.cfg.budget,
+                trials_done=c.trials_done,
+                last_j=math.nan,
+                best_j=math.nan,
+                best_trial_id=0,
+                predicted_j=math.nan,
+                predicted_j_std=math.nan,
+                instruction=instruction,
+                reason=reason,
+                stamp=c.clock(),
+            )
+        )
 
     def _poll_apply(self) -> None:
         a = self._apply
@@ -469,6 +573,19 @@ class BoAgentNode(BacNode):
     def destroy_node(self) -> None:
         self.campaign.journal.close()
         super().destroy_node()
+
+
+class _LinkWait:
+    """The wait for the ECU link before trial 1."""
+
+    def __init__(self) -> None:
+        self.ok = False
+        self.since: float | None = None
+        self.future: Any = None
+        self.asked = 0.0
+        self.next_ask = 0.0
+        self.problem = ""
+        self.told = ""
 
 
 def main(args: list[str] | None = None) -> int:

@@ -52,9 +52,11 @@ from bac_common.errors import BacError
 
 RECOMMENDATION_NAME = "recommendation.json"
 ERROR_ECU_BUSY = 4  # bac_msgs/srv/ApplyCalibration ERROR_ECU_BUSY: the ECU refuses while the vehicle moves
+ERROR_BUS = 8  # bac_msgs/srv/ApplyCalibration ERROR_BUS: the CAN link to the ECU is down (adapter missing, failed)
 # apply_result.outcome: what the agent made of the bridge's answer
 APPLY_CONFIRMED = "confirmed"  # the ECU holds the calibration: the trial is driven
 APPLY_BUSY = "busy"  # the ECU was busy (vehicle moving) within busy_timeout_s: asked again, not a failed try
+APPLY_LINK_DOWN = "link_down"  # the CAN link is down (ERROR_BUS) within link_timeout_s: paused, not a failed try
 APPLY_FAILED = "failed"  # a failed try (retried up to apply_retries times)
 
 
@@ -123,6 +125,8 @@ class CampaignConfig:
     max_consecutive_failures: int = 3
     busy_retry_s: float = 2.0  # an ECU that answers "busy" (vehicle moving) is asked again after this long
     busy_timeout_s: float = 120.0  # ... until it has been busy this long (ROS time): then a failed try
+    link_retry_s: float = 2.0  # the CAN link is down (ERROR_BUS): the campaign pauses and asks again after this long
+    link_timeout_s: float = 600.0  # ... until it has been down this long (ROS time): then the campaign stops, resumable
     extra: Mapping[str, Any] = field(default_factory=dict)  # journaled with the start (n_initial, grid_size, ...)
 
     def __post_init__(self) -> None:
@@ -203,6 +207,8 @@ class _Trial:
     apply_try: int = 0  # apply requests sent (each answer is matched to its request)
     failed_applies: int = 0  # failed tries (an ECU busy within busy_timeout_s is not one)
     busy_since: float = math.nan
+    link_since: float = math.nan  # the CAN link went down while applying this trial (the campaign is paused)
+    link_lost_journaled: bool = False  # link_lost journaled for this outage
     confirmed: bool = False
     phase: State = State.PROPOSED
     last_reason: str = ""
@@ -247,7 +253,8 @@ class Campaign:
         self.confirmation_j = math.nan
         self.confirmation_closed = False  # the confirmation trial was scored or given up
         self.finished = False
-        self.exit_code: int | None = None  # 0 done, 1 ended without a recommendation
+        self.exit_code: int | None = None  # 0 done, 1 ended without a recommendation, 2 paused (ECU link down)
+        self.paused = False  # stopped by campaign_paused (the ECU link stayed down): a resume goes on
         self.resumed = False
         self.resumes = 0  # campaign_resumed events so far
 
@@ -338,15 +345,28 @@ class Campaign:
             outcome = ev.get("outcome") or self._legacy_apply_outcome(t, ev)
             t.apply_outcome = str(outcome)
             t.apply_message = str(ev.get("message") or "")
+            if outcome != APPLY_LINK_DOWN:
+                t.link_since = math.nan
+                t.link_lost_journaled = False
             if outcome == APPLY_CONFIRMED:
                 t.confirmed = True
                 t.busy_since = math.nan
             elif outcome == APPLY_BUSY:
                 if math.isnan(t.busy_since):
                     t.busy_since = _f(ev.get("stamp"))
+            elif outcome == APPLY_LINK_DOWN:  # paused: not a failed try
+                if math.isnan(t.link_since):
+                    t.link_since = _f(ev.get("stamp"))
             else:
                 t.failed_applies += 1
                 t.busy_since = math.nan
+        elif kind == "link_lost":
+            self._trial_of(ev).link_lost_journaled = True
+        elif kind == "campaign_paused":
+            # the link stayed down for link_timeout_s: the agent stopped (exit 2); a resume goes on with the trial
+            self.finished = True
+            self.exit_code = 2
+            self.paused = True
         elif kind == "run_ready":
             t = self._trial_of(ev)
             t.attempt = int(ev["attempt"])
@@ -401,6 +421,10 @@ class Campaign:
             self.current = None
         elif kind == "campaign_resumed":
             self.resumes += 1
+            if self.paused:  # a campaign stopped for a lost ECU link goes on
+                self.finished = False
+                self.exit_code = None
+                self.paused = False
             open_trial = self._open_trial()
             if open_trial is not None:
                 # the ECU's state is unknown to a new process: the trial is applied again, and a busy ECU's
@@ -408,6 +432,8 @@ class Campaign:
                 # journaled stamps)
                 open_trial.confirmed = False
                 open_trial.busy_since = math.nan
+                open_trial.link_since = math.nan
+                open_trial.link_lost_journaled = False
         # campaign_started, score_ignored: nothing to change
 
     def _legacy_apply_outcome(self, t: _Trial, ev: Mapping[str, Any]) -> str:
@@ -423,7 +449,7 @@ class Campaign:
 
     def _open_trial(self) -> _Trial | None:
         t = self.current
-        if t is None or t.phase in (State.SCORED, State.FAILED) or self.finished:
+        if t is None or t.phase in (State.SCORED, State.FAILED) or (self.finished and not self.paused):
             return None
         return t
 
@@ -445,6 +471,8 @@ class Campaign:
                 "max_consecutive_failures": self.cfg.max_consecutive_failures,
                 "busy_retry_s": self.cfg.busy_retry_s,
                 "busy_timeout_s": self.cfg.busy_timeout_s,
+                "link_retry_s": self.cfg.link_retry_s,
+                "link_timeout_s": self.cfg.link_timeout_s,
                 **dict(self.cfg.extra),
             },
             "definition": self.definition,
@@ -620,6 +648,9 @@ class Campaign:
             since = now if math.isnan(t.busy_since) else t.busy_since
             if now - since < self.cfg.busy_timeout_s:
                 outcome = APPLY_BUSY
+        elif not success and error_code == ERROR_BUS:
+            # the campaign pauses (no trial fails) until the link is back, for link_timeout_s (_link_down)
+            outcome = APPLY_LINK_DOWN
         self._record(
             "apply_result",
             stamp=now,
@@ -635,6 +666,8 @@ class Campaign:
         )
         if outcome == APPLY_CONFIRMED:
             return self._ready(t)
+        if outcome == APPLY_LINK_DOWN:
+            return self._link_down(t, message)
         if outcome == APPLY_BUSY:
             return [
                 Log("info", f"trial {t.trial_id}: the ECU is busy (vehicle moving); asking again"),
@@ -645,6 +678,29 @@ class Campaign:
                 ),
             ]
         return self._apply_failed(t, reason)
+
+    def _link_down(self, t: _Trial, message: str) -> list[Action]:
+        """The CAN link to the ECU is down: the campaign pauses (no trial fails) until it is back, within bounds."""
+        now = self.clock()
+        if not t.link_lost_journaled:
+            self._record("link_lost", stamp=now, trial_id=t.trial_id, message=message)
+        down = now - t.link_since
+        if down < self.cfg.link_timeout_s:
+            return [
+                Log("warn", f"trial {t.trial_id}: the ECU link is down ({message}); paused, asking again"),
+                *self._apply(
+                    t,
+                    self.cfg.link_retry_s,
+                    f"Wait: the campaign is paused, the CAN link to the ECU is down ({message[:200]}). Check that "
+                    "the adapter is plugged in and its interface up; the campaign goes on by itself.",
+                ),
+            ]
+        self._record("campaign_paused", stamp=now, trial_id=t.trial_id, down_s=down, message=message)
+        text = (
+            f"The ECU link stayed down for {down:.0f} s ({message[:200]}): the campaign stops here, no trial failed. "
+            f"Fix the link and launch again with the same campaign folder ({self.campaign_dir}) to resume it."
+        )
+        return [Log("error", text), self._status(State.IDLE, text, message), Finish(2, None)]
 
     def on_apply_timeout(self, trial_id: int, apply_try: int, reason: str) -> list[Action]:
         """No answer from the bridge within the time limit (or the service is not there)."""
@@ -857,7 +913,18 @@ _STARTED_KEYS = ("names", "strategy", "budget", "seed", "config", "definition")
 # config entries a resume may change: waiting limits, which change neither what the optimizer is told nor what a
 # run measures (the journal keeps the new values in campaign_resumed.changed); definition_file is the spelling of a
 # path, the definition itself is compared
-RESUME_MAY_CHANGE = frozenset({"apply_timeout_s", "run_timeout_s", "busy_retry_s", "busy_timeout_s", "definition_file"})
+RESUME_MAY_CHANGE = frozenset(
+    {
+        "apply_timeout_s",
+        "run_timeout_s",
+        "busy_retry_s",
+        "busy_timeout_s",
+        "link_retry_s",
+        "link_timeout_s",
+        "link_wait_s",
+        "definition_file",
+    }
+)
 _MISSING = object()
 
 

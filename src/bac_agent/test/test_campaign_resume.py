@@ -23,6 +23,7 @@ import pytest
 from bac_agent.bo import Engine, EngineConfig, GPConfig
 from bac_agent.bo.baselines import GridStrategy
 from bac_agent.campaign import (
+    ERROR_BUS,
     ERROR_ECU_BUSY,
     RECOMMENDATION_NAME,
     Apply,
@@ -53,6 +54,7 @@ APPLY_SCRIPT = {
     1: ["fail", "ok"],
     2: ["busy", "busy", "ok"],
     4: ["timeout", "fail", "fail"],  # three failed tries with apply_retries 2: trial 4 given up
+    5: ["link", "link", "link", "ok"],  # the CAN link down for 3 tries (within link_timeout_s): paused, no failure
     7: ["busy"] * 40,  # busy for longer than busy_timeout_s, every try: given up
 }
 RUN_SCRIPT = {
@@ -75,6 +77,8 @@ def config(**over: Any) -> CampaignConfig:
         max_consecutive_failures=3,
         busy_retry_s=1.0,
         busy_timeout_s=1.5,
+        link_retry_s=1.0,
+        link_timeout_s=10.0,
         extra={
             "n_initial": 3,
             "grid_size": 4,
@@ -164,6 +168,8 @@ class Chain:
                 self.feed(self.c.on_apply_result(a.trial_id, a.apply_try, False, 3, "value out of range"))
             elif what == "busy":
                 self.feed(self.c.on_apply_result(a.trial_id, a.apply_try, False, ERROR_ECU_BUSY, "vehicle moving"))
+            elif what == "link":
+                self.feed(self.c.on_apply_result(a.trial_id, a.apply_try, False, ERROR_BUS, "can0 is down"))
             else:
                 self.feed(self.c.on_apply_timeout(a.trial_id, a.apply_try, "no answer"))
             return
@@ -261,6 +267,7 @@ def test_the_scripted_campaign_goes_through_every_rule(live: tuple[Path, dict[st
     rec = out["recommendation_json"]
     assert rec["best_observed_params"] is not None and rec["best_observed_j"] == min(v for _, v in out["told"])
     assert rec["confirmation_j"] == out["trials"][9]["j"]
+    assert "j" in out["trials"][5] and kinds.count("link_lost") == 1  # the outage paused trial 5, failed nothing
 
 
 def test_every_cut_of_the_journal_resumes_to_the_same_campaign(
@@ -470,3 +477,36 @@ def test_a_failed_campaign_stays_failed_on_resume(tmp_path: Path) -> None:
     assert fin2 and fin2[0].code == 1
     kinds = [e["event"] for e in again.journal.events]
     assert kinds.count("campaign_failed") == 1 and kinds.count("trial_proposed") == 1
+
+
+def test_a_campaign_paused_for_a_lost_ecu_link_resumes_the_same_trial(tmp_path: Path) -> None:
+    """The link stays down beyond link_timeout_s: the agent stops with 2 (campaign_paused), no trial failed; a
+    relaunch on the folder applies the same trial again and goes on, still without a failed try."""
+    clock = Clock()
+    cfg = config(link_timeout_s=3.0)
+    camp = Campaign(engine(), Journal(tmp_path), cfg, clock, definition=DEFINITION)
+    chain = Chain(camp, clock)
+    chain.feed(camp.start())
+    for _ in range(10):
+        a = chain.pending
+        assert isinstance(a, Apply) and a.trial_id == 1
+        clock.t += 1.0
+        chain.feed(camp.on_apply_result(a.trial_id, a.apply_try, False, ERROR_BUS, "can0 is down"))
+        if chain.finish is not None:
+            break
+    assert chain.finish is not None and chain.finish.code == 2
+    kinds = [e["event"] for e in camp.journal.events]
+    assert kinds.count("link_lost") == 1 and kinds[-1] == "campaign_paused" and "trial_failed" not in kinds
+    assert camp.trials[1].failed_applies == 0
+    camp.journal.close()
+    clock2 = Clock(5.0)  # a new launch: another clock
+    again = start(tmp_path, clock2, cfg=config(link_timeout_s=30.0))  # a waiting limit may change
+    assert isinstance(again.pending, Apply) and again.pending.trial_id == 1 and again.finish is None
+    (resumed,) = [e for e in again.c.journal.events if e["event"] == "campaign_resumed"]
+    assert resumed["in_flight"] == [1]
+    assert "config.link_timeout_s: journaled 3.0, this agent 30.0" in resumed["changed"]
+    again.run()
+    assert again.finish is not None and again.finish.code == 0
+    evs = again.c.journal.events
+    assert not [e for e in evs if e["event"] == "trial_failed" and e["trial_id"] == 1]
+    assert any(e["event"] == "trial_scored" and e["trial_id"] == 1 for e in evs)

@@ -38,6 +38,7 @@ SUBCOMMANDS: dict[str, tuple[str, str, str]] = {
     "export": ("bac_campaign.export", "main", "write a campaign as ASAM MDF4 (--mf4) for asammdf, CANape, INCA"),
     "reduce": ("bac_reduce.cli", "main", "simulation phase: find the parameters that matter (paper sec. III-D)"),
     "ground-truth": ("bac_sim.ground_truth", "main", "recompute the simulator's true optima by dense grids"),
+    "definition": ("bac_ecu_bridge.definition_cli", "main", "calibration definitions from an ECU's A2L file"),
 }
 
 

@@ -10,7 +10,7 @@ simulator's true optimum; the last line reads ``recommendation_gap_pct <x>``
 (x = 100 × (J(θ_rec) − J*) / (J_med − J*), with the true, noise-free J).
 
     bac demo [--scenario bump|road] [--budget 15] [--seed 0] [--with-grid] [--campaign-dir DIR] [--single-process]
-             [--definition META_FILE [--truth-from RESULT_JSON]] [--visible]
+             [--definition META_FILE [--truth-from RESULT_JSON]] [--visible] [--ecu bac|xcp]
 
 The demo's graph runs in a private network namespace of its own (when one can be made), so that no other ROS
 graph on the machine can disturb the campaign and its figures; ``--visible`` runs it in the machine's
@@ -20,6 +20,8 @@ namespace instead, where ROS tools (``ros2 topic echo /bac/trial``, rqt, Foxglov
 With ``--definition`` the campaign calibrates another definition, e.g. the meta-parameter file of
 ``bac reduce`` (the experimental phase of paper sec. III-D: Controller II on the test road, the
 bridge expanding each meta-parameter into its raw parameters), and the gap is that space's own.
+With ``--ecu xcp`` the simulated ECU is an XCP-on-CAN slave and the bridge calibrates it over XCP
+(pyxcp), at the definition's A2L addresses: the same job through the protocol of a series ECU.
 """
 
 from __future__ import annotations
@@ -251,6 +253,12 @@ def main(argv: Sequence[str] | None = None) -> int:
         "meta-parameters); judged against that space's own optimum",
     )
     ap.add_argument(
+        "--ecu",
+        choices=("bac", "xcp"),
+        default="bac",
+        help="the simulated ECU's calibration protocol, and the bridge's: bac (default) or xcp (ASAM XCP on CAN)",
+    )
+    ap.add_argument(
         "--truth-from",
         type=Path,
         help="with --definition: the result.json of `bac reduce` holding the reduced optimum (else it is measured)",
@@ -305,14 +313,16 @@ def main(argv: Sequence[str] | None = None) -> int:
         if args.single_process
         else "each in its own process, but vehicle_sim and ecu_bridge share one (CAN stays in it)"
     )
+    ecu = "XCP" if args.ecu == "xcp" else "bac protocol"
     out(
-        f"  the node graph: vehicle_sim (+ its ECU on CAN), imu_ingest, run_segmenter, kpi_scorer, ecu_bridge, "
+        f"  the node graph: vehicle_sim (+ its {ecu} ECU on CAN), imu_ingest, run_segmenter, kpi_scorer, ecu_bridge, "
         f"campaign_recorder, cockpit, bo_agent, {layout}"
         + (", in a private network namespace (--visible: where ROS tools see it)" if private else "")
     )
     out(f"  campaign folder: {camp}")
     t0 = time.monotonic()
-    overrides = [f"bo_agent.budget:={args.budget}", *seeds, *definition_overrides]
+    protocol = [f"vehicle_sim.ecu_protocol:={args.ecu}", f"ecu_bridge.protocol:={args.ecu}"]
+    overrides = [f"bo_agent.budget:={args.budget}", *seeds, *definition_overrides, *protocol]
     rc = run_campaign(camp, files, overrides, args.single_process, args.timeout, private)
     wall = time.monotonic() - t0
     if rc != 0 or not (camp / "recommendation.json").exists():
@@ -347,6 +357,7 @@ def main(argv: Sequence[str] | None = None) -> int:
                 "bo_agent.confirmation_run:=false",
                 *seeds,
                 *definition_overrides,
+                *protocol,
             ],
             args.single_process,
             args.timeout * 4,

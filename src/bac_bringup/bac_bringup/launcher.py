@@ -252,7 +252,8 @@ class ProcessGraph:
     def _stop_wave(self, wave: list[NodeProcess]) -> int:
         live = [c for c in wave if c.proc.poll() is None]
         unclean = 0
-        for sig, grace in ((signal.SIGINT, STOP_GRACE_S), (signal.SIGTERM, STOP_GRACE_S), (signal.SIGKILL, 5.0)):
+        first = max([STOP_GRACE_S, *(c.spec.stop_grace_s for c in live)])  # a node may need longer (stop_grace_s)
+        for sig, grace in ((signal.SIGINT, first), (signal.SIGTERM, STOP_GRACE_S), (signal.SIGKILL, 5.0)):
             if not live:
                 break
             for c in live:

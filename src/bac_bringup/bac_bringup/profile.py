@@ -20,7 +20,10 @@ parameter (one new folder per launch unless ``--campaign-dir`` names one).
 parameters. ``ends_graph: true`` marks the node whose normal exit (code 0)
 ends the whole graph; any other node exiting is a failure. ``stop_order`` (default 0): at shutdown
 the nodes stop in waves of increasing ``stop_order`` (the simulated vehicle, whose ECU the bridge
-still talks to while it stops, goes last).
+still talks to while it stops, goes last). ``stop_grace_s`` (default 0: the launcher's 8 s): how long
+the node may take to stop after SIGINT before SIGTERM (the ECU bridge retries a baseline restore the ECU
+refuses while the vehicle moves: its ``restore_pending_s`` plus a margin); a shared process gets the
+longest grace of its nodes.
 
 ``process: NAME`` puts nodes in one process (``bac_bringup.container``, as a component container would):
 the nodes with the same process name share a process and its executor, the others keep one process each
@@ -57,6 +60,7 @@ class NodeSpec:
     ends_graph: bool = False
     params: Mapping[str, Any] = field(default_factory=dict)  # per-node overrides
     stop_order: int = 0  # nodes stop in waves of increasing stop_order
+    stop_grace_s: float = 0.0  # SIGINT -> SIGTERM for this node (0: the launcher's default)
     process: str = ""  # nodes with the same process name share one process; "" = a process of its own
 
     @property
@@ -88,6 +92,11 @@ class ProcessSpec:
     def stop_order(self) -> int:
         """A shared process stops with its last node's wave (inside, the nodes stop in their own order)."""
         return max(n.stop_order for n in self.nodes)
+
+    @property
+    def stop_grace_s(self) -> float:
+        """A shared process gets the longest SIGINT -> SIGTERM grace of its nodes."""
+        return max(n.stop_grace_s for n in self.nodes)
 
     @property
     def can(self) -> bool:
@@ -251,6 +260,7 @@ def load_profile(name_or_path: str | Path) -> Profile:
                 can=bool(n.get("can", False)),
                 ends_graph=bool(n.get("ends_graph", False)),
                 stop_order=int(n.get("stop_order", 0)),
+                stop_grace_s=float(n.get("stop_grace_s", 0.0)),
                 params=dict(n.get("params") or {}),
                 process=str(n.get("process") or ""),
             )

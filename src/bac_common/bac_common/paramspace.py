@@ -28,6 +28,16 @@ The YAML form (see ``ros_ws/config/calibrations/``)::
       - {name: m1, members: [p05, p06, p07], lower: 0, upper: 1000}
     fixed: {p01: 500.0}                                 # raw values held fixed, default: nominal
     best_guess: {m1: 0.0}                               # optional: where the optimum is expected (bac reduce)
+
+For an ECU calibrated over XCP, each parameter also says where the ECU holds it
+(``xcp:``, an :class:`EcuAddress`, written by ``bac definition from-a2l`` from
+the ECU's A2L file), and the definition may carry the XCP-on-CAN settings of
+the A2L's IF_DATA (a top-level ``xcp:`` mapping, read by the ECU bridge)::
+
+    parameters:
+      - {name: p01, index: 0, lower: 0, upper: 1000, nominal: 500, resolution: 0.01,
+         xcp: {address: 0x40000100, datatype: ULONG, conversion: LINEAR, coeffs: [0.01, 0.0]}}
+    xcp: {can_id_master: 0x7E0, can_id_slave: 0x7E1, segment: 0, reference_page: 0, working_page: 1}
 """
 
 from __future__ import annotations
@@ -43,6 +53,115 @@ from bac_common.errors import DefinitionError, OutOfBoundsError, UnknownParamete
 MAX_PARAMETER_INDEX = 255
 
 
+XCP_DATATYPES = (
+    "UBYTE",
+    "SBYTE",
+    "UWORD",
+    "SWORD",
+    "ULONG",
+    "SLONG",
+    "A_UINT64",
+    "A_INT64",
+    "FLOAT32_IEEE",
+    "FLOAT64_IEEE",
+)
+BYTE_ORDERS = ("MSB_LAST", "MSB_FIRST")  # A2L: MSB_LAST = little endian (Intel), MSB_FIRST = big endian (Motorola)
+CONVERSIONS = {"IDENTICAL": 0, "LINEAR": 2, "RAT_FUNC": 6}  # A2L COMPU_METHOD kinds and their coefficient counts
+
+
+@dataclass(frozen=True)
+class EcuAddress:
+    """Where an XCP ECU holds one raw parameter, and how (an A2L CHARACTERISTIC of type VALUE).
+
+    ``conversion`` is the A2L COMPU_METHOD from the ECU's internal value x to the physical value p:
+    IDENTICAL (p = x), LINEAR (``coeffs`` = (a, b): p = a x + b, COEFFS_LINEAR) or RAT_FUNC in its linear
+    form (``coeffs`` = (a, b, c, d, e, f) with a = d = e = 0: x = (b p + c) / f, COEFFS).
+    """
+
+    address: int
+    datatype: str
+    byte_order: str = "MSB_LAST"
+    extension: int = 0
+    conversion: str = "IDENTICAL"
+    coeffs: tuple[float, ...] = ()
+    characteristic: str = ""  # the A2L CHARACTERISTIC's name, when it is not the parameter's
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "coeffs", tuple(float(c) for c in self.coeffs))
+        if not 0 <= self.address <= 0xFFFF_FFFF:
+            raise DefinitionError(f"XCP address 0x{self.address:X} does not fit 32 bits")
+        if not 0 <= self.extension <= 0xFF:
+            raise DefinitionError(f"XCP address extension {self.extension} does not fit one byte")
+        if self.datatype not in XCP_DATATYPES:
+            raise DefinitionError(f"XCP datatype {self.datatype!r} is not one of {', '.join(XCP_DATATYPES)}")
+        if self.byte_order not in BYTE_ORDERS:
+            raise DefinitionError(f"byte order {self.byte_order!r} is not MSB_LAST (Intel) or MSB_FIRST (Motorola)")
+        if self.conversion not in CONVERSIONS:
+            raise DefinitionError(f"conversion {self.conversion!r} is not IDENTICAL, LINEAR or RAT_FUNC")
+        if len(self.coeffs) != CONVERSIONS[self.conversion]:
+            raise DefinitionError(
+                f"a {self.conversion} conversion takes {CONVERSIONS[self.conversion]} coefficients, "
+                f"got {len(self.coeffs)}"
+            )
+        if not all(math.isfinite(c) for c in self.coeffs):
+            raise DefinitionError("conversion coefficients must be finite")
+        if self.conversion == "LINEAR" and self.coeffs[0] == 0:
+            raise DefinitionError("a LINEAR conversion needs a non-zero factor a (p = a x + b)")
+        if self.conversion == "RAT_FUNC":
+            a, b, _c, d, e, f = self.coeffs
+            if a != 0 or d != 0 or e != 0 or b == 0 or f == 0:
+                raise DefinitionError(
+                    f"RAT_FUNC coefficients {list(self.coeffs)} are not linear (needs a = d = e = 0, b != 0, f != 0): "
+                    "only x = (b p + c) / f is supported"
+                )
+
+    @property
+    def linear(self) -> tuple[float, float]:
+        """(factor, offset) with p = factor * x + offset."""
+        if self.conversion == "LINEAR":
+            return self.coeffs[0], self.coeffs[1]
+        if self.conversion == "RAT_FUNC":
+            _a, b, c, _d, _e, f = self.coeffs
+            return f / b, -c / b
+        return 1.0, 0.0
+
+    @property
+    def is_float(self) -> bool:
+        return self.datatype.startswith("FLOAT")
+
+    def to_dict(self) -> dict[str, Any]:
+        out: dict[str, Any] = {"address": self.address, "datatype": self.datatype}
+        if self.byte_order != "MSB_LAST":
+            out["byte_order"] = self.byte_order
+        if self.extension:
+            out["extension"] = self.extension
+        out["conversion"] = self.conversion
+        if self.coeffs:
+            out["coeffs"] = list(self.coeffs)
+        if self.characteristic:
+            out["characteristic"] = self.characteristic
+        return out
+
+    @classmethod
+    def from_dict(cls, data: Mapping[str, Any]) -> EcuAddress:
+        known = {"address", "datatype", "byte_order", "extension", "conversion", "coeffs", "characteristic"}
+        unknown = set(data) - known
+        if unknown:
+            raise DefinitionError(f"unknown xcp fields {sorted(unknown)} (known: {sorted(known)})")
+        try:
+            return cls(
+                address=int(data["address"]),
+                datatype=str(data["datatype"]),
+                byte_order=str(data.get("byte_order", "MSB_LAST")),
+                extension=int(data.get("extension", 0)),
+                conversion=str(data.get("conversion", "IDENTICAL")),
+                coeffs=tuple(float(c) for c in data.get("coeffs") or ()),
+                characteristic=str(data.get("characteristic", "")),
+            )
+        except (KeyError, TypeError, ValueError) as exc:
+            raise DefinitionError(f"malformed xcp address {dict(data)}: {exc}") from exc
+
+
 @dataclass(frozen=True)
 class RawParameter:
     """One calibration parameter as the ECU knows it."""
@@ -55,6 +174,7 @@ class RawParameter:
     resolution: float  # CAN encoding step (one LSB), in the parameter's unit
     unit: str = ""
     description: str = ""
+    xcp: EcuAddress | None = None  # where an XCP ECU holds it (None: the parameter is not reachable over XCP)
 
     def __post_init__(self) -> None:
         if not self.name or not self.name.replace("_", "").isalnum():
@@ -131,6 +251,8 @@ class CalibrationDefinition:
     # a best guess of the optimum over the tuned dimensions (e.g. the simulation phase's reduced optimum, written
     # by `bac reduce`): the agent may drive it first (the paper's "best guess policy" of the initialization)
     best_guess: Mapping[str, float] = field(default_factory=dict)
+    # the XCP-on-CAN settings of the ECU holding this calibration (the A2L's IF_DATA; read by the ECU bridge)
+    xcp: Mapping[str, Any] = field(default_factory=dict)
 
     def __post_init__(self) -> None:
         names = [p.name for p in self.parameters]
@@ -192,6 +314,7 @@ class CalibrationDefinition:
                         f"{dim.upper:g}]"
                     )
         object.__setattr__(self, "best_guess", guess)
+        object.__setattr__(self, "xcp", dict(self.xcp))
 
     # --- look-ups ------------------------------------------------------------------
     @property
@@ -279,6 +402,7 @@ class CalibrationDefinition:
                     "resolution": p.resolution,
                     "unit": p.unit,
                     "description": p.description,
+                    **({"xcp": p.xcp.to_dict()} if p.xcp is not None else {}),
                 }
                 for p in self.parameters
             ],
@@ -298,6 +422,8 @@ class CalibrationDefinition:
         }
         if self.best_guess:
             out["best_guess"] = dict(self.best_guess)
+        if self.xcp:
+            out["xcp"] = dict(self.xcp)
         return out
 
     @classmethod
@@ -313,6 +439,7 @@ class CalibrationDefinition:
                     resolution=float(p["resolution"]),
                     unit=str(p.get("unit", "")),
                     description=str(p.get("description", "")),
+                    xcp=EcuAddress.from_dict(p["xcp"]) if p.get("xcp") else None,
                 )
                 for p in data["parameters"]
             )
@@ -335,6 +462,7 @@ class CalibrationDefinition:
                 fixed={str(k): float(v) for k, v in (data.get("fixed") or {}).items()},
                 baseline={str(k): float(v) for k, v in (data.get("baseline") or {}).items()},
                 best_guess={str(k): float(v) for k, v in (data.get("best_guess") or {}).items()},
+                xcp=dict(data.get("xcp") or {}),
             )
         except (KeyError, TypeError) as exc:
             raise DefinitionError(f"malformed calibration definition: missing or wrong field {exc}") from exc

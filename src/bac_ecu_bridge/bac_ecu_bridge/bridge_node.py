@@ -17,16 +17,23 @@ Topics: ``bac/calibration`` (bac_msgs/Calibration, latched) each time the ECU
 confirms a calibration; ``/diagnostics`` (bus and ECU health, every
 ``diagnostics_period_s``).
 
-The baseline is restored on shutdown (``restore_baseline_on_shutdown``) and
-when an apply aborts with the ECU's state unknown (a COMMIT sent without a
-decisive answer; ``restore_baseline_on_abort``).
+The decisions live in :class:`bac_ecu_bridge.core.BridgeCore` (plain Python):
+the ECU is read at start and a calibration other than the baseline is restored
+or reported before anything else; a failed apply reports what the ECU holds
+(read back when the outcome was uncertain) and restores the baseline when it
+holds anything else (``restore_baseline_on_abort``); the baseline is restored
+on shutdown (``restore_baseline_on_shutdown``), and a restore the ECU refuses
+(busy: the vehicle moves) stays pending and is retried until it goes through
+(``restore_pending_s``), with an ERROR on ``/diagnostics`` and in the log.
 """
 
 from __future__ import annotations
 
+import contextlib
 import sys
 import threading
 import time
+from collections.abc import Mapping
 from typing import Any
 
 import can
@@ -45,11 +52,14 @@ from bac_common.errors import BacError, DefinitionError, OutOfBoundsError, Unkno
 from bac_common.paramspace import CalibrationDefinition
 from bac_common.paths import resolve_definition
 from bac_common.rosnode import QOS_LATCHED, BacNode, run_node
+from bac_ecu_bridge.backend import ApplyResult, CalibrationBackend, EcuStatus, ReadResult
 from bac_ecu_bridge.canbus import BusSettings, TracedBus, open_bus
-from bac_ecu_bridge.client import ApplyResult, CalibrationClient, ClientConfig
+from bac_ecu_bridge.client import CalibrationClient, ClientConfig
+from bac_ecu_bridge.core import BridgeCore
 from bac_ecu_bridge.errors import BridgeError, BusError, ErrorCode, InvalidRequestError
 from bac_ecu_bridge.faults import FaultConfig, FaultyBus
 from bac_ecu_bridge.protocol import DEFAULT_REQUEST_ID, DEFAULT_RESPONSE_ID, CalibrationCodec, CanIds, resolve_request
+from bac_ecu_bridge.xcp.client import XcpCalibrationClient, XcpConfig, XcpSettings
 from bac_msgs.msg import Calibration
 from bac_msgs.srv import ApplyCalibration, ReadCalibration
 
@@ -61,6 +71,14 @@ class EcuBridgeNode(BacNode):
 
     def __init__(self, **kwargs: Any) -> None:
         super().__init__("ecu_bridge", **kwargs)
+        self.protocol = self.declare_str(
+            "protocol",
+            "bac",
+            "the ECU's calibration protocol: bac (bac's own, docs/ecu_bridge.md section 1) or xcp (ASAM XCP on CAN, "
+            "the definition's parameters carrying their A2L addresses)",
+            choices=("bac", "xcp"),
+            read_only=True,
+        )
         definition_file = self.declare_str(
             "definition_file",
             "controller_i",
@@ -115,6 +133,50 @@ class EcuBridgeNode(BacNode):
             ),
             self.declare_bool("can.extended_id", False, "29-bit CAN identifiers", read_only=True),
         )
+        xcp_overrides = {
+            "can_id_master": self.declare_int(
+                "xcp.can_id_master",
+                -1,
+                "XCP: CAN id of the commands (bridge -> ECU, the A2L's CAN_ID_MASTER); -1 = the definition's, "
+                "else 0x7E0",
+                -1,
+                MAX_CAN_ID,
+                read_only=True,
+            ),
+            "can_id_slave": self.declare_int(
+                "xcp.can_id_slave",
+                -1,
+                "XCP: CAN id of the ECU's responses (CAN_ID_SLAVE); -1 = the definition's, else 0x7E1",
+                -1,
+                MAX_CAN_ID,
+                read_only=True,
+            ),
+            "pages": self.declare_str(
+                "xcp.pages",
+                "auto",
+                "XCP: the calibration segment has a reference and a working page (true), one page (false), or as "
+                "the definition says (auto; default true)",
+                choices=("auto", "true", "false"),
+                read_only=True,
+            ),
+            "key_algorithm": self.declare_str(
+                "xcp.key_algorithm",
+                "",
+                "XCP seed & key: xor:<hex secret>, or module.path:function(resource, seed) -> key; '' = the "
+                "definition's (none)",
+                read_only=True,
+            ),
+        }
+        self.declare_float("xcp.t7_s", 0.02, "XCP t7: wait before repeating a command the ECU found busy, s", 0.0, 5.0)
+        self.declare_float(
+            "xcp.settle_s",
+            0.06,
+            "XCP: after an anomaly (a timeout, a late or duplicated answer) the final checks wait this long for "
+            "frames still on the way, s (longer than any frame stays in the adapter's queues)",
+            0.0,
+            5.0,
+        )
+        self.declare_bool("xcp.block_mode", True, "XCP: DOWNLOAD in master block mode when the ECU offers it")
         self.trace_file = self.declare_str(
             "can.trace_file",
             "",
@@ -141,7 +203,24 @@ class EcuBridgeNode(BacNode):
         self.declare_bool(
             "restore_baseline_on_abort", True, "write the safe baseline when an apply ends with the ECU's state unknown"
         )
-        self.declare_float("restore_timeout_s", 2.0, "time limit of a baseline restore, s", 0.01, 60.0)
+        self.declare_float("restore_timeout_s", 2.0, "time limit of one try of a baseline restore, s", 0.01, 60.0)
+        self.declare_float(
+            "restore_pending_s",
+            30.0,
+            "a baseline restore the ECU refuses (busy: the vehicle moves) is tried again for this long at shutdown, s "
+            "(while the node runs, it is tried again with each diagnostics tick until it goes through)",
+            0.0,
+            3600.0,
+        )
+        self.declare_float(
+            "restore_retry_s", 0.5, "period of the tries of a pending restore at shutdown, s", 0.05, 60.0
+        )
+        restore_on_start = self.declare_bool(
+            "restore_baseline_on_start",
+            True,
+            "read the ECU at start and restore the baseline if it holds anything else (false: report it)",
+            read_only=True,
+        )
         period = self.declare_float(
             "diagnostics_period_s", 1.0, "period of /diagnostics, s", 0.05, 60.0, read_only=True
         )
@@ -151,22 +230,36 @@ class EcuBridgeNode(BacNode):
             self.definition = CalibrationDefinition.load(resolve_definition(definition_file))
             self.codec = CalibrationCodec(self.definition)
             self.faults = FaultConfig.parse(fault_spec)
+            self.xcp_settings: XcpSettings | None = None
+            if self.protocol == "xcp":
+                from bac_ecu_bridge.xcp.layout import XcpLayout
+
+                XcpLayout(self.definition)  # every parameter has its XCP address, none overlap
+                pages = xcp_overrides.pop("pages")
+                given = {k: v for k, v in xcp_overrides.items() if v not in (-1, "")}
+                if pages != "auto":
+                    given["pages"] = pages == "true"
+                self.xcp_settings = XcpSettings.of(self.definition, **given)
+                s = self.xcp_settings
+                self.ids = CanIds(s.can_id_master, s.can_id_slave, s.extended_id)  # the ids the bus filters on
         except (BacError, ValueError) as exc:
             raise DefinitionError(f"ecu_bridge cannot start: {exc}") from exc
 
         self._lock = threading.Lock()  # one CAN transaction at a time
         self._bus: can.BusABC | None = None
-        self._client: CalibrationClient | None = None
-        self._bus_error = ""
-        self._last_error = ""
-        self._last_apply_failed = False
-        self._last_confirmed: ApplyResult | None = None
-        self._last_confirmed_trial = 0
         self._ecu_status = "not polled yet"
         self._ecu_crc: int | None = None
         self._ecu_count: int | None = None
         self._poll_failures = 0
         self._closed = False
+        self.core = BridgeCore(
+            self.definition,
+            self._open_backend,
+            log=self._log,
+            on_confirmed=self._publish_confirmed,
+            restore_on_abort=lambda: bool(self.get_parameter("restore_baseline_on_abort").value),
+        )
+        self.core.configure_start_check(restore_on_start, float(self.get_parameter("restore_timeout_s").value))
 
         self._srv_group = MutuallyExclusiveCallbackGroup()
         self._timer_group = MutuallyExclusiveCallbackGroup()
@@ -179,19 +272,30 @@ class EcuBridgeNode(BacNode):
 
         with self._lock:
             try:
-                self._ensure_bus()
+                self._ensure()  # opens the bus and checks what the ECU holds before anything else
             except BusError:
-                pass  # reported below and on /diagnostics; every call tries again
+                pass  # reported below and on /diagnostics; every call tries again (and checks the ECU then)
         self.get_logger().info(
-            f"ecu_bridge: definition '{self.definition.name}' ({len(self.codec.params)} raw parameters, tuned: "
-            f"{', '.join(self.definition.tuned)}), CAN {self.settings.describe()}, request 0x{self.ids.request_id:X} "
-            f"/ response 0x{self.ids.response_id:X}{' (29-bit)' if self.ids.extended else ''}"
+            f"ecu_bridge ({self.protocol}): definition '{self.definition.name}' ({len(self.codec.params)} raw "
+            f"parameters, tuned: {', '.join(self.definition.tuned)}), CAN {self.settings.describe()}, "
+            f"request 0x{self.ids.request_id:X} / response 0x{self.ids.response_id:X}"
+            f"{' (29-bit)' if self.ids.extended else ''}"
             + (f", trace {self.trace_file}" if self.trace_file else "")
             + (f", INJECTED FAULTS {fault_spec}" if self.faults.any else "")
-            + ("" if self._bus is not None else f"; CAN not open yet: {self._bus_error}")
+            + ("" if self._bus is not None else f"; CAN not open yet: {self.core.bus_error}")
+            + (f"; {self.core.start_report}" if self.core.start_report else "")
         )
 
     # --- the bus ------------------------------------------------------------------------------------
+    def _log(self, level: str, text: str) -> None:
+        # rclpy refuses one call site logging at several severities: one call per level
+        if level == "error":
+            self.get_logger().error(text)
+        elif level == "warn":
+            self.get_logger().warning(text)
+        else:
+            self.get_logger().info(text)
+
     def _config(self) -> ClientConfig:
         p = self.get_parameter
         return ClientConfig(
@@ -203,34 +307,42 @@ class EcuBridgeNode(BacNode):
             verify_readback=bool(p("verify_readback").value),
         )
 
-    def _ensure_bus(self) -> CalibrationClient:
-        """The client on an open bus (re-opened after a failure); raises :class:`BusError`. Hold the lock."""
-        if self._client is None:
-            try:
-                bus: can.BusABC = open_bus(self.settings, self.ids)
-            except BusError as exc:
-                self._bus_error = str(exc)
-                raise
-            if self.faults.any:
-                bus = FaultyBus(bus, self.faults)
-            if self.trace_file:
-                bus = TracedBus(bus, self.trace_file)
-            self._bus = bus
-            self._bus_error = ""
-            self._client = CalibrationClient(bus, self.codec, self.ids, self._config(), logger=None)
-        self._client.config = self._config()
-        return self._client
+    def _xcp_config(self) -> XcpConfig:
+        p = self.get_parameter
+        return XcpConfig(
+            step_timeout_s=float(p("step_timeout_s").value),
+            step_retries=int(p("step_retries").value),
+            max_attempts=int(p("max_attempts").value),
+            timeout_s=float(p("default_timeout_s").value),
+            verify_readback=bool(p("verify_readback").value),
+            t7_s=float(p("xcp.t7_s").value),
+            settle_s=float(p("xcp.settle_s").value),
+            block_mode=bool(p("xcp.block_mode").value),
+        )
 
-    def _drop_bus(self, reason: str) -> None:
-        """Close a failed bus; the next call opens it again. Hold the lock."""
-        self._bus_error = reason
-        if self._bus is not None:
-            try:
-                self._bus.shutdown()
-            except Exception as exc:  # a broken adapter may fail to close too
-                self.get_logger().warning(f"closing the CAN bus failed: {exc}")
-        self._bus = None
-        self._client = None
+    def _open_backend(self) -> CalibrationBackend:
+        """Open the bus and the protocol's client on it; raises :class:`BusError`. Called with the lock held."""
+        bus: can.BusABC = open_bus(self.settings, self.ids)
+        if self.faults.any:
+            bus = FaultyBus(bus, self.faults)
+        if self.trace_file:
+            bus = TracedBus(bus, self.trace_file)
+        self._bus = bus
+        client: CalibrationBackend
+        try:
+            if self.xcp_settings is not None:
+                client = XcpCalibrationClient(bus, self.definition, self.xcp_settings, self._xcp_config())
+            else:
+                client = CalibrationClient(bus, self.codec, self.ids, self._config(), logger=None)
+        except BaseException:
+            bus.shutdown()
+            raise
+        return _OwnedBus(client, bus)
+
+    def _ensure(self) -> CalibrationBackend:
+        backend = self.core.ensure()
+        self._ensure_config()
+        return backend
 
     # --- services -----------------------------------------------------------------------------------------
     def _calibration(self, result_values: dict[str, float], crc: int, trial_id: int) -> Calibration:
@@ -241,21 +353,12 @@ class EcuBridgeNode(BacNode):
         msg.crc32 = int(crc)
         return msg
 
-    def _apply_locked(self, raw: dict[str, float], timeout_s: float) -> ApplyResult:
-        client = self._ensure_bus()
-        try:
-            return client.apply(raw, timeout_s)
-        except BusError as exc:
-            self._drop_bus(str(exc))
-            raise
-
-    def _confirmed(self, result: ApplyResult, trial_id: int) -> None:
-        self._last_confirmed = result
-        self._last_confirmed_trial = trial_id
+    def _publish_confirmed(self, values: dict[str, float], crc: int, trial_id: int) -> None:
+        """The ECU holds ``values`` (an apply, a restore, the check at start): bac/calibration says so."""
         if not self.context.ok():  # shutting down: ROS is gone, the CAN work was still done
             return
         try:
-            self.pub_calibration.publish(self._calibration(result.values, result.crc, trial_id))
+            self.pub_calibration.publish(self._calibration(values, crc, trial_id))
         except Exception as exc:  # the context can end between the check and the publish
             self.get_logger().warning(f"could not publish the confirmed calibration: {exc}")
 
@@ -279,93 +382,70 @@ class EcuBridgeNode(BacNode):
             response.error_code = int(code)
             response.message = f"refused before sending anything: {message}"
             response.latency_s = time.monotonic() - t0
-            self._last_error = response.message
+            self.core.last_error = response.message
             self.get_logger().warning(f"trial {trial}: {response.message}")
             return response
         with self._lock:
-            try:
-                result = self._apply_locked(raw, float(request.timeout_s))
-            except BridgeError as exc:
-                response.success = False
-                response.error_code = int(exc.code)
-                response.attempts = int(exc.attempts)
-                response.message = str(exc)
-                if exc.uncertain:
-                    response.message += "; " + self._abort_locked()
-                response.latency_s = time.monotonic() - t0
-                self._last_error = response.message
-                self._last_apply_failed = True
-                self.get_logger().error(
-                    f"trial {trial}: apply failed ({ErrorCode(exc.code).name}) after {exc.attempts} transaction(s), "
-                    f"{response.latency_s * 1e3:.0f} ms: {response.message}"
-                )
-                return response
-            self._confirmed(result, trial)
-            self._last_apply_failed = False
+            self._ensure_config()
+            out = self.core.apply(
+                raw, float(request.timeout_s), trial, float(self.get_parameter("restore_timeout_s").value)
+            )
+        response.latency_s = time.monotonic() - t0
+        response.attempts = int(out.attempts)
+        if not out.success or out.result is None:
+            response.success = False
+            response.error_code = int(out.code)
+            response.message = out.message
+            self.get_logger().error(
+                f"trial {trial}: apply failed ({out.code.name}) after {out.attempts} transaction(s), "
+                f"{response.latency_s * 1e3:.0f} ms: {out.message}"
+            )
+            return response
+        result = out.result
         response.success = True
         response.error_code = int(ErrorCode.NONE)
         response.applied = self._calibration(result.values, result.crc, trial)
-        response.attempts = int(result.attempts)
-        response.latency_s = time.monotonic() - t0
-        response.message = ""
+        response.message = out.message
         self.get_logger().info(
             f"trial {trial}: ECU confirmed {len(result.values)} parameters, CRC-32 0x{result.crc:08X}, "
             f"{result.attempts} transaction(s), {response.latency_s * 1e3:.1f} ms"
             + ("" if result.read_back else " (not read back)")
+            + (f"; {result.note}" if result.note else "")
         )
         return response
 
-    def _abort_locked(self) -> str:
-        """After an apply that left the ECU's state unknown: restore the baseline if configured."""
-        if not self.get_parameter("restore_baseline_on_abort").value:
-            return "the ECU's active calibration is UNKNOWN (restore_baseline_on_abort is off): read it back"
-        try:
-            result = self._apply_locked(
-                self.definition.baseline_values(), float(self.get_parameter("restore_timeout_s").value)
-            )
-        except BridgeError as exc:
-            return f"the ECU's active calibration is UNKNOWN and restoring the baseline failed too: {exc}"
-        self._confirmed(result, 0)
-        self.get_logger().warning(f"ECU state was unknown: baseline restored (CRC-32 0x{result.crc:08X})")
-        return f"the ECU's state was unknown, so the safe baseline was restored (CRC-32 0x{result.crc:08X})"
+    def _ensure_config(self) -> None:
+        """Pass parameters changed at run time (ros2 param set) to an open backend."""
+        backend = self.core.backend
+        if isinstance(backend, _OwnedBus):
+            if isinstance(backend.client, CalibrationClient):
+                backend.client.config = self._config()
+            elif isinstance(backend.client, XcpCalibrationClient):
+                backend.client.config = self._xcp_config()
 
     def _on_read(self, request: ReadCalibration.Request, response: ReadCalibration.Response) -> Any:
         with self._lock:
+            self._ensure_config()
             try:
-                client = self._ensure_bus()
-                result = client.read_active(float(self.get_parameter("default_timeout_s").value))
+                result = self.core.read(float(self.get_parameter("default_timeout_s").value))
             except BridgeError as exc:
-                if isinstance(exc, BusError):
-                    self._drop_bus(str(exc))
                 response.success = False
                 response.message = f"{ErrorCode(exc.code).name}: {exc}"
                 return response
         response.success = True
-        response.message = ""
+        response.message = result.note
         response.active = self._calibration(result.values, result.crc, 0)
         return response
 
     def _on_restore(self, request: Trigger.Request, response: Trigger.Response) -> Any:
         with self._lock:
-            ok, text = self._restore_locked(float(self.get_parameter("restore_timeout_s").value))
+            self._ensure_config()
+            ok, text = self.core.restore("service", float(self.get_parameter("restore_timeout_s").value))
+        if not ok:
+            self.get_logger().error(text)
         response.success = ok
         response.message = text
         return response
-
-    def _restore_locked(self, timeout_s: float) -> tuple[bool, str]:
-        try:
-            result = self._apply_locked(self.definition.baseline_values(), timeout_s)
-        except BridgeError as exc:
-            text = f"restoring the baseline failed ({ErrorCode(exc.code).name}): {exc}"
-            self.get_logger().error(text)
-            self._last_error = text
-            return False, text
-        self._confirmed(result, 0)
-        text = f"baseline restored: CRC-32 0x{result.crc:08X}, " + ", ".join(
-            f"{k}={v:g}" for k, v in result.values.items()
-        )
-        self.get_logger().info(text)
-        return True, text
 
     # --- diagnostics -------------------------------------------------------------------------------------------
     def _on_diagnostics(self) -> None:
@@ -373,6 +453,10 @@ class EcuBridgeNode(BacNode):
             return
         if self._lock.acquire(blocking=False):  # never wait behind an apply
             try:
+                if self.core.pending is not None:
+                    with contextlib.suppress(BusError):
+                        self._ensure()
+                    self.core.retry_pending(float(self.get_parameter("restore_timeout_s").value))
                 self._poll_locked()
             finally:
                 self._lock.release()
@@ -380,15 +464,16 @@ class EcuBridgeNode(BacNode):
 
     def _poll_locked(self) -> None:
         try:
-            client = self._ensure_bus()
+            backend = self._ensure()
         except BusError:
             return
         if not self.get_parameter("poll_ecu").value:
             return
         try:
-            st = client.status(timeout_s=min(0.25, float(self.get_parameter("diagnostics_period_s").value) / 2))
+            st = backend.status(timeout_s=min(0.25, float(self.get_parameter("diagnostics_period_s").value) / 2))
         except BusError as exc:
-            self._drop_bus(str(exc))
+            self.core.drop(str(exc))
+            self._bus = None
             self._ecu_status = "bus failed"
             return
         except BridgeError as exc:
@@ -403,43 +488,48 @@ class EcuBridgeNode(BacNode):
         status = DiagnosticStatus()
         status.name = "ecu_bridge: CAN calibration link"
         status.hardware_id = self.settings.describe()
-        client = self._client
-        stats = client.stats if client is not None else None
+        core = self.core
         level, message = DiagnosticStatus.OK, "CAN open, ECU answering"
         bus_state = "closed"
-        if self._bus is not None:
+        bus = self._bus if core.backend is not None else None
+        if bus is not None:
             try:
-                bus_state = self._bus.state.name
+                bus_state = bus.state.name
             except Exception:  # not every interface reports it
                 bus_state = "unknown"
-        last = self._last_confirmed
-        if self._bus is None:
-            level, message = DiagnosticStatus.ERROR, f"CAN interface not open: {self._bus_error}"
+        if core.pending is not None:
+            level, message = DiagnosticStatus.ERROR, core.pending_text()
+        elif core.backend is None:
+            level, message = DiagnosticStatus.ERROR, f"CAN interface not open: {core.bus_error}"
         elif bus_state == "ERROR":
             level, message = DiagnosticStatus.ERROR, "CAN controller in error state (bus off?)"
         elif self._poll_failures >= 2:
             level, message = DiagnosticStatus.ERROR, f"ECU not answering ({self._ecu_status})"
+        elif core.ecu_unexpected:
+            level, message = DiagnosticStatus.WARN, core.ecu_unexpected[:300]
         elif bus_state == "PASSIVE":
             level, message = DiagnosticStatus.WARN, "CAN controller error-passive"
         elif (
-            last is not None
+            core.confirmed_values is not None
             and self._ecu_crc is not None
-            and self._ecu_count == len(last.raw)
-            and self._ecu_crc != last.crc
+            and self._ecu_count == len(core.confirmed_values)
+            and self._ecu_crc != core.confirmed_crc
         ):
             level, message = (
                 DiagnosticStatus.WARN,
                 "the ECU's active calibration differs from the last one confirmed (ECU reset or another tool?)",
             )
-        elif self._last_apply_failed:
-            level, message = DiagnosticStatus.WARN, f"last apply failed: {self._last_error}"[:300]
+        elif core.last_apply_failed:
+            level, message = DiagnosticStatus.WARN, f"last apply failed: {core.last_error}"[:300]
         status.level = level
         status.message = message
 
         def kv(k: str, v: object) -> KeyValue:
             return KeyValue(key=k, value=str(v))
 
+        known = core.confirmed_values is not None
         values = [
+            kv("protocol", self.protocol),
             kv("interface", self.settings.interface),
             kv("channel", self.settings.channel),
             kv("bitrate", self.settings.bitrate),
@@ -449,25 +539,14 @@ class EcuBridgeNode(BacNode):
             kv("ecu", self._ecu_status),
             kv("ecu_table_crc32", "" if self._ecu_crc is None else f"0x{self._ecu_crc:08X}"),
             kv("definition", self.definition.name),
-            kv("last_confirmed_trial", self._last_confirmed_trial if last is not None else ""),
-            kv("last_confirmed_crc32", "" if last is None else f"0x{last.crc:08X}"),
-            kv("last_error", self._last_error),
+            kv("ecu_holds", core.holds_text()),
+            kv("last_confirmed_trial", core.confirmed_trial if known else ""),
+            kv("last_confirmed_crc32", "" if core.confirmed_crc is None else f"0x{core.confirmed_crc:08X}"),
+            kv("restore_pending", core.pending_text()),
+            kv("start_check", core.start_report),
+            kv("last_error", core.last_error),
         ]
-        if stats is not None:
-            values += [
-                kv(name, getattr(stats, name))
-                for name in (
-                    "applies_ok",
-                    "applies_failed",
-                    "frames_sent",
-                    "frames_received",
-                    "invalid_frames",
-                    "stale_frames",
-                    "retransmissions",
-                    "step_timeouts",
-                    "nacks",
-                )
-            ]
+        values += [kv(name, v) for name, v in core.counters().items()]
         status.values = values
         arr = DiagnosticArray()
         arr.header.stamp = self.get_clock().now().to_msg()
@@ -476,41 +555,60 @@ class EcuBridgeNode(BacNode):
 
     # --- shutdown -----------------------------------------------------------------------------------------------
     def close(self) -> None:
-        """Restore the baseline (if configured) and close the bus; called once, on shutdown."""
+        """Restore the baseline (if configured; retried while the ECU refuses it) and close the bus; once."""
         if self._closed:
             return
         self._closed = True
-        wait, timeout = self._close_bounds()
+        wait, timeout, pending = self._close_bounds()
         if not self._lock.acquire(timeout=wait):  # an apply in flight ends within its own bound
             self.get_logger().error("an apply did not end in time; closing without restoring the baseline")
             return
         try:
             if self.restore_on_shutdown:
                 try:
-                    self._ensure_bus()
+                    self._ensure()
                 except BusError as exc:
-                    self.get_logger().error(f"shutdown: cannot restore the baseline, CAN not open: {exc}")
+                    self.get_logger().error(
+                        f"shutdown: cannot restore the baseline, CAN not open: {exc}; the ECU keeps "
+                        f"{self.core.holds_text()}"
+                    )
                 else:
-                    ok, text = self._restore_locked(timeout)
-                    if ok:
-                        self.get_logger().info(f"shutdown: {text}")
+                    self.core.restore_until(
+                        "shutdown",
+                        timeout,
+                        pending,
+                        float(self.get_parameter("restore_retry_s").value),
+                        on_pending=self._publish_pending,
+                    )
         finally:
             try:
-                if self._bus is not None:
-                    self._bus.shutdown()
+                self.core.drop("closed")
             finally:
                 self._bus = None
-                self._client = None
                 self._lock.release()
 
-    def _close_bounds(self) -> tuple[float, float]:
-        """close()'s time limits, s: waiting out an apply in flight, then restoring the baseline."""
+    def _publish_pending(self) -> None:
+        """While a shutdown restore waits for the ECU, /diagnostics says so (if ROS is still up)."""
+        if not self.context.ok():
+            return
+        try:
+            self.pub_diag.publish(self._diagnostics())
+        except Exception:  # the context can end between the check and the publish
+            pass
+
+    def _close_bounds(self) -> tuple[float, float, float]:
+        """close()'s time limits, s: waiting out an apply in flight, one restore try, retrying a refused one."""
         wait = float(self.get_parameter("default_timeout_s").value) + 1.0  # an apply ends within its own bound
-        return wait, float(self.get_parameter("restore_timeout_s").value)
+        return (
+            wait,
+            float(self.get_parameter("restore_timeout_s").value),
+            float(self.get_parameter("restore_pending_s").value),
+        )
 
     def cleanup_time_s(self) -> float:
         """close() within its bounds, plus a second for opening and closing the bus."""
-        return sum(self._close_bounds()) + 1.0
+        wait, timeout, pending = self._close_bounds()
+        return wait + timeout + pending + 2.0
 
     def destroy_node(self) -> None:
         try:
@@ -518,6 +616,42 @@ class EcuBridgeNode(BacNode):
         except Exception as exc:  # never keep a node from going down
             self.get_logger().error(f"shutdown: {exc}")
         super().destroy_node()
+
+
+class _OwnedBus:
+    """A backend together with the bus it runs on: closing it closes the bus."""
+
+    def __init__(self, client: CalibrationBackend, bus: can.BusABC) -> None:
+        self.client = client
+        self.bus = bus
+
+    @property
+    def protocol(self) -> str:
+        return self.client.protocol
+
+    def apply(self, values: Mapping[str, float], timeout_s: float | None = None) -> ApplyResult:
+        return self.client.apply(values, timeout_s)
+
+    def read_active(self, timeout_s: float | None = None) -> ReadResult:
+        return self.client.read_active(timeout_s)
+
+    def status(self, timeout_s: float | None = None) -> EcuStatus:
+        return self.client.status(timeout_s)
+
+    def restore_baseline(self, timeout_s: float | None = None) -> ApplyResult:
+        return self.client.restore_baseline(timeout_s)
+
+    def quantize(self, values: Mapping[str, float]) -> dict[str, float]:
+        return self.client.quantize(values)
+
+    def counters(self) -> dict[str, int]:
+        return self.client.counters()
+
+    def close(self) -> None:
+        try:
+            self.client.close()
+        finally:
+            self.bus.shutdown()
 
 
 def main(args: list[str] | None = None) -> int:

@@ -171,11 +171,13 @@ def _run(args: argparse.Namespace) -> int:
         try:
             res = client.apply(values)
         except BridgeError as exc:
-            state = " The ECU's active calibration is UNKNOWN: read it back." if exc.uncertain else ""
+            state = f" After it, {exc.ecu_state.text()}." if exc.ecu_state is not None else ""
             say(f"error {exc.code.name} ({int(exc.code)}): {exc}.{state}", err=True)
             return int(exc.code)
         for name, v in res.values.items():
             say(f"{name} = {v:.10g}")
+        if res.note:
+            say(f"# {res.note}", err=True)
         say(
             f"# applied: CRC-32 0x{res.crc:08X}, {res.attempts} transaction(s), {res.latency_s * 1e3:.1f} ms, "
             f"read back: {res.read_back}",

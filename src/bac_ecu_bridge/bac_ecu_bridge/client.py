@@ -28,11 +28,12 @@ import logging
 import random
 import time
 from collections.abc import Callable, Mapping
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Any, TypeVar
 
 import can
 
+from bac_ecu_bridge.backend import ApplyResult, EcuState, EcuStatus, Holds, ReadResult, classify
 from bac_ecu_bridge.errors import (
     AcknowledgeMismatchError,
     BridgeError,
@@ -44,6 +45,9 @@ from bac_ecu_bridge.errors import (
     InvalidRequestError,
 )
 from bac_ecu_bridge.protocol import (
+    STAGING_TIMEOUT_S,
+    Abort,
+    Aborted,
     Ack,
     Begin,
     BeginOk,
@@ -71,6 +75,7 @@ from bac_ecu_bridge.protocol import (
 K = TypeVar("K")
 
 _DRAIN_LIMIT = 10_000
+SETTLE_STEP_RETRIES = 10  # re-sends of one request while settling the ECU's state after an uncertain apply
 
 
 @dataclass(frozen=True)
@@ -81,6 +86,8 @@ class ClientConfig:
     timeout_s: float = 3.0  # default overall time limit of an apply / read
     window: int = 16  # requests in flight at once
     verify_readback: bool = True  # read the active values back after the ACK
+    staging_timeout_s: float = STAGING_TIMEOUT_S  # the ECU drops a staged set this long after its last frame
+    settle_timeout_s: float = 3.0  # after an uncertain apply: ABORT, then read the ECU back within this
 
     def __post_init__(self) -> None:
         if not self.step_timeout_s > 0:
@@ -89,34 +96,6 @@ class ClientConfig:
             raise ValueError("step_retries >= 0, max_attempts >= 1 and window >= 1 are required")
         if not self.timeout_s > 0:
             raise ValueError("timeout_s must be > 0")
-
-
-@dataclass(frozen=True)
-class ApplyResult:
-    """A calibration the ECU confirmed."""
-
-    values: dict[str, float]  # what the ECU holds, decoded, by name in index order
-    raw: dict[int, int]  # the same as raw values by index
-    crc: int  # set CRC-32 (echoed in the ACK)
-    attempts: int  # transactions tried
-    latency_s: float
-    seq: int
-    read_back: bool  # True when every value was read back and compared
-
-
-@dataclass(frozen=True)
-class ReadResult:
-    values: dict[str, float]
-    raw: dict[int, int]
-    crc: int
-    latency_s: float
-
-
-@dataclass(frozen=True)
-class EcuStatus:
-    count: int  # parameters in the ECU's table
-    crc: int  # CRC-32 of the ECU's whole active table
-    latency_s: float
 
 
 @dataclass
@@ -135,6 +114,7 @@ class ClientStats:
     applies_failed: int = 0
     reads_ok: int = 0
     reads_failed: int = 0
+    settled: int = 0  # uncertain applies settled by reading the ECU back
     nack_reasons: dict[str, int] = field(default_factory=dict)
 
 
@@ -176,6 +156,38 @@ class CalibrationClient:
         self._seq = random.randrange(256) if seq is None else seq % 256
         self._clock = clock
         self._log = logger or logging.getLogger("bac_ecu_bridge.client")
+        self._refused: set[int] = set()  # sequence numbers whose BEGIN the ECU refused during this apply
+        self._last_staging_frame = -1e9  # when a BEGIN or WRITE was last sent (restarts the ECU's staging timeout)
+        # the last calibration the ECU confirmed (an apply, a read-back), by name: "previous" after a failure
+        self.last_confirmed: dict[str, float] | None = None
+        self._baseline = self.codec.quantize(self.codec.definition.baseline_values())
+
+    protocol = "bac"
+
+    def quantize(self, values: Mapping[str, float]) -> dict[str, float]:
+        return self.codec.quantize(values)
+
+    def counters(self) -> dict[str, int]:
+        s = self.stats
+        return {
+            "applies_ok": s.applies_ok,
+            "applies_failed": s.applies_failed,
+            "frames_sent": s.frames_sent,
+            "frames_received": s.frames_received,
+            "invalid_frames": s.invalid_frames,
+            "stale_frames": s.stale_frames,
+            "retransmissions": s.retransmissions,
+            "step_timeouts": s.step_timeouts,
+            "nacks": s.nacks,
+            "settled": s.settled,
+        }
+
+    def close(self) -> None:
+        """Nothing to release: the bus belongs to the caller."""
+
+    def restore_baseline(self, timeout_s: float | None = None) -> ApplyResult:
+        """Write the definition's safe baseline values."""
+        return self.apply(self.codec.definition.baseline_values(), timeout_s)
 
     # --- public API -----------------------------------------------------------------------------
     @property
@@ -194,6 +206,101 @@ class CalibrationClient:
         raw = self.codec.encode_set(values)  # refuses unknown names and values outside the bounds
         t0 = self._clock()
         deadline = t0 + (self.config.timeout_s if not timeout_s or timeout_s <= 0 else timeout_s)
+        self._refused = set()
+        previous = self.last_confirmed
+        try:
+            result = self._apply(raw, deadline, t0)
+        except BridgeError as err:
+            if not err.uncertain:
+                # no commit of this apply is undecided: refused, or never sent; the ECU kept what it held
+                err.ecu_state = EcuState(
+                    Holds.PREVIOUS,
+                    previous,
+                    None if previous is None else self.codec.crc(previous),
+                    detail="no commit of this apply took effect",
+                )
+                raise
+            state = self.settle(self.codec.decode_set(raw), previous)
+            err.ecu_state = state
+            if state.holds is not Holds.REQUESTED or state.values is None:
+                raise
+            # the commit went through and only its answer was lost: the read-back confirmed every value
+            self.stats.applies_failed -= 1
+            self.stats.applies_ok += 1
+            self.last_confirmed = dict(state.values)
+            echoed = self.codec.encode_set(state.values)
+            return ApplyResult(
+                dict(state.values),
+                dict(sorted(echoed.items())),
+                set_crc(echoed),
+                err.attempts,
+                self._clock() - t0,
+                self._seq,
+                True,
+                note=f"the commit's answer was lost ({err}); the ECU was read back and holds the request",
+            )
+        self.last_confirmed = dict(result.values)
+        return result
+
+    def settle(self, requested: Mapping[str, float] | None, previous: Mapping[str, float] | None = None) -> EcuState:
+        """After an apply whose commit went unanswered: make sure nothing staged can still be committed, then
+        read the ECU back and say which set it holds.
+
+        An ABORT drops whatever the ECU has staged, so that no COMMIT arriving late (delayed on the way, or a
+        retransmission) can apply it afterwards; if the ABORT is not confirmed, the ECU's own staging timeout
+        is waited out. Bounded by ``settle_timeout_s``.
+        """
+        t0 = self._clock()
+        deadline = t0 + self.config.settle_timeout_s
+        self.stats.settled += 1
+        aborted = False
+        normal = self.config
+        # settling is the way back to a known state: it may retry more than an apply, within its own bound
+        self.config = replace(normal, step_retries=max(normal.step_retries, SETTLE_STEP_RETRIES))
+        try:
+            while not aborted and self._clock() < t0 + self.config.settle_timeout_s / 2:
+                seq = self._new_seq()
+                self._drain()
+                try:
+                    got = self._exchange(
+                        "ABORT",
+                        seq,
+                        {0: Abort(seq)},
+                        lambda resp: (0, resp) if isinstance(resp, Aborted) else None,
+                        t0 + self.config.settle_timeout_s / 2,
+                    )
+                    aborted = 0 in got
+                except BusError as exc:
+                    self.last_confirmed = None
+                    return EcuState(Holds.UNKNOWN, detail=f"the bus failed while settling: {exc}")
+                except (_RetryableError, BridgeError):
+                    continue
+            if not aborted:
+                # the ECU drops a staged set staging_timeout_s after the last frame of its transaction arrived; a
+                # frame delayed on the way may arrive up to as late again
+                until = self._last_staging_frame + 2 * self.config.staging_timeout_s
+                wait = min(until, deadline) - self._clock()
+                if wait > 0:
+                    time.sleep(wait)
+            problem = "no time left"
+            while self._clock() < deadline:
+                try:
+                    rd = self.read_active(max(0.01, deadline - self._clock()))
+                except BusError as exc:
+                    problem = str(exc)
+                    break
+                except BridgeError as exc:
+                    problem = str(exc)
+                    continue
+                holds = classify(rd.values, requested, previous, self._baseline)
+                how = "staged set aborted" if aborted else "ABORT unanswered: the ECU's staging timeout waited out"
+                return EcuState(holds, rd.values, rd.crc, True, how)
+            self.last_confirmed = None
+            return EcuState(Holds.UNKNOWN, detail=f"reading the ECU back failed: {problem}")
+        finally:
+            self.config = normal
+
+    def _apply(self, raw: dict[int, int], deadline: float, t0: float) -> ApplyResult:
         attempts = 0
         uncertain = False
         last: BridgeError | None = None
@@ -253,6 +360,7 @@ class CalibrationClient:
             self.stats.reads_failed += 1
             raise
         self.stats.reads_ok += 1
+        self.last_confirmed = dict(values)
         return ReadResult(values, dict(sorted(raw.items())), set_crc(raw), self._clock() - t0)
 
     def status(self, timeout_s: float | None = None) -> EcuStatus:
@@ -285,12 +393,12 @@ class CalibrationClient:
         crc = set_crc(raw)
         self._drain()
         self._exchange("BEGIN", seq, {0: Begin(seq, n)}, self._match_begin(n), deadline)
-        self._exchange(
+        staged: dict[int, int] = self._exchange(
             "WRITE", seq, {i: Write(seq, i, r) for i, r in sorted(raw.items())}, self._match_write(raw), deadline
         )
         state.commit_undecided = True
         try:
-            self._exchange("COMMIT", seq, {0: Commit(seq, n, crc)}, self._match_commit(n, crc, state), deadline)
+            acked = self._exchange("COMMIT", seq, {0: Commit(seq, n, crc)}, self._match_commit(n, crc, state), deadline)
         except _RetryableError as r:
             if state.commit_decided:
                 state.commit_undecided = False
@@ -300,19 +408,28 @@ class CalibrationClient:
                 state.commit_undecided = False
             raise
         read_back = False
+        # what the result reports is what the ECU said, never the request: the values it read back, else the
+        # values it echoed when staging them (whose CRC it acknowledged for its active set)
+        echoed = staged
         if self.config.verify_readback:
             # the ECU acknowledged the CRC of its active values; reading each one back confirms them
-            got = self._exchange(
+            got: dict[int, int] = self._exchange(
                 "READ", seq, {i: Read(seq, i) for i in sorted(raw)}, self._match_read_expected(raw), deadline
             )
-            if set_crc(got) != crc:  # cannot differ when every value matched; kept as the last word
-                raise _RetryableError(AcknowledgeMismatchError("the read-back set's CRC differs from the written one"))
+            self._check_read_back(got, crc)
+            echoed = got
             read_back = True
         state.commit_undecided = False
-        values = self.codec.decode_set(raw)
+        echoed = dict(sorted(echoed.items()))
+        values = self.codec.decode_set(echoed)
         latency = self._clock() - t0
-        self._log.debug("seq %d: %d parameters applied, crc 0x%08X, %.1f ms", seq, n, crc, latency * 1e3)
-        return ApplyResult(values, dict(sorted(raw.items())), crc, attempts, latency, seq, read_back)
+        ack_crc = int(acked[0].crc)
+        self._log.debug("seq %d: %d parameters applied, crc 0x%08X, %.1f ms", seq, n, ack_crc, latency * 1e3)
+        return ApplyResult(values, echoed, ack_crc, attempts, latency, seq, read_back)
+
+    def _check_read_back(self, got: Mapping[int, int], crc: int) -> None:
+        if set_crc(got) != crc:  # cannot differ when every value matched; kept as the last word
+            raise _RetryableError(AcknowledgeMismatchError("the read-back set's CRC differs from the written one"))
 
     # --- matchers: a reply of the current sequence number -> (key, result) | _Resend | None -----------
     def _nack_error(self, nack: Nack, message: str, code: ErrorCode) -> EcuRejectedError:
@@ -323,6 +440,7 @@ class CalibrationClient:
             if isinstance(resp, BeginOk):
                 return (0, True) if resp.count == n else None
             if isinstance(resp, Nack) and resp.request_op == Op.BEGIN:
+                self._refused.add(resp.seq)
                 if resp.reason == Reason.BUSY:
                     raise self._nack_error(
                         resp,
@@ -337,8 +455,11 @@ class CalibrationClient:
                         f"definition '{self.codec.definition.name}' does not match this ECU",
                         ErrorCode.UNKNOWN_PARAMETER,
                     )
-                # a refused BEGIN names a sequence number the ECU accepts: the next transaction uses it
-                resync = (resp.detail - 1) % 256 if resp.reason == Reason.SEQUENCE and resp.detail <= 0xFF else None
+                # a refused BEGIN names a sequence number the ECU accepts: the next transaction uses it, unless
+                # it is a number the ECU refused in this apply (never resynchronize onto a refused number)
+                resync = None
+                if resp.reason == Reason.SEQUENCE and resp.detail <= 0xFF and resp.detail not in self._refused:
+                    resync = (resp.detail - 1) % 256
                 raise _RetryableError(
                     self._nack_error(
                         resp, f"the ECU refused to begin a transaction: {reason_text(resp.reason)}", _code(resp)
@@ -596,6 +717,8 @@ class CalibrationClient:
 
     # --- the bus ----------------------------------------------------------------------------------------
     def _send(self, pdu: Request) -> None:
+        if isinstance(pdu, Begin | Write):
+            self._last_staging_frame = self._clock()
         msg = can.Message(
             arbitration_id=self.ids.request_id,
             is_extended_id=self.ids.extended,

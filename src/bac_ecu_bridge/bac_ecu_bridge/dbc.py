@@ -33,8 +33,10 @@ BRIDGE_NODE = "BAC_Bridge"
 ECU_NODE = "ECU"
 PARAM_PREFIX = "P_"
 
-_REQUEST_OP_NAMES = {op: op.name for op in (Op.BEGIN, Op.WRITE, Op.COMMIT, Op.READ, Op.STATUS)}
-_RESPONSE_OP_NAMES = {op: op.name for op in (Op.BEGIN_OK, Op.STAGED, Op.ACK, Op.VALUE, Op.STATUS_OK, Op.NACK)}
+_REQUEST_OP_NAMES = {op: op.name for op in (Op.BEGIN, Op.WRITE, Op.COMMIT, Op.READ, Op.STATUS, Op.ABORT)}
+_RESPONSE_OP_NAMES = {
+    op: op.name for op in (Op.BEGIN_OK, Op.STAGED, Op.ACK, Op.VALUE, Op.STATUS_OK, Op.ABORTED, Op.NACK)
+}
 
 
 def _choices(table: dict[Any, str]) -> OrderedDict[int, str | NamedSignalValue]:
@@ -108,7 +110,7 @@ def _common(receiver: str, ops: dict[Op, str]) -> list[Signal]:
             "Crc8",
             0,
             8,
-            "CRC-8/SAE-J1850 (poly 0x1D, init 0xFF, xorout 0xFF) over data bytes 1..7",
+            "CRC-8/AUTOSAR (poly 0x2F, init 0xFF, xorout 0xFF) over data bytes 1..7",
             receiver=receiver,
         ),
         _sig("Op", 8, 8, "Opcode: multiplexes the frame", multiplexer=True, choices=ops, receiver=receiver),
@@ -197,6 +199,15 @@ def build_database(definition: CalibrationDefinition, ids: CanIds | None = None)
             32,
             "CRC-32 over the ECU's whole active table",
             mux=[Op.STATUS_OK],
+            mux_signal="Op",
+            receiver=BRIDGE_NODE,
+        ),
+        _sig(
+            "AbortCount",
+            24,
+            8,
+            "Number of staged values the ABORT dropped (0: nothing was staged)",
+            mux=[Op.ABORTED],
             mux_signal="Op",
             receiver=BRIDGE_NODE,
         ),

@@ -25,10 +25,17 @@ Rules:
   lost); anything else is SEQUENCE.
 * READ(seq, index) answers VALUE with the active raw value; STATUS answers the
   table size and the CRC of the whole active table.
+* ABORT(seq) drops whatever is staged (any transaction) and answers ABORTED
+  with the number of values dropped; a staged set is also dropped when no
+  frame of its transaction came for ``staging_timeout_s``
+  (:data:`~bac_ecu_bridge.protocol.STAGING_TIMEOUT_S`). A COMMIT of a dropped
+  set is refused (SEQUENCE): a late COMMIT can never apply values the bridge
+  has given up on.
 """
 
 from __future__ import annotations
 
+import time
 from collections import deque
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
@@ -38,6 +45,9 @@ from bac_ecu_bridge.errors import FrameError
 from bac_ecu_bridge.protocol import (
     DETAIL_NONE,
     SEQ_MODULO,
+    STAGING_TIMEOUT_S,
+    Abort,
+    Aborted,
     Ack,
     Begin,
     BeginOk,
@@ -67,6 +77,8 @@ class EngineStats:
     invalid_frames: int = 0
     nacks: int = 0
     commits: int = 0
+    aborts: int = 0  # ABORT requests that dropped a staged set
+    staging_expired: int = 0  # staged sets dropped after staging_timeout_s without a frame of their transaction
     by_reason: dict[str, int] = field(default_factory=dict)
 
 
@@ -89,9 +101,17 @@ class EcuEngine:
         initial: Mapping[str, float] | None = None,
         on_commit: Callable[[CommitEvent], None] | None = None,
         refuse: Mapping[int, int] | None = None,
+        staging_timeout_s: float = STAGING_TIMEOUT_S,
+        clock: Callable[[], float] = time.monotonic,
     ) -> None:
         """``refuse`` maps request opcodes to a :class:`Reason`: the ECU refuses them with it, touching
-        nothing (a refusing ECU, for tests)."""
+        nothing (a refusing ECU, for tests). A staged set is dropped ``staging_timeout_s`` after the last
+        frame of its transaction (``clock``)."""
+        if not staging_timeout_s > 0:
+            raise ValueError("staging_timeout_s must be > 0")
+        self.staging_timeout_s = float(staging_timeout_s)
+        self._clock = clock
+        self._staging_touched = 0.0
         self.codec = CalibrationCodec(definition)
         start = dict(definition.baseline_values())
         if initial is not None:
@@ -119,11 +139,28 @@ class EcuEngine:
     def last_commit(self) -> CommitEvent | None:
         return self._last_commit
 
+    @property
+    def staging_seq(self) -> int | None:
+        """The open transaction's number (None when nothing is staged)."""
+        self._expire()
+        return self._staging_seq
+
+    def _drop_staging(self) -> int:
+        dropped = len(self._staged)
+        self._staging_seq = None
+        self._staging_count = 0
+        self._staged = {}
+        return dropped
+
+    def _expire(self) -> None:
+        if self._staging_seq is not None and self._clock() - self._staging_touched > self.staging_timeout_s:
+            self._drop_staging()
+            self.stats.staging_expired += 1
+
     def reset(self) -> None:
         """A power cycle: the baseline is active again, no transaction is remembered."""
         self.active = dict(self._baseline)
-        self._staging_seq = None
-        self._staged = {}
+        self._drop_staging()
         self._history.clear()
         self._last_commit = None
 
@@ -158,9 +195,14 @@ class EcuEngine:
                 return seq
         return DETAIL_NONE  # unreachable: the history holds fewer than 256 numbers
 
-    def _handle(self, req: Request) -> BeginOk | Staged | Ack | Value | StatusOk | Nack:
+    def _handle(self, req: Request) -> BeginOk | Staged | Ack | Value | StatusOk | Aborted | Nack:
+        self._expire()
         if int(req.op) in self.refuse:
             return self._nack(req, Reason(self.refuse[int(req.op)]), getattr(req, "index", 0))
+        if isinstance(req, Abort):
+            dropped = self._drop_staging()
+            self.stats.aborts += 1 if dropped else 0
+            return Aborted(req.seq, dropped)
         if isinstance(req, Begin):
             return self._begin(req)
         if isinstance(req, Write):
@@ -179,7 +221,9 @@ class EcuEngine:
             return self._nack(req, Reason.BUSY)
         if req.seq == self._staging_seq:
             if req.count != self._staging_count:
-                return self._nack(req, Reason.SEQUENCE, detail=req.seq)
+                # never name the refused number itself: a bridge resynchronizing onto it would be refused again
+                return self._nack(req, Reason.SEQUENCE, detail=self._free_seq())
+            self._staging_touched = self._clock()
             return BeginOk(req.seq, req.count)
         if req.seq in self._history:
             # the detail names a sequence number this ECU accepts next, so a bridge can resynchronize
@@ -189,6 +233,7 @@ class EcuEngine:
         self._staging_seq = req.seq
         self._staging_count = req.count
         self._staged = {}
+        self._staging_touched = self._clock()
         self._history.append(req.seq)
         return BeginOk(req.seq, req.count)
 
@@ -205,6 +250,7 @@ class EcuEngine:
         if req.index not in self._staged and len(self._staged) >= self._staging_count:
             return self._nack(req, Reason.COUNT_MISMATCH, req.index, len(self._staged))
         self._staged[req.index] = req.raw
+        self._staging_touched = self._clock()
         return Staged(req.seq, req.index, req.raw)
 
     def _commit(self, req: Commit) -> Ack | Nack:
@@ -226,8 +272,7 @@ class EcuEngine:
         table = dict(self.active)
         table.update(committed)
         self.active = table  # atomic: one reference swap
-        self._staging_seq = None
-        self._staged = {}
+        self._drop_staging()
         event = CommitEvent(req.seq, committed, set_crc({i: table[i] for i in committed}))
         self._last_commit = event
         self.stats.commits += 1

@@ -8,8 +8,12 @@ so that the node only copies ``code`` and ``str(error)`` into its response.
 from __future__ import annotations
 
 from enum import IntEnum
+from typing import TYPE_CHECKING
 
 from bac_common.errors import BacError
+
+if TYPE_CHECKING:
+    from bac_ecu_bridge.backend import EcuState
 
 
 class ErrorCode(IntEnum):
@@ -36,8 +40,10 @@ class BridgeError(BacError):
         super().__init__(message)
         self.attempts = attempts
         # True when a COMMIT may have reached the ECU without a decisive answer:
-        # the calibration active in the ECU is then unknown.
+        # the calibration active in the ECU is then unknown until it is read back.
         self.uncertain = uncertain
+        # what the ECU holds after the failure (settled by reading it back when uncertain); set by the backend
+        self.ecu_state: EcuState | None = None
 
 
 class ProtocolConfigError(BridgeError, ValueError):

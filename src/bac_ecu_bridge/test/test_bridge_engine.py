@@ -8,6 +8,8 @@ from bac_common.paramspace import CalibrationDefinition, uniform_parameters
 from bac_ecu_bridge.engine import SEQ_HISTORY, CommitEvent, EcuEngine
 from bac_ecu_bridge.protocol import (
     DETAIL_NONE,
+    Abort,
+    Aborted,
     Ack,
     Begin,
     BeginOk,
@@ -184,3 +186,53 @@ def test_a_refused_begin_names_a_free_sequence_number() -> None:
     resp = ask(e, Begin(6, 1))
     assert isinstance(resp, Nack) and resp.reason == Reason.SEQUENCE and resp.detail == 8
     assert ask(e, Begin(8, 1)) == BeginOk(8, 1)
+
+
+def test_a_begin_repeating_the_open_number_with_another_count_names_another_free_number() -> None:
+    e = EcuEngine(DEF)
+    assert ask(e, Begin(10, 1)) == BeginOk(10, 1)  # transaction 10 open for one parameter
+    resp = ask(e, Begin(10, 3))  # the same number, another count: refused
+    assert isinstance(resp, Nack) and resp.reason == Reason.SEQUENCE
+    assert resp.detail != 10 and resp.detail == 11  # never the refused number itself
+    assert ask(e, Begin(resp.detail, 3)) == BeginOk(11, 3)
+
+
+class FakeClock:
+    def __init__(self) -> None:
+        self.t = 100.0
+
+    def __call__(self) -> float:
+        return self.t
+
+
+def test_a_staged_set_is_dropped_after_the_staging_timeout_and_a_late_commit_applies_nothing() -> None:
+    clock = FakeClock()
+    e = EcuEngine(DEF, staging_timeout_s=1.0, clock=clock)
+    raw = {0: 7, 1: 8}
+    assert ask(e, Begin(20, 2)) == BeginOk(20, 2)
+    clock.t += 0.6
+    ask(e, Write(20, 0, 7))
+    clock.t += 0.6  # 1.2 s after BEGIN, but each frame of the transaction restarts the timeout
+    ask(e, Write(20, 1, 8))
+    assert e.staging_seq == 20
+    clock.t += 1.01  # then nothing for longer than the timeout: the staged set is gone
+    assert e.staging_seq is None
+    resp = ask(e, Commit(20, 2, set_crc(raw)))  # a COMMIT that arrives late
+    assert isinstance(resp, Nack) and resp.reason == Reason.SEQUENCE
+    assert e.active_values()["p01"] == 50.0 and e.stats.commits == 0
+    assert e.stats.staging_expired == 1
+
+
+def test_abort_drops_the_staged_set_so_that_no_later_commit_applies_it() -> None:
+    e = EcuEngine(DEF)
+    raw = {0: 7, 1: 8}
+    ask(e, Begin(30, 2))
+    ask(e, Write(30, 0, 7))
+    ask(e, Write(30, 1, 8))
+    assert ask(e, Abort(31)) == Aborted(31, 2)  # any staged transaction, whatever the ABORT's number
+    resp = ask(e, Commit(30, 2, set_crc(raw)))
+    assert isinstance(resp, Nack) and resp.reason == Reason.SEQUENCE
+    assert e.stats.commits == 0 and e.stats.aborts == 1
+    assert ask(e, Abort(32)) == Aborted(32, 0)  # nothing staged: answered all the same
+    e.driving = True
+    assert ask(e, Abort(33)) == Aborted(33, 0)  # dropping is allowed while driving

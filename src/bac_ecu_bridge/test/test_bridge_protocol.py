@@ -6,14 +6,19 @@ import itertools
 import math
 import struct
 import zlib
+from collections.abc import Callable
 
+import numpy as np
 import pytest
+from crccheck.crc import Crc8Autosar, Crc8SaeJ1850
 
 from bac_common.errors import DefinitionError, OutOfBoundsError, UnknownParameterError
 from bac_common.paramspace import CalibrationDefinition, MetaParameter, RawParameter, uniform_parameters
 from bac_common.paths import resolve_definition
 from bac_ecu_bridge.errors import FrameError, InvalidRequestError, ProtocolConfigError
 from bac_ecu_bridge.protocol import (
+    Abort,
+    Aborted,
     Ack,
     Begin,
     BeginOk,
@@ -40,6 +45,8 @@ from bac_ecu_bridge.protocol import (
 )
 
 ALL_PDUS = [
+    Abort(7),
+    Aborted(7, 20),
     Begin(7, 20),
     Write(7, 3, 123456),
     Commit(7, 20, 0xDEADBEEF),
@@ -54,10 +61,54 @@ ALL_PDUS = [
 ]
 
 
-def test_crc8_is_sae_j1850() -> None:
-    # the catalogued check value of CRC-8/SAE-J1850 (reveng: width=8 poly=0x1d init=0xff xorout=0xff)
-    assert crc8(b"123456789") == 0x4B
+def test_crc8_is_autosar() -> None:
+    # the catalogued check value of CRC-8/AUTOSAR (reveng: width=8 poly=0x2f init=0xff xorout=0xff)
+    assert crc8(b"123456789") == 0xDF
     assert crc8(b"") == 0x00
+    assert crc8(b"123456789") == Crc8Autosar.calc(b"123456789")
+
+
+def _undetected_three_bit_errors(crc: Callable[[bytes], int]) -> tuple[int, int]:
+    """(error patterns, undetected ones) over every 3-bit error of an 8-byte frame [CRC-8 | bytes 1..7].
+
+    The CRC is affine in its input, so an error pattern goes unnoticed exactly when the syndromes of its bits
+    (the CRC change a flip causes; a flip in byte 0 changes the received CRC itself) XOR to zero.
+    """
+    body = bytes(7)
+    base = crc(body)
+    syndrome = np.zeros(64, dtype=np.uint8)
+    for bit in range(64):
+        if bit < 8:
+            syndrome[bit] = 1 << bit
+        else:
+            flipped = bytearray(body)
+            flipped[(bit - 8) // 8] ^= 1 << ((bit - 8) % 8)
+            syndrome[bit] = crc(bytes(flipped)) ^ base
+    a, b, c = np.array(list(itertools.combinations(range(64), 3))).T
+    missed = (syndrome[a] ^ syndrome[b] ^ syndrome[c]) == 0
+    return int(missed.size), int(missed.sum())
+
+
+def test_three_bit_errors_autosar_misses_none_sae_j1850_misses_198() -> None:
+    # why the frame CRC moved from CRC-8/SAE-J1850 (poly 0x1D) to CRC-8/AUTOSAR (poly 0x2F)
+    assert _undetected_three_bit_errors(Crc8SaeJ1850.calc) == (41_664, 198)
+    assert _undetected_three_bit_errors(Crc8Autosar.calc) == (41_664, 0)
+    assert _undetected_three_bit_errors(crc8) == (41_664, 0)  # the protocol's CRC
+
+
+def test_every_three_bit_flip_of_real_frames_is_detected() -> None:
+    for pdu in (
+        Write(7, 3, 123456),
+        Ack(7, 20, 0xDEADBEEF),
+        Nack(7, int(Op.WRITE), int(Reason.OUT_OF_RANGE), 4, 0x1234),
+    ):
+        data = encode(pdu)
+        for flips in itertools.combinations(range(64), 3):
+            garbled = bytearray(data)
+            for b in flips:
+                garbled[b // 8] ^= 1 << (b % 8)
+            with pytest.raises(FrameError):
+                decode(bytes(garbled))
 
 
 def test_set_crc_is_crc32_over_index_raw_pairs_in_index_order() -> None:

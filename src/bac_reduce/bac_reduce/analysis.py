@@ -440,4 +440,5 @@ def reduced_definition(
         fixed=fixed,
         baseline=dict(base.baseline),
         description=description or f"{base.name} reduced by the simulation phase (bac reduce)",
+        xcp=dict(base.xcp),  # the ECU's XCP settings: the reduced definition runs over either protocol
     )

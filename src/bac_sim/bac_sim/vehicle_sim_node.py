@@ -1,7 +1,9 @@
 """The ``vehicle_sim`` node: the simulated car, its sensors on the graph's topics and its ECU on CAN.
 
 * Owns a :class:`bac_sim.ecu.SimulatedEcu` on its CAN bus (``can.*`` parameters, read-only): the
-  ECU bridge writes calibrations to it exactly as to the car's ECU.
+  ECU bridge writes calibrations to it exactly as to the car's ECU; with ``ecu_protocol: xcp`` a
+  :class:`bac_sim.xcp_ecu.SimulatedXcpEcu` instead (an XCP-on-CAN slave), and the car drives with
+  what its memory holds on the page the ECU application uses.
 * Subscribes ``bac/trial`` (latched). When a trial is ``STATE_READY_TO_DRIVE`` for a run
   ``(campaign_id, trial_id, attempt)`` not driven yet, it drives one run: it snapshots the ECU's
   active calibration (a calibration accepted later applies from the next run on), tells the ECU the
@@ -308,8 +310,22 @@ class VehicleSimNode(BacNode):
             bitrate=self.declare_int("can.bitrate", 500_000, "bit rate, bit/s", 10_000, 1_000_000, read_only=True),
             port=self.declare_int("can.port", 0, "udp_multicast UDP port (0 = default)", 0, 65535, read_only=True),
         )
+        ecu_protocol = self.declare_str(
+            "ecu_protocol",
+            "bac",
+            "the simulated ECU's calibration protocol: bac, or xcp (an XCP-on-CAN slave with a reference and a "
+            "working page, at the definition's XCP addresses); the ecu_bridge's protocol must be the same",
+            choices=("bac", "xcp"),
+            read_only=True,
+        )
         self.bus = open_bus(settings)
-        self.ecu = SimulatedEcu(self.bus, self.definition)
+        self.ecu: Any
+        if ecu_protocol == "xcp":
+            from bac_sim.xcp_ecu import SimulatedXcpEcu
+
+            self.ecu = SimulatedXcpEcu(self.bus, self.definition)
+        else:
+            self.ecu = SimulatedEcu(self.bus, self.definition)
         self.ecu.start()
 
         self.add_post_set_parameters_callback(self._parameters_changed)
@@ -345,7 +361,7 @@ class VehicleSimNode(BacNode):
         self._thread.start()
         self.get_logger().info(
             f"vehicle_sim ready: scenario {self.scenario.name} at {self.scenario.speed * 3.6:.0f} km/h, controller "
-            f"{self.definition.name}, IMU {self.imu_rate:g} Hz, ECU on {settings.describe()}, "
+            f"{self.definition.name}, IMU {self.imu_rate:g} Hz, {ecu_protocol} ECU on {settings.describe()}, "
             f"runs at <= {self.rtf:g}x real time"
         )
 

@@ -1,0 +1,492 @@
+"""Calibration definitions from an ECU's A2L file (ASAM MCD-2 MC), and the A2L of a definition.
+
+:func:`definition_from_a2l` reads an A2L with pya2ldb (the ``pya2l`` module of
+the PyPI package ``pya2ldb``, by pyxcp's author) and writes the calibration
+definition of the named CHARACTERISTICs (type VALUE):
+
+* the address, address extension, data type (RECORD_LAYOUT's FNC_VALUES) and
+  byte order (the characteristic's BYTE_ORDER, else MOD_COMMON's);
+* LOWER_LIMIT / UPPER_LIMIT as the bounds;
+* the COMPU_METHOD: IDENTICAL, LINEAR (COEFFS_LINEAR) or RAT_FUNC in its linear
+  form (COEFFS with a = d = e = 0); other forms are refused with a reason;
+* the resolution: one step of the internal value (|factor| of the conversion)
+  for integer types, the FORMAT's decimals for floats;
+* the unit (the COMPU_METHOD's) and the long identifier;
+* the XCP-on-CAN settings of the module's IF_DATA XCP (CAN_ID_MASTER,
+  CAN_ID_SLAVE, MAX_DLC_REQUIRED, the byte order of PROTOCOL_LAYER) and the
+  calibration pages of its MEMORY_SEGMENT's IF_DATA XCP SEGMENT (two pages: a
+  reference page 0 and a working page 1).
+
+Nominal and baseline values are not in an A2L: they are read from the ECU's
+reference page (the flashed data set) or given.
+
+:func:`a2l_text` writes the A2L of a definition whose parameters carry XCP
+addresses (the shipped ``bac_ecu_bridge/a2l/*.a2l`` describe the simulated
+ECU; the test suite reads them back with pya2ldb to the same definition).
+
+pya2ldb is GPL-2.0-or-later: bac (Apache-2.0) imports it only here, only when
+an A2L is read; the bridge, the node and the simulator never do.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import re
+import sys
+import tempfile
+from collections.abc import Iterable, Mapping, Sequence
+from dataclasses import dataclass
+from importlib import resources
+from pathlib import Path
+from typing import Any
+
+from bac_common.errors import DefinitionError
+from bac_common.paramspace import CalibrationDefinition, EcuAddress, RawParameter
+from bac_ecu_bridge.xcp.layout import datatype_size
+
+FLOAT_DEFAULT_DECIMALS = 6
+
+
+class A2lError(DefinitionError):
+    """An A2L file that cannot be read, or a characteristic that cannot become a calibration parameter."""
+
+
+@dataclass(frozen=True)
+class A2lCharacteristic:
+    """One CHARACTERISTIC of type VALUE, as read from an A2L."""
+
+    name: str
+    description: str
+    address: int
+    extension: int
+    datatype: str
+    byte_order: str
+    conversion: str
+    coeffs: tuple[float, ...]
+    lower: float
+    upper: float
+    unit: str
+    decimals: int | None  # from the FORMAT (characteristic's, else the COMPU_METHOD's)
+
+
+@dataclass(frozen=True)
+class A2lModule:
+    name: str
+    characteristics: dict[str, A2lCharacteristic]
+    xcp: dict[str, Any]  # XCP-on-CAN settings found in IF_DATA
+
+
+def _load_pya2l() -> Any:
+    """pya2ldb without its side effects: it installs rich's traceback handler (locals shown) on import."""
+    hooks = (sys.excepthook, sys.displayhook)
+    try:
+        import pya2l  # GPL-2.0-or-later: imported here only (see the module doc)
+        import pya2l.model as model  # noqa: PLR0402  (mypy: pya2l does not export model)
+    except ImportError as exc:
+        raise A2lError(
+            f"reading A2L files needs pya2ldb (pip install pya2ldb; it is in requirements/runtime.txt): {exc}"
+        ) from None
+    finally:
+        sys.excepthook, sys.displayhook = hooks
+    # pya2ldb's parser sets its logger to INFO each time and prints progress: only its warnings pass
+    lg = logging.getLogger("pya2l.A2LDB")
+    if not any(isinstance(f, _QuietInfo) for f in lg.filters):
+        lg.addFilter(_QuietInfo())
+    return pya2l, model
+
+
+class _QuietInfo(logging.Filter):
+    def filter(self, record: logging.LogRecord) -> bool:
+        return record.levelno >= logging.WARNING
+
+
+def _decimals(fmt: str | None) -> int | None:
+    m = re.match(r"\s*%\s*\d*\.(\d+)", fmt or "")
+    return int(m.group(1)) if m else None
+
+
+def read_a2l(path: str | Path) -> A2lModule:
+    """Every VALUE characteristic of the A2L's (first) module, and its XCP-on-CAN settings."""
+    p = Path(path)
+    if not p.is_file():
+        raise A2lError(f"A2L file not found: {p}")
+    pya2l, model = _load_pya2l()
+    with tempfile.TemporaryDirectory(prefix="bac-a2l-") as tmp:
+        try:
+            # in memory: pya2ldb writes no .a2ldb file (output_dir: in case a version ignores in_memory)
+            session = pya2l.import_a2l(
+                str(p), in_memory=True, progress_bar=False, loglevel="ERROR", output_dir=tmp, encoding="latin-1"
+            )
+        except Exception as exc:  # pya2ldb raises many kinds on a malformed file
+            raise A2lError(f"{p}: not a readable A2L file: {exc}") from exc
+        try:
+            return _module(session, model, p)
+        finally:
+            try:
+                session.close()
+            except Exception:  # closing an in-memory database must not hide the result
+                pass
+
+
+def _module(session: Any, model: Any, path: Path) -> A2lModule:
+    module = session.query(model.Module).first()
+    if module is None:
+        raise A2lError(f"{path}: no MODULE")
+    mod_common = session.query(model.ModCommon).first()
+    default_order = "MSB_LAST"
+    if mod_common is not None and mod_common.byte_order is not None:
+        default_order = str(mod_common.byte_order.byteOrder)
+    layouts = {rl.name: rl for rl in session.query(model.RecordLayout).all()}
+    methods = {cm.name: cm for cm in session.query(model.CompuMethod).all()}
+    chars: dict[str, A2lCharacteristic] = {}
+    for c in session.query(model.Characteristic).all():
+        if c.type != "VALUE":
+            continue
+        rl = layouts.get(c.deposit)
+        if rl is None or rl.fnc_values is None:
+            continue
+        cm = methods.get(c.conversion)
+        kind, unit, cm_format = "IDENTICAL", "", None
+        coeffs: tuple[float, ...] = ()
+        if cm is not None:
+            kind = str(cm.conversionType)
+            unit = str(cm.unit or "")
+            cm_format = cm.format
+            if kind == "LINEAR" and cm.coeffs_linear is not None:
+                coeffs = (float(cm.coeffs_linear.a), float(cm.coeffs_linear.b))
+            elif kind == "RAT_FUNC" and cm.coeffs is not None:
+                k = cm.coeffs
+                coeffs = tuple(float(v) for v in (k.a, k.b, k.c, k.d, k.e, k.f))
+        elif c.conversion != "NO_COMPU_METHOD":
+            raise A2lError(f"{path}: CHARACTERISTIC {c.name}: COMPU_METHOD {c.conversion} not found")
+        order = str(c.byte_order.byteOrder) if c.byte_order is not None else default_order
+        order = {"BIG_ENDIAN": "MSB_FIRST", "LITTLE_ENDIAN": "MSB_LAST"}.get(order, order)
+        fmt = c.format.formatString if c.format is not None else cm_format
+        chars[c.name] = A2lCharacteristic(
+            name=str(c.name),
+            description=str(c.longIdentifier or ""),
+            address=int(c.address),
+            extension=int(c.ecu_address_extension.extension) if c.ecu_address_extension is not None else 0,
+            datatype=str(rl.fnc_values.datatype),
+            byte_order=order,
+            conversion=kind,
+            coeffs=coeffs,
+            lower=float(c.lowerLimit),
+            upper=float(c.upperLimit),
+            unit=unit,
+            decimals=_decimals(fmt),
+        )
+    return A2lModule(str(module.name), chars, _xcp_settings(session, model, module))
+
+
+def _walk(node: Any) -> Iterable[tuple[str, Any]]:
+    """(key, value) of every dict met in pya2ldb's parsed IF_DATA (nested lists and dicts)."""
+    if isinstance(node, dict):
+        for k, v in node.items():
+            yield str(k), v
+            yield from _walk(v)
+    elif isinstance(node, list | tuple):
+        for v in node:
+            yield from _walk(v)
+
+
+def _xcp_settings(session: Any, model: Any, module: Any) -> dict[str, Any]:
+    out: dict[str, Any] = {}
+    try:
+        parsed = session.parse_ifdata(module.if_data)
+    except Exception:  # an A2ML pya2ldb cannot use: the settings are then given by hand
+        parsed = []
+    for key, value in _walk(parsed):
+        if key == "CAN_ID_MASTER":
+            out["can_id_master"] = int(value) & 0x1FFF_FFFF
+            out["extended_id"] = bool(int(value) & 0x8000_0000) or int(value) > 0x7FF
+        elif key == "CAN_ID_SLAVE":
+            out["can_id_slave"] = int(value) & 0x1FFF_FFFF
+        elif key == "MAX_DLC_REQUIRED":
+            out["max_dlc_required"] = True
+        elif key == "BAUDRATE":
+            out["baudrate"] = int(value)
+    pages = None
+    for seg in session.query(model.MemorySegment).all():
+        try:
+            seg_parsed = session.parse_ifdata(seg.if_data)
+        except Exception:
+            continue
+        for key, value in _walk(seg_parsed):
+            if key == "SEGMENT" and isinstance(value, list) and len(value) >= 2:
+                pages = (int(value[0]), int(value[1]))  # segment number, number of pages
+    if pages is not None:
+        out["segment"] = pages[0]
+        out["pages"] = pages[1] >= 2
+        if pages[1] >= 2:
+            out["reference_page"] = 0
+            out["working_page"] = 1
+    return out
+
+
+def identifier(a2l_name: str) -> str:
+    """A calibration parameter name for an A2L name (``Ctrl.Gain[2]`` -> ``Ctrl_Gain_2``)."""
+    name = re.sub(r"[^0-9A-Za-z_]+", "_", a2l_name).strip("_")
+    if not name or name[0].isdigit():
+        name = f"c_{name}"
+    return name
+
+
+def resolution_of(ch: A2lCharacteristic) -> float:
+    """One step of the internal value in physical units (floats: the FORMAT's decimals)."""
+    where = EcuAddress(ch.address, ch.datatype, ch.byte_order, ch.extension, ch.conversion, ch.coeffs)
+    if not where.is_float:
+        return abs(where.linear[0])
+    decimals = ch.decimals if ch.decimals is not None else FLOAT_DEFAULT_DECIMALS
+    return 10.0**-decimals
+
+
+def definition_from_a2l(
+    path: str | Path,
+    characteristics: Sequence[str] | None = None,
+    *,
+    name: str | None = None,
+    values: Mapping[str, float] | None = None,
+    midpoint: bool = False,
+    description: str = "",
+) -> CalibrationDefinition:
+    """The calibration definition of ``characteristics`` (A2L names, in index order; None = every VALUE).
+
+    ``values`` (by A2L or parameter name) are the nominal and baseline values (read from the ECU's reference
+    page, or given); ``midpoint`` fills the others with the middle of their range (a bench ECU only). Without
+    either, a missing value is refused: the baseline is the calibration a car is left on.
+    """
+    module = read_a2l(path)
+    wanted = list(characteristics) if characteristics else sorted(module.characteristics)
+    missing = [c for c in wanted if c not in module.characteristics]
+    if missing:
+        known = ", ".join(sorted(module.characteristics)[:20])
+        raise A2lError(f"{path}: no VALUE characteristic {missing} (known: {known})")
+    given = dict(values or {})
+    params = []
+    no_value = []
+    for index, a2l_name in enumerate(wanted):
+        ch = module.characteristics[a2l_name]
+        pname = identifier(a2l_name)
+        try:
+            where = EcuAddress(
+                ch.address,
+                ch.datatype,
+                ch.byte_order,
+                ch.extension,
+                ch.conversion,
+                ch.coeffs,
+                characteristic=a2l_name if pname != a2l_name else "",
+            )
+        except DefinitionError as exc:
+            raise A2lError(f"CHARACTERISTIC {a2l_name}: {exc}") from None
+        if ch.lower >= ch.upper:
+            raise A2lError(f"CHARACTERISTIC {a2l_name}: LOWER_LIMIT {ch.lower:g} >= UPPER_LIMIT {ch.upper:g}")
+        v = given.get(a2l_name, given.get(pname))
+        if v is None:
+            if not midpoint:
+                no_value.append(a2l_name)
+                continue
+            v = (ch.lower + ch.upper) / 2
+        params.append(
+            RawParameter(
+                name=pname,
+                index=index,
+                lower=ch.lower,
+                upper=ch.upper,
+                nominal=float(v),
+                resolution=resolution_of(ch),
+                unit=ch.unit,
+                description=ch.description,
+                xcp=where,
+            )
+        )
+    if no_value:
+        raise A2lError(
+            f"no nominal / baseline value for {no_value}: read them from the ECU's reference page (--from-ecu), "
+            "give them (--set NAME=VALUE), or take the middle of each range on a bench ECU (--midpoint)"
+        )
+    xcp = dict(module.xcp)
+    xcp.pop("baudrate", None)  # the bus's bit rate is the adapter's setting (can.bitrate)
+    return CalibrationDefinition(
+        name=name or identifier(module.name).lower(),
+        parameters=tuple(params),
+        baseline={p.name: p.nominal for p in params},
+        description=description or f"from {Path(path).name}, module {module.name}",
+        xcp=xcp,
+    )
+
+
+# --- writing ------------------------------------------------------------------------------------------------
+_AML = """    /begin A2ML
+      struct Protocol_Layer {
+        uint; uint; uint; uint; uint; uint; uint; uint;
+        uchar; uint;
+        enum { "BYTE_ORDER_MSB_LAST" = 0, "BYTE_ORDER_MSB_FIRST" = 1 };
+        enum { "ADDRESS_GRANULARITY_BYTE" = 1, "ADDRESS_GRANULARITY_WORD" = 2, "ADDRESS_GRANULARITY_DWORD" = 4 };
+        taggedstruct {
+          ("OPTIONAL_CMD" enum {
+            "GET_COMM_MODE_INFO" = 0xFB, "GET_SEED" = 0xF8, "UNLOCK" = 0xF7, "SHORT_UPLOAD" = 0xF4,
+            "BUILD_CHECKSUM" = 0xF3, "DOWNLOAD_NEXT" = 0xEF, "SET_CAL_PAGE" = 0xEB, "GET_CAL_PAGE" = 0xEA
+          })*;
+          "COMMUNICATION_MODE_SUPPORTED" taggedunion {
+            "BLOCK" taggedstruct { "SLAVE" ; "MASTER" struct { uchar; uchar; }; };
+          };
+        };
+      };
+      struct Page {
+        uchar;
+        enum { "ECU_ACCESS_NOT_ALLOWED" = 0, "ECU_ACCESS_WITHOUT_XCP_ONLY" = 1,
+               "ECU_ACCESS_WITH_XCP_ONLY" = 2, "ECU_ACCESS_DONT_CARE" = 3 };
+        enum { "XCP_READ_ACCESS_NOT_ALLOWED" = 0, "XCP_READ_ACCESS_WITHOUT_ECU_ONLY" = 1,
+               "XCP_READ_ACCESS_WITH_ECU_ONLY" = 2, "XCP_READ_ACCESS_DONT_CARE" = 3 };
+        enum { "XCP_WRITE_ACCESS_NOT_ALLOWED" = 0, "XCP_WRITE_ACCESS_WITHOUT_ECU_ONLY" = 1,
+               "XCP_WRITE_ACCESS_WITH_ECU_ONLY" = 2, "XCP_WRITE_ACCESS_DONT_CARE" = 3 };
+      };
+      struct Segment {
+        uchar; uchar; uchar; uchar; uchar;
+        taggedstruct {
+          block "CHECKSUM" struct { enum { "XCP_CRC_32" = 9 }; };
+          (block "PAGE" struct Page)*;
+        };
+      };
+      struct CAN_Parameters {
+        uint;
+        taggedstruct {
+          "CAN_ID_BROADCAST" ulong;
+          "CAN_ID_MASTER" ulong;
+          "CAN_ID_SLAVE" ulong;
+          "BAUDRATE" ulong;
+          "MAX_DLC_REQUIRED";
+        };
+      };
+      block "IF_DATA" taggedunion if_data {
+        "XCP" struct {
+          taggedstruct {
+            block "PROTOCOL_LAYER" struct Protocol_Layer;
+            block "SEGMENT" struct Segment;
+            block "XCP_ON_CAN" struct CAN_Parameters;
+          };
+        };
+      };
+    /end A2ML
+"""
+
+
+def _num(v: float) -> str:
+    return repr(float(v)) if not float(v).is_integer() else f"{float(v):.1f}"
+
+
+def _format(resolution: float, lower: float, upper: float) -> str:
+    decimals = max(0, -math.floor(math.log10(resolution) + 1e-9)) if resolution < 1 else 0
+    width = max(len(f"{lower:.{decimals}f}"), len(f"{upper:.{decimals}f}")) + 1
+    return f"%{width}.{decimals}"
+
+
+def a2l_text(definition: CalibrationDefinition, module_name: str | None = None, bitrate: int = 500_000) -> str:
+    """The A2L (ASAP2 1.71) of ``definition``'s parameters, which must carry XCP addresses."""
+    params = [p for p in definition.parameters if p.xcp is not None]
+    if len(params) != len(definition.parameters):
+        raise A2lError(f"definition '{definition.name}': every parameter needs an XCP address for an A2L")
+    xcp = dict(definition.xcp)
+    master = int(xcp.get("can_id_master", 0x7E0))
+    slave = int(xcp.get("can_id_slave", 0x7E1))
+    ext = 0x8000_0000 if xcp.get("extended_id") else 0
+    pages = bool(xcp.get("pages", True))
+    segment = int(xcp.get("segment", 0))
+    mod = module_name or definition.name.upper()
+    lo = min(p.xcp.address for p in params if p.xcp is not None)
+    hi = max(p.xcp.address + datatype_size(p.xcp.datatype) for p in params if p.xcp is not None)
+    lines = [
+        "ASAP2_VERSION 1 71",
+        f'/begin PROJECT {mod}_PRJ "bac: {definition.description or definition.name}"',
+        '  /begin HEADER "written by bac (bac_ecu_bridge.xcp.a2l.a2l_text)"',
+        '    VERSION "1"',
+        "  /end HEADER",
+        f'  /begin MODULE {mod} "the calibration of {definition.name}"',
+        _AML.rstrip("\n"),
+        '    /begin MOD_COMMON ""',
+        "      BYTE_ORDER MSB_LAST",
+        "      ALIGNMENT_BYTE 1",
+        "    /end MOD_COMMON",
+        '    /begin MOD_PAR ""',
+        f'      /begin MEMORY_SEGMENT CalData "calibration data" DATA FLASH INTERN 0x{lo:08X} 0x{hi - lo:X} '
+        "-1 -1 -1 -1 -1",
+        "        /begin IF_DATA XCP",
+        f"          /begin SEGMENT {segment} {2 if pages else 1} 0 0 0",
+        "            /begin CHECKSUM XCP_CRC_32 /end CHECKSUM",
+        "            /begin PAGE 0 ECU_ACCESS_DONT_CARE XCP_READ_ACCESS_DONT_CARE "
+        + ("XCP_WRITE_ACCESS_NOT_ALLOWED" if pages else "XCP_WRITE_ACCESS_DONT_CARE")
+        + " /end PAGE",
+    ]
+    if pages:
+        lines.append(
+            "            /begin PAGE 1 ECU_ACCESS_DONT_CARE XCP_READ_ACCESS_DONT_CARE "
+            "XCP_WRITE_ACCESS_DONT_CARE /end PAGE"
+        )
+    lines += [
+        "          /end SEGMENT",
+        "        /end IF_DATA",
+        "      /end MEMORY_SEGMENT",
+        "    /end MOD_PAR",
+        "    /begin IF_DATA XCP",
+        "      /begin PROTOCOL_LAYER",
+        "        0x0101 25 25 25 25 25 25 25 8 8 BYTE_ORDER_MSB_LAST ADDRESS_GRANULARITY_BYTE",
+        "        OPTIONAL_CMD GET_COMM_MODE_INFO OPTIONAL_CMD GET_SEED OPTIONAL_CMD UNLOCK",
+        "        OPTIONAL_CMD SHORT_UPLOAD OPTIONAL_CMD BUILD_CHECKSUM OPTIONAL_CMD DOWNLOAD_NEXT",
+        "        OPTIONAL_CMD SET_CAL_PAGE OPTIONAL_CMD GET_CAL_PAGE",
+        "        COMMUNICATION_MODE_SUPPORTED BLOCK SLAVE MASTER 32 0",
+        "      /end PROTOCOL_LAYER",
+        "      /begin XCP_ON_CAN",
+        "        0x0100",
+        f"        CAN_ID_MASTER 0x{master | ext:X}",
+        f"        CAN_ID_SLAVE 0x{slave | ext:X}",
+        f"        BAUDRATE {int(bitrate)}",
+        "      /end XCP_ON_CAN",
+        "    /end IF_DATA",
+    ]
+    methods: dict[tuple[Any, ...], str] = {}
+    layouts: set[str] = set()
+    chars: list[str] = []
+    for p in params:
+        assert p.xcp is not None
+        x = p.xcp
+        fmt = _format(p.resolution, p.lower, p.upper)
+        key = (x.conversion, x.coeffs, p.unit, fmt)
+        if key not in methods:
+            methods[key] = f"CM_{definition.name}_{len(methods) + 1}"
+        layouts.add(x.datatype)
+        desc = (p.description or p.name).replace('"', "'")
+        extra = []
+        if x.byte_order != "MSB_LAST":
+            extra.append(f"      BYTE_ORDER {x.byte_order}")
+        if x.extension:
+            extra.append(f"      ECU_ADDRESS_EXTENSION {x.extension}")
+        extra.append(f'      FORMAT "{fmt}"')
+        chars += [
+            f'    /begin CHARACTERISTIC {x.characteristic or p.name} "{desc}" VALUE 0x{x.address:08X} '
+            f"RL_{x.datatype} 0 {methods[key]} {_num(p.lower)} {_num(p.upper)}",
+            *extra,
+            "    /end CHARACTERISTIC",
+        ]
+    for (conversion, coeffs, unit, fmt), cm in methods.items():
+        body = ""
+        if conversion == "LINEAR":
+            body = f" COEFFS_LINEAR {' '.join(_num(c) for c in coeffs)}"
+        elif conversion == "RAT_FUNC":
+            body = f" COEFFS {' '.join(_num(c) for c in coeffs)}"
+        lines.append(f'    /begin COMPU_METHOD {cm} "" {conversion} "{fmt}" "{unit}"{body} /end COMPU_METHOD')
+    for dt in sorted(layouts):
+        lines.append(f"    /begin RECORD_LAYOUT RL_{dt} FNC_VALUES 1 {dt} ROW_DIR DIRECT /end RECORD_LAYOUT")
+    lines += chars
+    lines += ["  /end MODULE", "/end PROJECT", ""]
+    return "\n".join(lines)
+
+
+def shipped_a2l(name: str) -> Path:
+    """The A2L shipped for a definition of ``ros_ws/config/calibrations`` (it describes the simulated ECU)."""
+    path = Path(str(resources.files("bac_ecu_bridge") / "a2l" / f"{name}.a2l"))
+    if not path.is_file():
+        raise FileNotFoundError(f"no shipped A2L for '{name}'; write one: python -m bac_ecu_bridge a2l --help")
+    return path

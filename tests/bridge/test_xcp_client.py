@@ -1,0 +1,282 @@
+"""pyxcp as the master (the bridge's XCP backend) against the simulated XCP ECU on a python-can virtual bus."""
+
+from __future__ import annotations
+
+import os
+import subprocess
+import sys
+import time
+from pathlib import Path
+from typing import Any
+
+import pytest
+from bridge_rig import load
+from xcp_rig import XFAST, XcpRigFactory, make_xcp_rig_fixture  # noqa: F401  (the make_xcp_rig fixture)
+
+from bac_common.errors import OutOfBoundsError
+from bac_ecu_bridge.backend import Holds
+from bac_ecu_bridge.errors import BridgeError, ErrorCode
+from bac_ecu_bridge.faults import FaultConfig
+from bac_ecu_bridge.protocol import resolve_request
+from bac_ecu_bridge.xcp.client import XcpConfig, XcpSettings
+from bac_ecu_bridge.xcp.seedkey import xor_algorithm
+from bac_sim.xcp_slave import Cmd
+
+II = load("controller_ii")
+
+
+def ramp(offset: float = 0.0) -> dict[str, float]:
+    return {p.name: 10.0 + 47.123 * k + offset for k, p in enumerate(II.parameters)}
+
+
+def test_a_20_parameter_apply_read_back_page_switch_and_baseline_restore(make_xcp_rig: XcpRigFactory) -> None:
+    rig = make_xcp_rig("controller_ii")
+    client, ecu = rig.client, rig.ecu
+    assert client.read_active().values == client.quantize(II.baseline_values())  # the working page at power-up
+    want = ramp()
+    res = client.apply(want)
+    assert res.values == client.quantize(want) == ecu.active  # every value read back, exactly what the ECU holds
+    assert res.values["p02"] == pytest.approx(57.12) and res.read_back
+    assert list(res.values) == [p.name for p in II.parameters]
+    assert ecu.ecu_page == 1  # the ECU application runs on the working page
+    assert (
+        ecu.slave.stats.page_switches == 2
+    )  # to the reference page while writing, back to the working page: the commit
+    assert ecu.slave.page_values(0) == client.quantize(II.baseline_values())  # the reference page never changes
+    rd = client.read_active()
+    assert rd.values == res.values and rd.note == "working page" and rd.crc == res.crc
+    assert client.status().crc == res.crc
+    restored = client.restore_baseline()  # a page switch to the reference page, read back
+    assert ecu.ecu_page == 0 and restored.values == ecu.active == client.quantize(II.baseline_values())
+    assert "reference page 0" in restored.note
+    assert client.read_active().note == "reference page"
+    again = client.apply(ramp(1.0))  # the working page still holds the last trial: written again, switched back
+    assert again.values == ecu.active == client.quantize(ramp(1.0)) and ecu.ecu_page == 1
+    assert client.stats.applies_ok == 2
+
+
+def test_out_of_bounds_values_are_refused_before_anything_is_sent(make_xcp_rig: XcpRigFactory) -> None:
+    rig = make_xcp_rig("controller_ii")
+    sniffer = rig.sniffer()
+    bad = ramp()
+    bad["p07"] = 1000.01
+    with pytest.raises(OutOfBoundsError, match="p07"):
+        rig.client.apply(bad)
+    assert sniffer.recv(timeout=0.1) is None
+
+
+def test_meta_parameters_of_bac_reduce_run_over_xcp(make_xcp_rig: XcpRigFactory) -> None:
+    reduced = load("controller_ii_reduced")
+    rig = make_xcp_rig(reduced)
+    raw = resolve_request(reduced, ["m1", "m2", "m3"], [250.0, 750.0, 400.0])  # the bridge expands meta-parameters
+    res = rig.client.apply(raw)
+    assert len(res.values) == 20 and res.values == rig.ecu.active == rig.client.quantize(raw)
+    assert res.values["p01"] == res.values["p11"] == 250.0 and res.values["p03"] == 750.0
+    assert res.values["p04"] == res.values["p07"] == 400.0
+    assert res.values["p02"] == reduced.fixed["p02"]  # a fixed parameter at the file's value
+
+
+def test_busy_while_driving_names_the_xcp_error_and_keeps_the_previous_calibration(
+    make_xcp_rig: XcpRigFactory,
+) -> None:
+    rig = make_xcp_rig("controller_i")
+    first = rig.client.apply({"damping_front": 0.2, "damping_rear": 0.8})
+    rig.ecu.set_driving(True)
+    with pytest.raises(BridgeError, match="ERR_RESOURCE_TEMPORARY_NOT_ACCESSIBLE") as err:
+        rig.client.apply({"damping_front": 0.4, "damping_rear": 0.4})
+    assert err.value.code == ErrorCode.ECU_BUSY and "SET_CAL_PAGE" in str(err.value)
+    assert err.value.ecu_state is not None and err.value.ecu_state.holds is Holds.PREVIOUS
+    assert rig.ecu.active == first.values  # the ECU refused to switch: the previous calibration stays in force
+    rig.ecu.set_driving(False)
+    assert rig.client.apply({"damping_front": 0.4, "damping_rear": 0.4}).values == rig.ecu.active
+
+
+# refused always, these commands keep the bridge from reading the ECU back (a session, the page, the bytes)
+UNREADABLE = {Cmd.SHORT_UPLOAD, Cmd.GET_CAL_PAGE, Cmd.GET_STATUS}
+
+
+@pytest.mark.parametrize(
+    ("command", "error", "name", "code"),
+    [
+        (Cmd.SET_CAL_PAGE, 0x26, "ERR_PAGE_NOT_VALID", ErrorCode.UNKNOWN_PARAMETER),
+        (Cmd.SET_CAL_PAGE, 0x27, "ERR_MODE_NOT_VALID", ErrorCode.UNKNOWN_PARAMETER),
+        (Cmd.SET_CAL_PAGE, 0x28, "ERR_SEGMENT_NOT_VALID", ErrorCode.UNKNOWN_PARAMETER),
+        (Cmd.SET_CAL_PAGE, 0x25, "ERR_ACCESS_LOCKED", ErrorCode.INVALID_REQUEST),
+        (Cmd.DOWNLOAD, 0x22, "ERR_OUT_OF_RANGE", ErrorCode.ECU_OUT_OF_RANGE),
+        (Cmd.DOWNLOAD, 0x23, "ERR_WRITE_PROTECTED", ErrorCode.ECU_OUT_OF_RANGE),
+        (Cmd.DOWNLOAD, 0x24, "ERR_ACCESS_DENIED", ErrorCode.UNKNOWN_PARAMETER),
+        (Cmd.DOWNLOAD, 0x29, "ERR_SEQUENCE", ErrorCode.SEQUENCE),
+        (Cmd.DOWNLOAD, 0x30, "ERR_MEMORY_OVERFLOW", ErrorCode.ECU_OUT_OF_RANGE),
+        (Cmd.DOWNLOAD, 0x31, "ERR_GENERIC", ErrorCode.SEQUENCE),
+        (Cmd.DOWNLOAD, 0x10, "ERR_CMD_BUSY", ErrorCode.ECU_BUSY),
+        (Cmd.DOWNLOAD, 0x33, "ERR_RESOURCE_TEMPORARY_NOT_ACCESSIBLE", ErrorCode.ECU_BUSY),
+        (Cmd.BUILD_CHECKSUM, 0x22, "ERR_OUT_OF_RANGE", ErrorCode.ECU_OUT_OF_RANGE),
+        (Cmd.SHORT_UPLOAD, 0x24, "ERR_ACCESS_DENIED", ErrorCode.UNKNOWN_PARAMETER),
+        (Cmd.GET_CAL_PAGE, 0x20, "ERR_CMD_UNKNOWN", ErrorCode.INVALID_REQUEST),
+        (Cmd.GET_STATUS, 0x31, "ERR_GENERIC", ErrorCode.SEQUENCE),
+    ],
+    ids=lambda v: v.name if isinstance(v, Cmd) else (v if isinstance(v, str) else None),
+)
+def test_every_negative_response_surfaces_as_a_clear_error_naming_the_xcp_error(
+    make_xcp_rig: XcpRigFactory, command: Cmd, error: int, name: str, code: ErrorCode
+) -> None:
+    rig = make_xcp_rig("controller_i", refuse={int(command): error})
+    t0 = time.monotonic()
+    with pytest.raises(BridgeError) as err:
+        rig.client.apply({"damping_front": 0.3, "damping_rear": 0.6})
+    text = str(err.value)
+    assert name in text and f"(0x{error:02X}: " in text and f"XCP {command.name}" in text, text
+    assert err.value.code == code
+    state = err.value.ecu_state
+    assert state is not None
+    if command in UNREADABLE:  # the ECU refuses to be read: what it holds is unknown, and the state says why
+        assert state.holds is Holds.UNKNOWN and name in state.detail, state
+    else:
+        assert state.holds is not Holds.UNKNOWN, state
+        assert rig.ecu.active == state.values  # what the bridge reports is what the ECU holds
+    assert time.monotonic() - t0 < XFAST.timeout_s + XFAST.settle_timeout_s
+
+
+def test_an_ecu_without_build_checksum_is_verified_by_read_back_alone(make_xcp_rig: XcpRigFactory) -> None:
+    rig = make_xcp_rig("controller_ii", refuse={int(Cmd.BUILD_CHECKSUM): 0x20})  # ERR_CMD_UNKNOWN
+    res = rig.client.apply(ramp())
+    assert res.values == rig.ecu.active == rig.client.quantize(ramp()) and res.read_back
+    assert rig.client.read_active().values == res.values
+
+
+def test_seed_and_key_unlocks_the_calibration(make_xcp_rig: XcpRigFactory) -> None:
+    secret = bytes.fromhex("5a17c3")
+    rig = make_xcp_rig("controller_i", key_algorithm="xor:5a17c3")
+    with pytest.raises(BridgeError, match="ERR_ACCESS_LOCKED") as err:  # no key algorithm configured
+        rig.client.apply({"damping_front": 0.3, "damping_rear": 0.6})
+    assert "xcp.key_algorithm" in str(err.value)
+    client = rig.client_with(config=XFAST, key_algorithm=xor_algorithm(secret))
+    assert client.apply({"damping_front": 0.3, "damping_rear": 0.6}).values == rig.ecu.active
+    assert client.stats.unlocks == 1
+    wrong = rig.client_with(config=XFAST, settings=XcpSettings.of(rig.definition, key_algorithm="xor:000001"))
+    rig.ecu.slave.connected = False  # a new session
+    with pytest.raises(BridgeError, match="ERR_ACCESS_LOCKED"):
+        wrong.apply({"damping_front": 0.5, "damping_rear": 0.5})
+
+
+def test_an_ecu_with_one_page_is_written_in_place_and_restored_by_values(make_xcp_rig: XcpRigFactory) -> None:
+    d = load("controller_i")
+    rig = make_xcp_rig(d, pages=False, settings=XcpSettings.of(d, pages=False))
+    res = rig.client.apply({"damping_front": 0.25, "damping_rear": 0.75})
+    assert res.values == rig.ecu.active == {"damping_front": 0.25, "damping_rear": 0.75}
+    assert rig.ecu.slave.stats.page_switches == 0
+    restored = rig.client.restore_baseline()
+    assert restored.values == rig.ecu.active == {"damping_front": 0.5, "damping_rear": 0.5}
+
+
+def _swallow(rig: Any, predicate: Any, then: Any = None) -> None:
+    """The ECU executes requests matching ``predicate`` but answers none of them (``then`` runs after each)."""
+    slave = rig.ecu.slave
+    honest = slave.handle
+
+    def handle(frame: bytes) -> list[bytes]:
+        out = honest(frame)
+        if predicate(bytes(frame)):
+            if then is not None:
+                then()
+            return []
+        return out
+
+    slave.handle = handle
+
+
+def test_an_unanswered_commit_is_settled_by_reading_the_ecu_back(make_xcp_rig: XcpRigFactory) -> None:
+    rig = make_xcp_rig("controller_ii")
+    _swallow(rig, lambda f: f[:4] == bytes([0xEB, 0x01, 0x00, 0x01]))  # SET_CAL_PAGE(ECU, working): the commit
+    res = rig.client.apply(ramp())
+    assert res.values == rig.ecu.active == rig.client.quantize(ramp())
+    assert "read back" in res.note and rig.client.stats.settled == 1
+
+
+def test_an_ecu_that_falls_back_to_its_reference_page_unanswered_is_reported_as_such(
+    make_xcp_rig: XcpRigFactory,
+) -> None:
+    rig = make_xcp_rig("controller_ii", config=XcpConfig(step_timeout_s=0.02, step_retries=2, max_attempts=1))
+    slave = rig.ecu.slave
+
+    def fall_back() -> None:  # a watchdog of the ECU puts the reference page back
+        slave.ecu_page = 0
+
+    _swallow(rig, lambda f: f[:4] == bytes([0xEB, 0x01, 0x00, 0x01]), fall_back)
+    with pytest.raises(BridgeError) as err:
+        rig.client.apply(ramp())
+    state = err.value.ecu_state
+    assert err.value.uncertain and state is not None and state.read_back and state.holds is Holds.BASELINE
+    assert state.values == rig.ecu.active == rig.client.quantize(II.baseline_values())
+    assert "reference page 0" in state.detail
+
+
+def test_an_ecu_that_acknowledges_writes_it_does_not_make_is_caught(make_xcp_rig: XcpRigFactory) -> None:
+    rig = make_xcp_rig("controller_i", config=XcpConfig(step_timeout_s=0.05, max_attempts=2))
+    slave = rig.ecu.slave
+    honest_write = slave._write
+
+    rear = rig.definition.parameter("damping_rear").xcp
+    assert rear is not None
+
+    def lying_write(data: bytes) -> list[bytes] | None:  # damping_rear's bytes are never written, but acknowledged
+        start = slave.mta
+        keep = max(0, min(len(data), rear.address - start))  # the bytes before damping_rear are written
+        if keep:
+            refused = honest_write(data[:keep])
+            if refused is not None:
+                return refused
+        slave.mta = start + len(data)
+        return None
+
+    slave._write = lying_write  # type: ignore[method-assign]
+    with pytest.raises(BridgeError, match="does not take the written bytes") as err:
+        rig.client.apply({"damping_front": 0.3, "damping_rear": 0.9})
+    assert err.value.code == ErrorCode.CRC_MISMATCH
+    assert err.value.ecu_state is not None and err.value.ecu_state.holds is Holds.BASELINE  # the reference page
+    assert rig.ecu.active == {"damping_front": 0.5, "damping_rear": 0.5} and rig.ecu.ecu_page == 0
+
+
+def test_a_silent_ecu_times_out_within_the_bound(make_xcp_rig: XcpRigFactory) -> None:
+    config = XcpConfig(step_timeout_s=0.01, step_retries=2, max_attempts=3, timeout_s=0.5)
+    rig = make_xcp_rig("controller_i", ecu_faults=FaultConfig(silent=True), config=config)
+    t0 = time.monotonic()
+    with pytest.raises(BridgeError, match="CONNECT") as err:
+        rig.client.apply({"damping_front": 0.3, "damping_rear": 0.3})
+    assert err.value.code == ErrorCode.TIMEOUT and not err.value.uncertain
+    assert err.value.ecu_state is not None and err.value.ecu_state.holds is Holds.PREVIOUS  # it never answered
+    assert time.monotonic() - t0 < 0.5 + 1.0  # the bound plus scheduling on a loaded machine
+
+
+def test_lost_and_garbled_answers_at_10_percent_never_give_a_false_success(make_xcp_rig: XcpRigFactory) -> None:
+    faults = FaultConfig(
+        drop=0.05, corrupt=0.05, duplicate=0.03, delay=0.03, delay_s=0.005, reorder_hold_s=0.005, seed=4
+    )
+    config = XcpConfig(step_timeout_s=0.02, step_retries=8, max_attempts=3, timeout_s=5.0, settle_s=0.02)
+    rig = make_xcp_rig("controller_ii", bridge_faults=faults, config=config)
+    for k in range(8):
+        want = ramp(k)
+        try:
+            res = rig.client.apply(want)
+        except BridgeError as err:
+            assert err.value.ecu_state is not None and err.value.ecu_state.values == rig.ecu.active
+            continue
+        assert res.values == rig.ecu.active == rig.client.quantize(want)
+    assert rig.client.stats.applies_ok >= 6
+    assert rig.bridge_bus.counts.dropped > 0 and rig.bridge_bus.counts.corrupted > 0  # type: ignore[attr-defined]
+
+
+def test_pyxcp_is_imported_without_changing_the_process_hooks_or_writing_files(tmp_path: Path) -> None:
+    code = (
+        "import sys; hooks = (sys.excepthook, sys.displayhook)\n"
+        "from bac_ecu_bridge.xcp import _pyxcp; _pyxcp.load()\n"
+        "from bac_ecu_bridge.xcp.a2l import read_a2l, shipped_a2l; read_a2l(shipped_a2l('controller_i'))\n"
+        "print((sys.excepthook, sys.displayhook) == hooks)\n"
+    )
+    env = {**os.environ, "HOME": str(tmp_path / "home")}
+    (tmp_path / "home").mkdir()
+    out = subprocess.run(
+        [sys.executable, "-c", code], cwd=tmp_path, env=env, capture_output=True, text=True, check=True
+    )
+    assert out.stdout.strip() == "True", out.stderr
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["home"] and not list((tmp_path / "home").iterdir())
