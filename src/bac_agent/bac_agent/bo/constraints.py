@@ -3,8 +3,10 @@
 A run carries outcomes besides J (``peak_accel_z`` from the IMU, ``max_travel_mm`` from a travel sensor, ...);
 the user sets limits on them (:class:`OutcomeLimit`, e.g. ``max_travel_mm <= 60``). Each constrained outcome
 gets its own GP (the engine's Matérn-5/2 kernel, a learned constant mean, learned noise; MAP hyperparameters
-from 3 runs on, the priors' modes before), and the probability that a calibration breaks a limit is
-``1 − Φ((limit − μ(x)) / σ(x))`` with μ, σ the outcome's posterior mean and standard deviation there. The engine
+from 3 runs on, the priors' modes before), and the probability that a run of a calibration breaks a limit is
+``1 − Φ((limit − μ(x)) / σ(x))`` with μ the outcome's posterior mean there and σ² its posterior variance plus the
+learned noise variance: a run is judged on what it measures, so a calibration whose true outcome sits just
+inside the limit but whose runs scatter across it counts as risky. The engine
 
 * never proposes a calibration whose probability of breaking any limit is above ``constraint_level`` (if no
   calibration is that safe, it proposes the one least likely to break a limit, and says so);
@@ -141,17 +143,24 @@ class OutcomeModel:
         b = (self.limit.bound - gp.y_mean) / gp.y_std
         return np.asarray((b - mu) / sd if self.limit.upper else (mu - b) / sd, dtype=float)
 
+    def _noise(self) -> float:
+        h = self.gp.hyper
+        return float(h.noise) if h is not None else 0.0
+
     def prob_violation(self, U: FloatArray) -> FloatArray:
+        """The probability that a run here *measures* the outcome beyond the limit (latent and noise variance)."""
         if not self.fitted:
             return np.zeros(np.atleast_2d(U).shape[0])
         mu, var = self.gp.predict_std_units(U)
-        return np.asarray(1.0 - ndtr(self._t(mu, np.sqrt(var))), dtype=float)
+        return np.asarray(1.0 - ndtr(self._t(mu, np.sqrt(var + self._noise()))), dtype=float)
 
     def log_feasible_and_grad(self, U: FloatArray) -> tuple[FloatArray, FloatArray]:
         U = np.atleast_2d(U)
         if not self.fitted:
             return np.zeros(U.shape[0]), np.zeros_like(U)
-        mu, sd, dmu, dsd = self.gp.predict_with_grad(U)
+        mu, sd_f, dmu, dsd_f = self.gp.predict_with_grad(U)
+        sd = np.sqrt(sd_f**2 + self._noise())
+        dsd = dsd_f * (sd_f / sd)[:, None]
         t = self._t(mu, sd)
         sign = 1.0 if self.limit.upper else -1.0
         # t = sign (b - mu) / sd: dt = (-sign dmu - t dsd) / sd

@@ -130,7 +130,7 @@ class EngineConfig:
     # {"name": "max_travel_mm", "bound": 60.0, "upper": True}; a proposal's probability of breaking any is at
     # most constraint_level, and so is the recommendation's
     constraints: tuple[Mapping[str, Any], ...] = ()
-    constraint_level: float = 0.1
+    constraint_level: float = 0.05
 
     def __post_init__(self) -> None:
         if self.budget < 1:
