@@ -34,7 +34,16 @@ from enum import IntEnum
 from pathlib import Path
 from typing import Any, Protocol
 
-from bac_agent.bo.engine import KIND_GRID, KIND_GUESS, KIND_INITIAL, KIND_OPTIMIZED, Recommendation, Suggestion
+from bac_agent.bo.constraints import OutcomeLimit, parse_limits, violations
+from bac_agent.bo.engine import (
+    KIND_GRID,
+    KIND_GUESS,
+    KIND_INITIAL,
+    KIND_OPTIMIZED,
+    KIND_PRIOR,
+    Recommendation,
+    Suggestion,
+)
 from bac_agent.journal import SCHEMA_VERSION, Journal, JournalError, write_json_atomic
 from bac_common.errors import BacError
 
@@ -72,6 +81,7 @@ class Kind(IntEnum):
 _KIND_OF_SUGGESTION = {
     KIND_INITIAL: Kind.INITIAL,
     KIND_GUESS: Kind.INITIAL,
+    KIND_PRIOR: Kind.INITIAL,
     KIND_OPTIMIZED: Kind.OPTIMIZED,
     KIND_GRID: Kind.GRID,
 }
@@ -85,7 +95,7 @@ class Optimizer(Protocol):
     @property
     def n_trials(self) -> int: ...
     def ask_with_info(self) -> Suggestion: ...
-    def tell(self, params: Mapping[str, float], value: float) -> None: ...
+    def tell(self, params: Mapping[str, float], value: float, outcomes: Mapping[str, float] | None = None) -> None: ...
     def tell_failed(self, params: Mapping[str, float], reason: str) -> None: ...
     def recommend(self) -> Recommendation: ...
     def predict(self, params: Mapping[str, float]) -> tuple[float, float]: ...
@@ -106,12 +116,20 @@ class CampaignConfig:
     busy_retry_s: float = 2.0  # an ECU that answers "busy" (vehicle moving) is asked again after this long
     busy_timeout_s: float = 120.0  # ... until it has been busy this long (ROS time): then a failed try
     extra: Mapping[str, Any] = field(default_factory=dict)  # journaled with the start (n_initial, grid_size, ...)
+    # limits on a run's outcomes besides J ("max_travel_mm<=60"): a run that breaks one is booked and shown (the
+    # optimizer models them when it can: EngineConfig.constraints)
+    outcome_limits: tuple[str, ...] = ()
 
     def __post_init__(self) -> None:
         if not self.campaign_id:
             raise CampaignError("campaign_id must not be empty")
         if self.budget < 1 or self.max_attempts < 1 or self.apply_retries < 0:
             raise CampaignError("budget and max_attempts must be >= 1, apply_retries >= 0")
+        parse_limits(self.outcome_limits)  # a malformed limit is refused before anything is journaled
+
+    @property
+    def limits(self) -> tuple[OutcomeLimit, ...]:
+        return parse_limits(self.outcome_limits)
 
 
 @dataclass(frozen=True)
@@ -226,6 +244,7 @@ class Campaign:
         self.confirmation_closed = False  # the confirmation trial was scored or given up
         self.finished = False
         self.resumed = False
+        self.violated_trials: list[int] = []  # trials whose run broke an outcome limit (booked, shown)
 
     # --- helpers -----------------------------------------------------------------------------
     @property
@@ -345,8 +364,11 @@ class Campaign:
                     self.confirmation_j = j
                     self.confirmation_closed = True
                 else:
-                    self.opt.tell(t.params, j)
+                    outcomes = {str(k): float(v) for k, v in (ev.get("outcomes") or {}).items() if v is not None}
+                    self.opt.tell(t.params, j, outcomes)
                     self._book_score(tid, j)
+                    if ev.get("violations"):
+                        self.violated_trials.append(tid)
             elif kind == "trial_failed" and tid in trials:
                 closed.add(tid)
                 t = trials[tid]
@@ -415,6 +437,7 @@ class Campaign:
         self.next_trial_id += 1
         t = _Trial(tid, _KIND_OF_SUGGESTION.get(s.kind, Kind.OPTIMIZED), dict(s.params), s.predicted_j, s.predicted_std)
         self.current = t
+        extra: dict[str, Any] = {"model": dict(s.info)} if s.info else {}
         self._j(
             "trial_proposed",
             trial_id=tid,
@@ -423,8 +446,13 @@ class Campaign:
             predicted_j=t.predicted_j,
             predicted_std=t.predicted_std,
             reason=s.kind,
+            **extra,
         )
+        acts: list[Action] = []
+        if "no_safe_candidate" in s.info:
+            acts.append(Log("warn", f"trial {tid}: {s.info['no_safe_candidate']}"))
         return [
+            *acts,
             self._status(State.PROPOSED, f"Wait: trial {tid} calibration chosen ({s.kind})."),
             *self._apply(t),
         ]
@@ -531,8 +559,10 @@ class Campaign:
         j: float,
         reason: str = "",
         details: Mapping[str, Any] | None = None,
+        outcomes: Mapping[str, float] | None = None,
     ) -> list[Action]:
-        """A RunScore arrived; booked only if it is the run the agent is waiting for."""
+        """A RunScore arrived; booked only if it is the run the agent is waiting for. ``outcomes``: what the run
+        measured besides J (RunScore.outcome_names / outcome_values), checked against the outcome limits."""
         t = self.current
         why = ""
         if campaign_id != self.cfg.campaign_id:
@@ -551,6 +581,8 @@ class Campaign:
             valid, reason = False, f"J is not finite ({j!r})"
         if not valid:
             return self._reject(t, reason or "invalid run (no reason given)")
+        measured = {str(k): float(v) for k, v in (outcomes or {}).items()}
+        broken = violations(self.cfg.limits, measured)
         self._j(
             "trial_scored",
             trial_id=t.trial_id,
@@ -561,25 +593,39 @@ class Campaign:
             predicted_j=t.predicted_j,
             predicted_std=t.predicted_std,
             details=dict(details or {}),
+            outcomes=measured,
+            violations=broken,
         )
+        note: list[Action] = []
+        if broken:
+            note.append(Log("warn", f"trial {t.trial_id} broke an outcome limit: {'; '.join(broken)}"))
         t.phase = State.SCORED
         if t.kind == Kind.CONFIRMATION:
             self.confirmation_j = float(j)
             self.confirmation_closed = True
             return [
+                *note,
                 Log("info", f"confirmation run of the recommendation: J={j:.4g}"),
-                self._status(State.SCORED, f"Confirmation run scored J={j:.4g}.", t=t),
+                self._status(State.SCORED, f"Confirmation run scored J={j:.4g}.", "; ".join(broken), t=t),
                 *self._done(),
             ]
-        self.opt.tell(t.params, float(j))
+        self.opt.tell(t.params, float(j), measured)
         self._book_score(t.trial_id, float(j))
+        if broken:
+            self.violated_trials.append(t.trial_id)
         line = (
             f"trial {self.trials_done}/{self.cfg.budget} {fmt_params(t.params)} J={j:.4g} "
             f"best={self.best_j:.4g} (trial {self.best_trial_id})"
         )
+        text = f"Run scored J={j:.4g}; wait for the next calibration."
+        if broken:
+            text = (
+                f"Run scored J={j:.4g} but broke an outcome limit ({'; '.join(broken)}); wait for the next calibration."
+            )
         return [
+            *note,
             Log("info", line),
-            self._status(State.SCORED, f"Run scored J={j:.4g}; wait for the next calibration.", t=t),
+            self._status(State.SCORED, text, "; ".join(broken), t=t),
             *self._next_trial(),
         ]
 
@@ -629,6 +675,11 @@ class Campaign:
                     Finish(1, None),
                 ]
             self.recommendation = rec
+            extra: dict[str, Any] = {}
+            if rec.predicted_outcomes:
+                extra["predicted_outcomes"] = dict(rec.predicted_outcomes)
+            if rec.transfer:
+                extra["transfer"] = dict(rec.transfer)
             self._j(
                 "recommendation",
                 params=rec.params,
@@ -637,6 +688,7 @@ class Campaign:
                 n_observations=rec.n_observations,
                 best_observed_params=rec.best_observed_params,
                 best_observed_j=rec.best_observed_j,
+                **extra,
             )
         rec = self.recommendation
         acts: list[Action] = [
@@ -693,6 +745,9 @@ class Campaign:
                 "best_observed_j": rec.best_observed_j,
                 "best_trial_id": self.best_trial_id,
                 "confirmation_j": self.confirmation_j,
+                "predicted_outcomes": dict(rec.predicted_outcomes),
+                "transfer": dict(rec.transfer),
+                "violated_trials": list(self.violated_trials),
             },
         )
         self._j("campaign_done", trials_done=self.trials_done, confirmation_j=self.confirmation_j)

@@ -39,7 +39,7 @@ from numpy.typing import NDArray
 from scipy.optimize import minimize
 
 from bac_agent.bo.acquisition import NoisyEI, log_ei, log_ei_with_grad
-from bac_agent.bo.constraints import OutcomeModels, parse_limits
+from bac_agent.bo.constraints import OutcomeLimit, OutcomeModels, parse_limits
 from bac_agent.bo.design import candidates, default_n_initial, initial_design
 from bac_agent.bo.gp import GP, GPConfig, Hyper
 from bac_agent.bo.prior import SourceSurface, TransferFit, TransferSettings, fit_with_source
@@ -129,7 +129,7 @@ class EngineConfig:
     # --- outcome constraints (bo/constraints.py): limits on measured outcomes besides J, e.g.
     # {"name": "max_travel_mm", "bound": 60.0, "upper": True}; a proposal's probability of breaking any is at
     # most constraint_level, and so is the recommendation's
-    constraints: tuple[Mapping[str, Any], ...] = ()
+    constraints: tuple[Any, ...] = ()  # OutcomeLimit, its dict, or text such as "max_travel_mm<=60"
     constraint_level: float = 0.05
 
     def __post_init__(self) -> None:
@@ -153,12 +153,13 @@ class EngineConfig:
             raise EngineError(f"prior_n_initial must be >= 0 (0 = automatic), got {self.prior_n_initial}")
         if not 0.0 < self.constraint_level < 1.0:
             raise EngineError(f"constraint_level must be in (0, 1), got {self.constraint_level}")
+        parse_limits(self.constraints)
 
     def to_dict(self) -> dict[str, Any]:
         d = asdict(self)
         d["gp"] = asdict(self.gp)
         d["initial_points"] = [dict(p) for p in self.initial_points]
-        d["constraints"] = [dict(c) for c in self.constraints]
+        d["constraints"] = [OutcomeLimit.from_spec(c).to_dict() for c in self.constraints]
         d["prior"] = dict(self.prior) if self.prior is not None else None
         return d
 
@@ -168,7 +169,7 @@ class EngineConfig:
         data["initial_points"] = tuple(
             {str(k): float(v) for k, v in p.items()} for p in data.get("initial_points") or ()
         )
-        data["constraints"] = tuple(dict(c) for c in data.get("constraints") or ())
+        data["constraints"] = tuple(OutcomeLimit.from_spec(c).to_dict() for c in data.get("constraints") or ())
         gp = dict(data.pop("gp", {}) or {})
         for k in ("ls_bounds", "os_bounds"):
             if k in gp:

@@ -40,6 +40,7 @@ FloatArray = NDArray[np.float64]
 # the GP the source points are fitted with: a learned constant mean, a low noise (the points are a model's
 # predictions or averaged runs), the engine's kernel and priors otherwise
 SOURCE_GP = GPConfig(mean="constant", noise_loc=-7.0, noise_scale=1.0)
+NOISY_SOURCE_GP = GPConfig(mean="constant")  # runs of an earlier campaign: the engine's noise prior
 MAX_SOURCE_POINTS = 512
 
 
@@ -51,6 +52,7 @@ class SourceSurface:
     y: FloatArray  # (m,) J at X (the source's values)
     hyper: Hyper  # its GP's hyperparameters (standardized units of y)
     label: str = ""  # where it came from (journaled, shown in the report)
+    noisy: bool = False  # the points are noisy runs (an earlier campaign), not a model's predictions
 
     def __post_init__(self) -> None:
         X = np.atleast_2d(np.asarray(self.X, dtype=float))
@@ -80,9 +82,15 @@ class SourceSurface:
 
     @classmethod
     def fit(
-        cls, X: FloatArray, y: FloatArray, label: str = "", rng: np.random.Generator | None = None
+        cls,
+        X: FloatArray,
+        y: FloatArray,
+        label: str = "",
+        rng: np.random.Generator | None = None,
+        noisy: bool = False,
     ) -> SourceSurface:
-        """Fit the source GP (MAP hyperparameters) to points ``X`` (unit cube) and values ``y`` (J)."""
+        """Fit the source GP (MAP hyperparameters) to points ``X`` (unit cube) and values ``y`` (J); ``noisy``:
+        they are runs (the engine's noise prior), not a model's predictions (a low noise)."""
         X = np.atleast_2d(np.asarray(X, dtype=float))
         y = np.asarray(y, dtype=float).ravel()
         if X.shape[0] > MAX_SOURCE_POINTS:  # keep the best points and a spread of the rest
@@ -91,9 +99,9 @@ class SourceSurface:
                 np.concatenate([order[:64], np.linspace(0, y.size - 1, MAX_SOURCE_POINTS - 64).astype(int)])
             )
             X, y = X[keep], y[keep]
-        gp = GP(SOURCE_GP).fit(X, y, rng if rng is not None else np.random.default_rng(0))
+        gp = GP(NOISY_SOURCE_GP if noisy else SOURCE_GP).fit(X, y, rng if rng is not None else np.random.default_rng(0))
         assert gp.hyper is not None
-        return cls(X, y, gp.hyper, label)
+        return cls(X, y, gp.hyper, label, noisy)
 
     @classmethod
     def from_function(cls, f: Any, dim: int, n: int = 128, label: str = "", seed: int = 0) -> SourceSurface:
@@ -138,7 +146,13 @@ class SourceSurface:
 
     # --- state --------------------------------------------------------------------------------------
     def to_dict(self) -> dict[str, Any]:
-        return {"X": self.X.tolist(), "y": self.y.tolist(), "hyper": self.hyper.to_dict(), "label": self.label}
+        return {
+            "X": self.X.tolist(),
+            "y": self.y.tolist(),
+            "hyper": self.hyper.to_dict(),
+            "label": self.label,
+            "noisy": self.noisy,
+        }
 
     @classmethod
     def from_dict(cls, d: dict[str, Any]) -> SourceSurface:
@@ -148,6 +162,7 @@ class SourceSurface:
                 np.asarray(d["y"], dtype=float),
                 Hyper.from_dict(d["hyper"]),
                 str(d.get("label", "")),
+                bool(d.get("noisy", False)),
             )
         except (KeyError, TypeError, ValueError) as exc:
             raise GPError(f"malformed source surface: {exc}") from exc
