@@ -232,8 +232,8 @@ RUNNERS: dict[str, Callable[[Any, int, int, np.random.Generator], Recs]] = {
 }
 
 
-def _task(args: tuple[str, int, int, str, str, int]) -> dict[str, Any]:
-    family, index, seed, opt, bac_config, budget = args
+def _task(args: tuple[str, int, int, str, str, int, int]) -> dict[str, Any]:
+    family, index, seed, opt, bac_config, budget, grid = args
     BAC_CONFIG.clear()
     BAC_CONFIG.update(json.loads(bac_config or "{}"))
     os.environ.setdefault("OMP_NUM_THREADS", "1")
@@ -246,7 +246,7 @@ def _task(args: tuple[str, int, int, str, str, int]) -> dict[str, Any]:
     from threadpoolctl import threadpool_limits
 
     with threadpool_limits(1):
-        inst = pf.instance(family, index)
+        inst = pf.instance(family, index, grid)
         truth = pf.truth_of(family, index)
         budget = budget or pf.budget_of(family)
         noise_rng = np.random.default_rng([index, seed, 12345])  # the same noise stream for every optimizer
@@ -380,6 +380,13 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--budget", type=int, default=0, help="override every family's budget")
     ap.add_argument("--bac-config", default="", help='JSON overrides of EngineConfig, e.g. {"design_margin": 0.1}')
     ap.add_argument("--workers", type=int, default=os.cpu_count() or 1)
+    ap.add_argument(
+        "--grid-truth",
+        type=int,
+        default=0,
+        help="quick mode for exploring defaults on the tuning split: the car families' J from a bicubic "
+        "interpolation of an N x N grid of simulated runs (cached in bench/out/grids), not the simulator",
+    )
     ap.add_argument("--out", default="", help="raw results (JSON); default bench/out/bo_efficiency_<split>.json")
     ap.add_argument("--from-json", default="", help="comma list of earlier --out files: summarize them together")
     a = ap.parse_args(argv)
@@ -404,7 +411,11 @@ def main(argv: list[str] | None = None) -> int:
         for o in opts:
             if o not in RUNNERS:
                 ap.error(f"unknown optimizer {o!r}; known: {', '.join(RUNNERS)}")
-        tasks = [(f, i, s, o, a.bac_config, a.budget) for f in fams for i in insts for s in seeds for o in opts]
+        if a.grid_truth and a.split != "tuning":
+            ap.error("--grid-truth is for exploring defaults on the tuning split only")
+        tasks = [
+            (f, i, s, o, a.bac_config, a.budget, a.grid_truth) for f in fams for i in insts for s in seeds for o in opts
+        ]
         # the slow optimizers first, so that the pool ends together
         tasks.sort(key=lambda t: {"botorch": 0, "optuna_gp": 1, "random": 2, "bac": 3}.get(t[3], 4))
         results = []
@@ -414,7 +425,9 @@ def main(argv: list[str] | None = None) -> int:
         wall = time.perf_counter() - t0
         header = (
             f"# split {a.split}: instances {insts[0]}..{insts[-1]}, seeds {seeds}; noise 1-3 % per instance; "
-            f"found = gap <= {FOUND_GAP}; bac config {a.bac_config or 'defaults'}; wall time {wall:.0f} s with "
+            f"found = gap <= {FOUND_GAP}; bac config {a.bac_config or 'defaults'}; "
+            + (f"QUICK: car J from a {a.grid_truth}x{a.grid_truth} grid, interpolated; " if a.grid_truth else "")
+            + f"wall time {wall:.0f} s with "
             f"{a.workers} workers; load {os.getloadavg()[0]:.1f}"
         )
         out = Path(a.out or f"bench/out/bo_efficiency_{a.split}.json")

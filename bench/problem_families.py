@@ -164,12 +164,14 @@ def function_instance(family: str, index: int) -> FunctionInstance:
 
 
 # --- instances of any family ---------------------------------------------------------------------------
-def instance(family: str, index: int) -> Any:
-    """A car instance (bac_sim.families.CarInstance) or a FunctionInstance, with its cached truth if any."""
+def instance(family: str, index: int, grid: int = 0) -> Any:
+    """A car instance (bac_sim.families.CarInstance; with ``grid``, its GridInstance stand-in) or a
+    FunctionInstance, with its cached truth if any."""
     if family in CAR_FAMILIES:
         from bac_sim.families import get_family
 
-        return get_family(family).instance(index)
+        inst = get_family(family).instance(index)
+        return GridInstance(inst, grid) if grid else inst
     inst = function_instance(family, index)
     truth = load_truth().get(f"{family}#{index}")
     return FunctionInstance(inst.family, inst.index, inst.f, inst.dim, inst.noise_share, inst.describe, truth or {})
@@ -233,6 +235,60 @@ def compute_truth(inst: Any, travel_limit: float | None = TRAVEL_LIMIT_MM) -> di
         else:
             truth["j_star_constrained"] = math.nan
     return truth
+
+
+GRID_DIR = Path(__file__).resolve().parent / "out" / "grids"
+
+
+class GridInstance:
+    """A car instance's J and travel on a grid of its unit square, interpolated (bicubic): a quick stand-in for
+    the simulator when defaults are explored on the tuning split (``bo_efficiency.py --grid-truth N``). The
+    figures the docs report come from the simulator itself."""
+
+    def __init__(self, inst: Any, n: int) -> None:
+        from scipy.interpolate import RectBivariateSpline
+
+        self.inst = inst
+        self.bounds = np.asarray(inst.bounds, dtype=float)
+        self.noise_rel = float(inst.noise_rel)
+        self.describe = dict(inst.describe)
+        path = GRID_DIR / f"{inst.family}_{inst.index}_{n}.npz"
+        if path.is_file():
+            data = np.load(path)
+            J, T = data["j"], data["travel"]
+        else:
+            U = _grid(n, 2)
+            out = inst.evaluate(self.bounds[:, 0] + U * (self.bounds[:, 1] - self.bounds[:, 0]))
+            J, T = out["j"].reshape(n, n), out["max_travel_mm"].reshape(n, n)
+            path.parent.mkdir(parents=True, exist_ok=True)
+            np.savez(path, j=J, travel=T)
+        g = np.linspace(0.0, 1.0, n)
+        self._j = RectBivariateSpline(g, g, J, kx=3, ky=3)
+        self._t = RectBivariateSpline(g, g, T, kx=3, ky=3)
+
+    def _unit(self, thetas: FloatArray) -> FloatArray:
+        th = np.atleast_2d(np.asarray(thetas, dtype=float))
+        return np.clip((th - self.bounds[:, 0]) / (self.bounds[:, 1] - self.bounds[:, 0]), 0.0, 1.0)
+
+    def evaluate(self, thetas: FloatArray) -> dict[str, FloatArray]:
+        U = self._unit(thetas)
+        return {
+            "j": np.asarray(self._j.ev(U[:, 0], U[:, 1]), dtype=float),
+            "max_travel_mm": np.asarray(self._t.ev(U[:, 0], U[:, 1]), dtype=float),
+        }
+
+    def true_j(self, thetas: FloatArray) -> FloatArray:
+        return self.evaluate(thetas)["j"]
+
+    def noisy(self, thetas: FloatArray, rng: np.random.Generator) -> dict[str, FloatArray]:
+        from bac_sim.families import TRAVEL_NOISE_MM, TRAVEL_NOISE_REL
+
+        out = self.evaluate(thetas)
+        n = out["j"].shape[0]
+        out["j"] = out["j"] * (1.0 + self.noise_rel * rng.standard_normal(n))
+        t = out["max_travel_mm"]
+        out["max_travel_mm"] = t + (TRAVEL_NOISE_MM + TRAVEL_NOISE_REL * t) * rng.standard_normal(n)
+        return out
 
 
 def load_truth(path: Path = TRUTH_PATH) -> dict[str, Any]:

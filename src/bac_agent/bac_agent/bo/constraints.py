@@ -39,7 +39,9 @@ FloatArray = NDArray[np.float64]
 # the outcome's GP: a learned constant mean; a shorter lengthscale prior than J's (median 0.5 of the range instead
 # of √2): an outcome such as the suspension travel can change fast across the box, and a limit is safety, so
 # until runs show otherwise a calibration far from the driven ones counts as uncertain
-OUTCOME_GP = GPConfig(mean="constant", ls_loc=math.log(0.5))
+# and a noise prior around exp(-2) of the outcome's variance (J's: exp(-4)): a travel or a peak measured on one
+# run scatters more, relative to its spread over the box, than a KPI averaged over a window
+OUTCOME_GP = GPConfig(mean="constant", ls_loc=math.log(0.5), noise_loc=-2.0, noise_scale=1.0)
 _LIMIT_RE = re.compile(r"^\s*([A-Za-z_][A-Za-z0-9_.]*)\s*(<=|>=)\s*([-+0-9.eE]+)\s*$")
 
 

@@ -75,6 +75,9 @@ class GPConfig:
     bowl_centres: int = 512  # candidate centres of the bowl (scrambled Sobol over the unit cube)
     bowl_tip: float = 0.05  # radius of the bowl's rounded tip (unit cube, after the anisotropy scaling)
     bowl_temper: float = 0.5  # power of the likelihood in the weights of the centres (1: the plain posterior)
+    # the centres are drawn over [-bowl_reach, 1 + bowl_reach] on every axis: a centre outside the box is a
+    # trend that falls towards a face or a corner, where many a calibration's optimum lies (issue 23)
+    bowl_reach: float = 0.0
     draws: int = 8  # draws from the prior, screened by their objective
     restarts: int = 1  # best draws optimized, besides the prior mode and the previous fit
     maxiter: int = 200
@@ -380,7 +383,7 @@ class GP:
             Kinv = sla.cho_solve((np.linalg.cholesky(K), True), np.eye(n), check_finite=False)
         except np.linalg.LinAlgError:
             return None
-        C = qmc.Sobol(d, scramble=True, seed=n).random(c.bowl_centres)
+        C = qmc.Sobol(d, scramble=True, seed=n).random(c.bowl_centres) * (1.0 + 2.0 * c.bowl_reach) - c.bowl_reach
         R = cone_radius(X, C, scale, c.bowl_tip)  # (n, m)
         k1 = Kinv.sum(axis=0)
         a11 = float(k1.sum())
