@@ -59,14 +59,14 @@ def source_for(family: str, index: int, arm: str) -> dict[str, Any] | None:
     return SourceSurface.from_function(f, b.shape[0], SOURCE_POINTS, label=label, seed=index).to_dict()
 
 
-def _task(args: tuple[str, int, int, str, int, str]) -> dict[str, Any]:
-    family, index, seed, arm, budget, config = args
+def _task(args: tuple[str, int, int, str, int, str, int]) -> dict[str, Any]:
+    family, index, seed, arm, budget, config, grid = args
     from threadpoolctl import threadpool_limits
 
     from bac_agent.bo import Engine, EngineConfig
 
     with threadpool_limits(1):
-        inst = pf.instance(family, index)
+        inst = pf.instance(family, index, grid)
         truth = pf.truth_of(family, index)
         b = inst.bounds
         names = [f"x{i}" for i in range(b.shape[0])]
@@ -118,6 +118,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--budget", type=int, default=15)
     ap.add_argument("--bac-config", default="")
     ap.add_argument("--workers", type=int, default=os.cpu_count() or 1)
+    ap.add_argument("--grid-truth", type=int, default=0, help="tuning split only: the cars' J interpolated (quick)")
     ap.add_argument("--out", default="")
     a = ap.parse_args(argv)
     split = pf.SPLITS[a.split]
@@ -125,7 +126,11 @@ def main(argv: list[str] | None = None) -> int:
     seeds = split["seeds"][: a.seeds or None]
     fams = [f for f in a.families.split(",") if f]
     arms = [x for x in a.arms.split(",") if x]
-    tasks = [(f, i, s, arm, a.budget, a.bac_config) for f in fams for i in insts for s in seeds for arm in arms]
+    if a.grid_truth and a.split != "tuning":
+        ap.error("--grid-truth is for exploring defaults on the tuning split only")
+    tasks = [
+        (f, i, s, arm, a.budget, a.bac_config, a.grid_truth) for f in fams for i in insts for s in seeds for arm in arms
+    ]
     t0 = time.perf_counter()
     with ProcessPoolExecutor(max_workers=a.workers) as ex:
         results = list(ex.map(_task, tasks))
