@@ -2,7 +2,7 @@
 SHELL := /bin/bash
 VENV := .venv
 PY := $(VENV)/bin/python
-# every ROS process of bac stays on this machine (DESIGN.md, network rule)
+# every ROS process of bac stays on this machine (README.md, "The network rule")
 export ROS_AUTOMATIC_DISCOVERY_RANGE := LOCALHOST
 export AMENT_PREFIX_PATH := $(CURDIR)/$(VENV)
 export RMW_IMPLEMENTATION := rmw_fastrtps_cpp

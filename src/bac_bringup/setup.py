@@ -13,9 +13,12 @@ setup(
         ("share/" + package_name, ["package.xml"]),
         ("share/" + package_name + "/profiles", sorted(glob("profiles/*.yaml"))),
         ("share/" + package_name + "/params", sorted(glob("params/*.yaml"))),
+        # `bac` on PATH once the install space is sourced (colcon adds <prefix>/bin); runs lib/bac_bringup/bac
+        ("bin", ["bin/bac"]),
     ],
     package_data={package_name: ["py.typed"]},
     install_requires=["setuptools"],
+    extras_require={"test": ["pytest"]},  # colcon test runs pytest (tests_require is gone from setuptools)
     zip_safe=True,
     maintainer="bac developers",
     maintainer_email="bac@example.org",
@@ -27,6 +30,8 @@ setup(
     entry_points={
         "console_scripts": [
             "bac = bac_bringup.cli:main",
+            "trial_announcer = bac_bringup.smoke_node:announcer_main",
+            "trial_listener = bac_bringup.smoke_node:listener_main",
         ],
     },
 )

@@ -20,7 +20,7 @@ setup(
         "reports, simulated runs to bags."
     ),
     license="Apache-2.0",
-    tests_require=["pytest"],
+    extras_require={"test": ["pytest"]},  # colcon test runs pytest (tests_require is gone from setuptools)
     entry_points={
         "console_scripts": [
             "campaign_recorder = bac_campaign.recorder_node:main",

@@ -15,6 +15,7 @@ setup(
     ],
     package_data={package_name: ["py.typed", "dbc/*.dbc"]},
     install_requires=["setuptools"],
+    extras_require={"test": ["pytest"]},  # colcon test runs pytest (tests_require is gone from setuptools)
     zip_safe=True,
     maintainer="bac developers",
     maintainer_email="bac@example.org",

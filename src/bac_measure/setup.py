@@ -20,7 +20,7 @@ setup(
         "and writing, the run_segmenter and kpi_scorer nodes."
     ),
     license="Apache-2.0",
-    tests_require=["pytest"],
+    extras_require={"test": ["pytest"]},  # colcon test runs pytest (tests_require is gone from setuptools)
     entry_points={
         "console_scripts": [
             "run_segmenter = bac_measure.segmenter_node:main",

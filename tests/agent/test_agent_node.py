@@ -161,6 +161,22 @@ def test_resume_after_kill_9_loses_no_trial(procs: Any, tmp_path: Path) -> None:
     check_scores_on_confirmed_calibrations(ev)
 
 
+def test_a_resume_with_another_configuration_is_refused_at_start(procs: Any, tmp_path: Path) -> None:
+    """Relaunched on a campaign folder with another seed and budget: the agent exits at once (the graph is not
+    waited for), names both differences and says how to start a new campaign; the journal is untouched."""
+    cdir = tmp_path / "camp"
+    start_standins(procs, tmp_path)
+    agent = start_agent(procs, "agent1", cdir, "budget:=2", "seed:=5")
+    assert wait_exit(agent, 90, "bo_agent to finish") == 0, procs.log("agent1")
+    before = (cdir / "journal.jsonl").read_bytes()
+    agent2 = start_agent(procs, "agent2", cdir, "budget:=3", "seed:=6")
+    assert wait_exit(agent2, 60, "the refusing bo_agent to exit") != 0
+    log = procs.log("agent2")
+    assert "seed: journaled 5, this agent 6" in log and "budget: journaled 2, this agent 3" in log, log
+    assert "use a new campaign_dir" in log
+    assert (cdir / "journal.jsonl").read_bytes() == before
+
+
 if __name__ == "__main__":
     sys.exit(pytest.main([__file__, "-q"]))
 

@@ -157,6 +157,79 @@ def test_single_process_uses_the_virtual_bus(ros_env: dict[str, str], tmp_path: 
     assert a["netns"] == os.stat("/proc/self/ns/net").st_ino
 
 
+def shared_process_profile(tmp_path: Path, can: dict[str, Any]) -> Path:
+    """Two CAN nodes sharing the process "car" (the ECU's side stops last), a third node in its own process."""
+    nodes = [
+        {**reporter("ecu_side", tmp_path), "can": True, "process": "car", "stop_order": 1},
+        {**reporter("bridge_side", tmp_path), "can": True, "process": "car"},
+        {**reporter("solo", tmp_path, finish_after_s=2.0), "ends_graph": True},
+    ]
+    return make_profile(tmp_path, nodes, can=can)
+
+
+def test_nodes_sharing_a_process_keep_can_in_it_without_a_namespace(ros_env: dict[str, str], tmp_path: Path) -> None:
+    """CAN between nodes of one process: the in-process virtual bus, and no private namespace (ROS tools see the
+    graph), even though the profile names udp_multicast for CAN between processes."""
+    prof = shared_process_profile(tmp_path, {"interface": "udp_multicast", "channel": "239.74.163.2"})
+    env = {k: v for k, v in ros_env.items() if k != "BAC_PRIVATE_NETNS"}
+    p = launch(env, str(prof), "--log-dir", str(tmp_path / "logs"))
+    out, _ = p.communicate(timeout=90)
+    text = out.decode(errors="replace")
+    assert p.returncode == 0, text
+    ecu, bridge, solo = (report(tmp_path, n) for n in ("ecu_side", "bridge_side", "solo"))
+    assert ecu is not None and bridge is not None and solo is not None
+    assert ecu["pid"] == bridge["pid"] != solo["pid"]
+    assert ecu["can_interface"] == bridge["can_interface"] == "virtual"
+    here = os.stat("/proc/self/ns/net").st_ino
+    assert ecu["netns"] == bridge["netns"] == solo["netns"] == here, text
+    assert "private network namespace" not in text
+    # both stopped cleanly, the bridge's side first (stop_order), then the ECU's
+    clean = {n: tmp_path / f"{n}.clean.json" for n in ("ecu_side", "bridge_side")}
+    assert all(f.exists() for f in clean.values()), text
+    assert clean["bridge_side"].stat().st_mtime_ns <= clean["ecu_side"].stat().st_mtime_ns
+    # one log for the shared process; each of its nodes' logs leads there
+    logs = tmp_path / "logs"
+    assert (logs / "car.log").is_file() and (logs / "solo.log").is_file()
+    assert (logs / "ecu_side.log").resolve() == (logs / "car.log").resolve()
+    assert "process car: ecu_side, bridge_side" in (logs / "bridge_side.log").read_text()
+
+
+def test_process_per_node_takes_shared_can_between_processes_into_a_namespace(
+    ros_env: dict[str, str], tmp_path: Path
+) -> None:
+    prof = shared_process_profile(tmp_path, {"interface": "udp_multicast", "channel": "239.74.163.2"})
+    env = {k: v for k, v in ros_env.items() if k != "BAC_PRIVATE_NETNS"}
+    p = launch(env, str(prof), "--process-per-node")
+    out, _ = p.communicate(timeout=90)
+    assert p.returncode == 0, out.decode(errors="replace")
+    ecu, bridge = report(tmp_path, "ecu_side"), report(tmp_path, "bridge_side")
+    assert ecu is not None and bridge is not None
+    assert ecu["pid"] != bridge["pid"]
+    assert ecu["can_interface"] == "udp_multicast"
+    assert ecu["netns"] == bridge["netns"] != os.stat("/proc/self/ns/net").st_ino
+
+
+def test_a_lone_can_node_keeps_the_profiles_bus(ros_env: dict[str, str], tmp_path: Path) -> None:
+    """One CAN node talks to a peer outside the graph (python -m bac_sim.ecu): its bus stays udp_multicast."""
+    nodes = [{**reporter("bridge_only", tmp_path, finish_after_s=1.0), "can": True, "ends_graph": True}]
+    prof = make_profile(tmp_path, nodes, can={"interface": "udp_multicast", "channel": "239.74.163.2"})
+    p = launch(ros_env, str(prof))
+    out, _ = p.communicate(timeout=90)
+    assert p.returncode == 0, out.decode(errors="replace")
+    r = report(tmp_path, "bridge_only")
+    assert r is not None and r["can_interface"] == "udp_multicast"
+
+
+def test_a_virtual_bus_between_processes_is_refused(ros_env: dict[str, str], tmp_path: Path) -> None:
+    prof = shared_process_profile(tmp_path, {"interface": "virtual", "channel": "x"})
+    p = launch(ros_env, str(prof), "--process-per-node")
+    out, _ = p.communicate(timeout=90)
+    text = out.decode(errors="replace")
+    assert p.returncode == 2, text
+    assert "reaches only the same process" in text and "ecu_side, bridge_side" in text
+    assert report(tmp_path, "ecu_side") is None  # nothing was started
+
+
 def test_profiles_shipped_load() -> None:
     for name in ("sim", "car", "replay", "smoke"):
         prof = load_profile(name)
@@ -164,6 +237,10 @@ def test_profiles_shipped_load() -> None:
     sim = load_profile("sim")
     assert sim.use_sim_time and sim.can is not None and sim.can.interface == "udp_multicast"
     assert [n.name for n in sim.nodes if n.ends_graph] == ["bo_agent"]
+    # the simulated car's ECU and the bridge share a process: CAN stays in it, the graph in this namespace
+    assert sim.can_processes == ("vehicle",)
+    assert {n.name for n in sim.nodes if n.process == "vehicle"} == {"vehicle_sim", "ecu_bridge"}
+    assert len(sim.one_process_per_node().can_processes) == 2
     car = load_profile("car")
     assert not car.use_sim_time and "vehicle_sim" not in [n.name for n in car.nodes]
 
@@ -174,4 +251,7 @@ def test_bad_profiles_are_refused(tmp_path: Path) -> None:
     bad = tmp_path / "bad.yaml"
     bad.write_text("nodes: [{name: x}]\n")
     with pytest.raises(ProfileError, match="entry"):
+        load_profile(bad)
+    bad.write_text("nodes: [{name: a, entry: 'm:A', process: b}, {name: b, entry: 'm:B', process: c}]\n")
+    with pytest.raises(ProfileError, match="name the shared process differently"):
         load_profile(bad)

@@ -5,6 +5,11 @@ fake external interface `ext0` (one end of a veth pair, holding the default rout
 packet that would leave the machine is counted on its transmit counter.
 The control cases show that the counter does see leaking traffic, so the
 zero in the real cases means something.
+
+The sim graph runs in the machine's own namespace (CAN stays in one process), so that a ROS tool started apart
+from it (``ros2 topic echo /bac/trial``) sees it, with nothing leaving loopback all the same; with
+``--process-per-node`` CAN crosses processes over udp_multicast and the launcher hides the graph in a private
+namespace of its own.
 """
 
 from __future__ import annotations
@@ -23,9 +28,19 @@ from conftest import ROOT
 
 pytestmark = pytest.mark.integration
 PROBE = ROOT / "tests" / "helpers" / "net_probe.py"
+VISIBILITY_PROBE = ROOT / "tests" / "helpers" / "visibility_probe.py"
 
 
 def run_probe(ros_env: dict[str, str], discovery_range: str, lo_multicast_route: bool, launch: bool) -> dict:
+    args = [sys.executable, str(PROBE), "--discovery-range", discovery_range] + (["--launch"] if launch else [])
+    return run_in_namespace_with_an_external_interface(ros_env, args, lo_multicast_route)
+
+
+def run_in_namespace_with_an_external_interface(
+    ros_env: dict[str, str], args: list[str], lo_multicast_route: bool, timeout: float = 240
+) -> dict:
+    """Run ``args`` in a new network namespace with loopback and ``ext0`` (the default route); its last line of
+    output is JSON."""
     if os.geteuid() != 0 or shutil.which("unshare") is None:
         pytest.skip("needs root and unshare to build a namespace with a fake external interface")
     setup = [
@@ -42,7 +57,6 @@ def run_probe(ros_env: dict[str, str], discovery_range: str, lo_multicast_route:
     else:
         setup.append("ip route add 224.0.0.0/4 dev ext0")
     script = " && ".join(setup) + ' && exec "$@"'
-    args = [sys.executable, str(PROBE), "--discovery-range", discovery_range] + (["--launch"] if launch else [])
     env = {**ros_env, "PYTHONPATH": f"{ROOT / 'tests' / 'helpers'}:{ros_env.get('PYTHONPATH', '')}"}
     env["BAC_PRIVATE_NETNS"] = "1"
     # output to files, not pipes: a grandchild left running could otherwise keep a pipe open and hang the test
@@ -52,7 +66,7 @@ def run_probe(ros_env: dict[str, str], discovery_range: str, lo_multicast_route:
             env=env,
             stdout=out,
             stderr=err,
-            timeout=240,
+            timeout=timeout,
             check=False,
         )
         out.seek(0)
@@ -79,3 +93,51 @@ def test_bac_traffic_stays_on_loopback(ros_env: dict[str, str]) -> None:
 def test_control_a_wider_discovery_range_leaks_and_is_counted(ros_env: dict[str, str]) -> None:
     r = run_probe(ros_env, "SUBNET", lo_multicast_route=False, launch=False)
     assert r["delta"]["ext0"]["tx_packets"] > 0, r
+
+
+def sim_graph_seen_from_outside(ros_env: dict[str, str], tmp_path: Path, *launch_args: str) -> dict:
+    """``bac launch sim`` (2 trials) and, apart from it, a plain rclpy listener of bac/trial, in a namespace whose
+    only way off the machine is ext0, with no multicast route on loopback (a machine's usual routes)."""
+    args = [
+        sys.executable, str(VISIBILITY_PROBE), str(tmp_path / "campaign"), "launch", "sim",
+        "--timeout", "300", "--log-dir", str(tmp_path / "logs"),
+        "-p", "bo_agent.budget:=2", "-p", "bo_agent.confirmation_run:=false", *launch_args,
+    ]  # fmt: skip
+    return run_in_namespace_with_an_external_interface(ros_env, args, lo_multicast_route=False, timeout=480)
+
+
+@pytest.mark.slow
+def test_a_ros_tool_apart_from_the_launcher_sees_the_sim_graph_and_nothing_leaves(
+    ros_env: dict[str, str], tmp_path: Path
+) -> None:
+    r = sim_graph_seen_from_outside(ros_env, tmp_path)
+    assert r["launch_rc"] == 0, r["launch_log"]
+    assert "private network namespace" not in r["launch_log"]
+    assert r["graph_in_this_namespace"], r["graph_namespaces"]
+    states = {m["state"] for m in r["received"] if m["campaign_id"] == "campaign"}
+    assert 7 in states, r["received"]  # the campaign's end (Trial.STATE_DONE), heard by the outside listener
+    assert r["delta"]["lo"]["tx_packets"] > 100, r["delta"]  # the traffic really flowed, on loopback
+    assert r["delta"]["ext0"]["tx_packets"] == 0, r["delta"]
+
+
+@pytest.mark.slow
+def test_control_with_can_between_processes_the_graph_hides_in_a_private_namespace(
+    ros_env: dict[str, str], tmp_path: Path
+) -> None:
+    r = sim_graph_seen_from_outside(ros_env, tmp_path, "--process-per-node")
+    assert r["launch_rc"] == 0, r["launch_log"]
+    assert "entering a private network namespace" in r["launch_log"]
+    assert not r["graph_in_this_namespace"] and r["graph_namespaces"], r["graph_namespaces"]
+    assert r["received"] == []  # the whole campaign ran, and a tool outside its namespace heard nothing
+
+
+@pytest.mark.slow
+def test_the_demo_keeps_its_graph_in_a_private_namespace(ros_env: dict[str, str], tmp_path: Path) -> None:
+    """bac demo is a measurement: no other graph on the machine may disturb it (bac demo --visible: it is seen)."""
+    args = [sys.executable, str(VISIBILITY_PROBE), str(tmp_path / "campaign"), "demo", "--budget", "2"]
+    r = run_in_namespace_with_an_external_interface(ros_env, args, lo_multicast_route=False, timeout=480)
+    assert r["launch_rc"] == 0, r["launch_log"]
+    assert "recommendation_gap_pct" in r["launch_log"]
+    assert not r["graph_in_this_namespace"] and r["graph_namespaces"], r["graph_namespaces"]
+    assert r["received"] == []
+    assert r["delta"]["ext0"]["tx_packets"] == 0, r["delta"]

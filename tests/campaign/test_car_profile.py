@@ -193,7 +193,8 @@ def test_car_profile_retry_waits_for_a_new_drive(
                                     "-p", f"ecu_bridge.can.channel:={channel}",
                                     "-p", "bo_agent.budget:=1", "-p", "bo_agent.confirmation_run:=false",
                                     "-p", "run_segmenter.run_timeout_s:=12.0",
-                                    "-p", "run_segmenter.distance_origin:=run_start"])  # fmt: skip
+                                    "-p", "run_segmenter.distance_origin:=run_start",
+                                    "-p", "run_segmenter.distance_source:=position_x"])  # fmt: skip
     node = ros_context.node("car_driver")
     trials: list[Trial] = []
     node.create_subscription(Trial, "bac/trial", trials.append, QOS_LATCHED)

@@ -1,6 +1,6 @@
 """The experimental phase through the graph: a campaign on a meta-parameter definition (paper sec. III-D).
 
-``bac demo --definition`` runs the sim profile (every node in its own process, CAN over udp_multicast)
+``bac demo --definition`` runs the sim profile (each node in its own process, the car and the bridge sharing one)
 on a definition whose one tuned dimension drives both raw parameters. The agent proposes the
 meta-parameter; the bridge expands it and the ECU confirms both raw values; the run is scored and the
 recommendation judged against that space's own optimum.

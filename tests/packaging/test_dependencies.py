@@ -42,6 +42,7 @@ KEY_OF_IMPORT = {
     "can": "python3-can",
     "cantools": "python3-cantools-pip",
     "rosbags": "python3-rosbags-pip",
+    "asammdf": "python3-asammdf-pip",
     "msgpack": "python3-msgpack",
     "threadpoolctl": "python3-threadpoolctl-pip",
     "dask": "python3-dask-pip",

@@ -100,9 +100,13 @@ def test_a_ready_trial_is_driven_and_every_sample_arrives(procs: Any, ros_contex
     stamps = np.array([m.header.stamp.sec + 1e-9 * m.header.stamp.nanosec for m in imu])
     np.testing.assert_allclose(np.diff(stamps), 1 / 400.0, atol=2e-6)
     assert imu[0].header.frame_id == "imu_link"
+    # standard odometry (REP 105): the pose in odom (its origin where the first run started, the road along +x),
+    # the forward speed in base_link
+    assert {(o.header.frame_id, o.child_frame_id) for o in odom} == {("odom", "base_link")}
     dist = np.array([o.pose.pose.position.x for o in odom])
     assert dist[0] == pytest.approx(0.0) and np.all(np.diff(dist) > 0)
     assert dist[-1] == pytest.approx(expected.distance[-1])
+    assert all(o.pose.pose.position.y == 0.0 and o.pose.pose.orientation.w == 1.0 for o in odom)
     speed = np.array([o.twist.twist.linear.x for o in odom])
     assert speed.mean() == pytest.approx(30 / 3.6, rel=0.05)
     # the clock covered the run in sim time
@@ -116,3 +120,15 @@ def test_a_ready_trial_is_driven_and_every_sample_arrives(procs: Any, ros_contex
     published = int(re.search(r"attempt 2 published \((\d+) IMU", log).group(1))  # type: ignore[union-attr]
     assert published > 0 and n_before == expected.t.size
     assert log.count("driving trial 1 attempt 1") == 1
+    # the second run's pose continues from where the car is: it came back to the start (at 60 km/h, unpublished)
+    second = simulate_run({"damping_front": 0.5, "damping_rear": 0.5}, "bump", seed=seed + 1)
+    wait_for(lambda: len(lis.odom) >= len(odom) + second.odom_t.size, 30, what="the second run's odometry")
+    with lis.lock:
+        odom2 = list(lis.odom)[len(odom) :]
+    x2 = np.array([o.pose.pose.position.x for o in odom2])
+    np.testing.assert_allclose(x2, second.start_m - expected.start_m + second.distance, atol=1e-9)
+    t_end1 = odom[-1].header.stamp.sec + 1e-9 * odom[-1].header.stamp.nanosec
+    t_start2 = odom2[0].header.stamp.sec + 1e-9 * odom2[0].header.stamp.nanosec
+    back = float(dist[-1] - x2[0])
+    assert back > 30.0 and t_start2 - t_end1 >= back / (60 / 3.6) - 1e-6, (back, t_start2 - t_end1)
+    assert "the car comes back" in log

@@ -306,6 +306,15 @@ class BoAgentNode(BacNode):
             definition=self.definition.to_dict(),
             verify_applied=make_verifier(self.definition),
         )
+        try:
+            # a journal of another configuration is refused now, before the graph waits for anything
+            changed = self.campaign.check_resume()
+        except BacError as exc:
+            journal.close()
+            self.get_logger().error(str(exc))
+            raise
+        if changed:
+            self.get_logger().warning("resuming with other time limits than journaled: " + "; ".join(changed))
         self._lock = threading.Lock()
         self._group = MutuallyExclusiveCallbackGroup()
         self.pub_trial = self.create_publisher(Trial, TOPIC_TRIAL, QOS_LATCHED)

@@ -6,12 +6,23 @@ then recommend (and optionally drive a confirmation run of the recommendation).
 The node feeds it events (:meth:`Campaign.on_apply_result`, :meth:`on_apply_timeout`,
 :meth:`on_score`, :meth:`on_run_timeout`) and executes the actions it returns, in
 order (:class:`Publish`, :class:`Apply`, :class:`AwaitRun`, :class:`Finish`,
-:class:`Log`). Every decision is journaled before it is acted on, so a campaign
-killed at any moment resumes from its journal (:meth:`Campaign.start`): scored and
-failed trials are replayed into the optimizer, a trial that was being applied or
-driven is applied again and driven again with a new attempt number, so a late
-score of the interrupted run is never booked against a calibration this process
-has not seen the ECU confirm.
+:class:`Log`).
+
+Every decision is an event, journaled (durably) before it is acted on, and the
+campaign's state changes only by applying journaled events, through one reducer
+(:meth:`Campaign._reduce`): live, each event is journaled and then applied; a
+resumed campaign (:meth:`Campaign.start` on a journal) applies every event of the
+journal in order through the same function, so it holds exactly what the live
+one held (trials, attempt and apply-try counters, rejections, failures in a row,
+best so far, the recommendation, the confirmation) and tells the optimizer the
+same results in the same order. Each proposal journals the optimizer's random
+state and last fit (``Optimizer.ask_state``), restored on replay, so the resumed
+campaign proposes what the uninterrupted one would have. A trial that was being
+applied or driven is applied again and driven again with a new attempt number, so
+a late score of the interrupted run is never booked against a calibration this
+process has not seen the ECU confirm. A journal started with another
+configuration (seed, budget, strategy, design, model, definition, ...) is refused
+(:meth:`Campaign.check_resume`), naming each difference.
 
 The rules:
 
@@ -27,6 +38,7 @@ The rules:
 
 from __future__ import annotations
 
+import json
 import math
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
@@ -44,11 +56,15 @@ from bac_agent.bo.engine import (
     Recommendation,
     Suggestion,
 )
-from bac_agent.journal import SCHEMA_VERSION, Journal, JournalError, write_json_atomic
+from bac_agent.journal import SCHEMA_VERSION, Journal, JournalError, strict_json, write_json_atomic
 from bac_common.errors import BacError
 
 RECOMMENDATION_NAME = "recommendation.json"
 ERROR_ECU_BUSY = 4  # bac_msgs/srv/ApplyCalibration ERROR_ECU_BUSY: the ECU refuses while the vehicle moves
+# apply_result.outcome: what the agent made of the bridge's answer
+APPLY_CONFIRMED = "confirmed"  # the ECU holds the calibration: the trial is driven
+APPLY_BUSY = "busy"  # the ECU was busy (vehicle moving) within busy_timeout_s: asked again, not a failed try
+APPLY_FAILED = "failed"  # a failed try (retried up to apply_retries times)
 
 
 class CampaignError(BacError):
@@ -99,6 +115,8 @@ class Optimizer(Protocol):
     def tell_failed(self, params: Mapping[str, float], reason: str) -> None: ...
     def recommend(self) -> Recommendation: ...
     def predict(self, params: Mapping[str, float]) -> tuple[float, float]: ...
+    def ask_state(self) -> dict[str, Any]: ...
+    def restore_ask(self, params: Mapping[str, float], state: Mapping[str, Any] | None) -> None: ...
 
 
 @dataclass(frozen=True)
@@ -206,6 +224,8 @@ class _Trial:
     confirmed: bool = False
     phase: State = State.PROPOSED
     last_reason: str = ""
+    apply_outcome: str = ""  # of the last apply_result (APPLY_*), "" once another apply is requested
+    apply_message: str = ""  # of the last apply_result
 
 
 def fmt_params(params: Mapping[str, float], limit: int = 6) -> str:
@@ -232,6 +252,8 @@ class Campaign:
         self.clock = clock
         self.definition = dict(definition) if definition else None
         self.verify_applied = verify_applied
+        # the state: changed only by _reduce (live and on resume alike)
+        self.trials: dict[int, _Trial] = {}
         self.current: _Trial | None = None
         self.next_trial_id = 1
         self.trials_done = 0
@@ -243,8 +265,10 @@ class Campaign:
         self.confirmation_j = math.nan
         self.confirmation_closed = False  # the confirmation trial was scored or given up
         self.finished = False
+        self.exit_code: int | None = None  # 0 done, 1 ended without a recommendation
         self.resumed = False
         self.violated_trials: list[int] = []  # trials whose run broke an outcome limit (booked, shown)
+        self.resumes = 0  # campaign_resumed events so far
 
     # --- helpers -----------------------------------------------------------------------------
     @property
@@ -281,10 +305,209 @@ class Campaign:
             )
         )
 
-    def _j(self, event: str, **fields: Any) -> dict[str, Any]:
-        return self.journal.append(event, campaign_id=self.cfg.campaign_id, stamp=self.clock(), **fields)
+    def _record(self, event: str, stamp: float | None = None, **fields: Any) -> dict[str, Any]:
+        """Journal an event (durably), then apply it to the state through :meth:`_reduce`, the function a
+        resume replays the journal with: what the live campaign knows is what its journal says."""
+        rec = self.journal.append(
+            event, campaign_id=self.cfg.campaign_id, stamp=self.clock() if stamp is None else stamp, **fields
+        )
+        self._reduce(rec, replay=False)
+        return rec
+
+    # --- the reducer -------------------------------------------------------------------------------
+    def _trial_of(self, ev: Mapping[str, Any]) -> _Trial:
+        tid = int(ev.get("trial_id") or 0)
+        t = self.trials.get(tid)
+        if t is None:
+            raise CampaignError(
+                f"{self.journal.path}: event {ev.get('seq')} ({ev.get('event')}) names trial {tid}, which was "
+                "never proposed: the journal is inconsistent (edited by hand?); keep a copy and start a new "
+                "campaign_dir"
+            )
+        return t
+
+    def _reduce(self, ev: Mapping[str, Any], replay: bool) -> None:
+        """Apply one journaled event to the campaign's state. The live campaign calls it right after
+        journaling each event, a resume calls it on every event of the journal in order: the state (counters,
+        trials, best so far, the optimizer's tells) cannot differ between the two. The one difference: a
+        replayed proposal restores the optimizer's ask (live, the ask made the proposal)."""
+        kind = ev.get("event")
+        if kind == "trial_proposed":
+            tid = int(ev["trial_id"])
+            t = _Trial(
+                tid,
+                Kind(int(ev["kind"])),
+                {str(k): float(v) for k, v in ev["params"].items()},
+                _f(ev.get("predicted_j")),
+                _f(ev.get("predicted_std")),
+            )
+            self.trials[tid] = t
+            self.current = t
+            self.next_trial_id = max(self.next_trial_id, tid + 1)
+            if replay and t.kind != Kind.CONFIRMATION:
+                self.opt.restore_ask(t.params, ev.get("optimizer_state"))
+        elif kind == "apply_requested":
+            t = self._trial_of(ev)
+            t.apply_try = int(ev["apply_try"])
+            t.apply_outcome = ""
+            t.confirmed = False
+            t.phase = State.APPLYING
+        elif kind == "apply_result":
+            t = self._trial_of(ev)
+            outcome = ev.get("outcome") or self._legacy_apply_outcome(t, ev)
+            t.apply_outcome = str(outcome)
+            t.apply_message = str(ev.get("message") or "")
+            if outcome == APPLY_CONFIRMED:
+                t.confirmed = True
+                t.busy_since = math.nan
+            elif outcome == APPLY_BUSY:
+                if math.isnan(t.busy_since):
+                    t.busy_since = _f(ev.get("stamp"))
+            else:
+                t.failed_applies += 1
+                t.busy_since = math.nan
+        elif kind == "run_ready":
+            t = self._trial_of(ev)
+            t.attempt = int(ev["attempt"])
+            t.phase = State.READY_TO_DRIVE
+        elif kind == "run_rejected":
+            t = self._trial_of(ev)
+            t.rejections += 1
+            t.last_reason = str(ev.get("reason", ""))
+            t.phase = State.REJECTED
+        elif kind == "trial_scored":
+            t = self._trial_of(ev)
+            t.phase = State.SCORED
+            j = float(ev["j"])
+            if t.kind == Kind.CONFIRMATION:
+                self.confirmation_j = j
+                self.confirmation_closed = True
+            else:
+                outcomes = {str(k): float(v) for k, v in (ev.get("outcomes") or {}).items() if v is not None}
+                self.opt.tell(t.params, j, outcomes)
+                if ev.get("violations"):
+                    self.violated_trials.append(t.trial_id)
+                self.trials_done += 1
+                self.consecutive_failures = 0
+                self.last_j = j
+                if not (self.best_j <= j):
+                    self.best_j = j
+                    self.best_trial_id = t.trial_id
+        elif kind == "trial_failed":
+            t = self._trial_of(ev)
+            t.phase = State.FAILED
+            t.last_reason = str(ev.get("reason", ""))
+            if t.kind == Kind.CONFIRMATION:
+                self.confirmation_closed = True
+            else:
+                self.opt.tell_failed(t.params, t.last_reason)
+                self.trials_done += 1
+                self.consecutive_failures += 1
+        elif kind == "recommendation":
+            best = ev.get("best_observed_params")
+            self.recommendation = Recommendation(
+                {str(k): float(v) for k, v in ev["params"].items()},
+                _f(ev.get("predicted_j")),
+                _f(ev.get("predicted_std")),
+                int(ev.get("n_observations") or 0),
+                {str(k): float(v) for k, v in best.items()} if isinstance(best, Mapping) else None,
+                _f(ev.get("best_observed_j")),
+                dict(ev.get("predicted_outcomes") or {}),
+                {str(k): float(v) for k, v in (ev.get("transfer") or {}).items()},
+                str(ev.get("rule") or "mean"),
+            )
+        elif kind == "campaign_done":
+            self.finished = True
+            self.exit_code = 0
+            self.current = None
+        elif kind == "campaign_failed":
+            self.finished = True
+            self.exit_code = 1
+            self.current = None
+        elif kind == "campaign_resumed":
+            self.resumes += 1
+            open_trial = self._open_trial()
+            if open_trial is not None:
+                # the ECU's state is unknown to a new process: the trial is applied again, and a busy ECU's
+                # window starts again (the ROS clock of a new launch, sim time, cannot be compared with the
+                # journaled stamps)
+                open_trial.confirmed = False
+                open_trial.busy_since = math.nan
+        # campaign_started, score_ignored: nothing to change
+
+    def _legacy_apply_outcome(self, t: _Trial, ev: Mapping[str, Any]) -> str:
+        """The outcome of an apply_result journaled without one (schema 1), as the agent decided it then."""
+        if ev.get("success"):
+            return APPLY_CONFIRMED
+        if int(ev.get("error_code") or 0) == ERROR_ECU_BUSY:
+            now = _f(ev.get("stamp"))
+            since = now if math.isnan(t.busy_since) else t.busy_since
+            if now - since < self.cfg.busy_timeout_s:
+                return APPLY_BUSY
+        return APPLY_FAILED
+
+    def _open_trial(self) -> _Trial | None:
+        t = self.current
+        if t is None or t.phase in (State.SCORED, State.FAILED) or self.finished:
+            return None
+        return t
 
     # --- start / resume ------------------------------------------------------------------------
+    def started_record(self) -> dict[str, Any]:
+        """The fields of this agent's ``campaign_started`` event (its configuration)."""
+        return {
+            "schema": SCHEMA_VERSION,
+            "names": list(self.opt.names),
+            "strategy": self.cfg.strategy,
+            "budget": self.cfg.budget,
+            "seed": self.cfg.seed,
+            "config": {
+                "max_attempts": self.cfg.max_attempts,
+                "apply_retries": self.cfg.apply_retries,
+                "apply_timeout_s": self.cfg.apply_timeout_s,
+                "run_timeout_s": self.cfg.run_timeout_s,
+                "confirmation_run": self.cfg.confirmation_run,
+                "max_consecutive_failures": self.cfg.max_consecutive_failures,
+                "busy_retry_s": self.cfg.busy_retry_s,
+                "busy_timeout_s": self.cfg.busy_timeout_s,
+                **dict(self.cfg.extra),
+                # the limits runs are booked against (issue 23); absent without limits, as before them
+                **({"outcome_limits": list(self.cfg.outcome_limits)} if self.cfg.outcome_limits else {}),
+            },
+            "definition": self.definition,
+        }
+
+    def check_resume(self) -> list[str]:
+        """Raise :class:`CampaignError` when the journal cannot be resumed by this agent (another campaign or
+        configuration, naming each difference); return the time limits that changed (allowed, journaled with
+        the resume). Nothing to check for an empty journal."""
+        events = self.journal.events
+        if not events:
+            return []
+        first = events[0]
+        if first.get("event") != "campaign_started":
+            raise CampaignError(f"{self.journal.path}: the first event is {first.get('event')!r}, not campaign_started")
+        schema = first.get("schema")
+        if not isinstance(schema, int) or schema > SCHEMA_VERSION:
+            raise CampaignError(
+                f"{self.journal.path} has journal schema {schema!r}; this agent reads schema <= {SCHEMA_VERSION} "
+                "(a newer bac wrote it): resume it with that version, or use a new campaign_dir"
+            )
+        journaled = {"campaign_id": first.get("campaign_id"), **{k: first.get(k) for k in _STARTED_KEYS}}
+        rec = self.started_record()
+        mine = {"campaign_id": self.cfg.campaign_id, **{k: rec[k] for k in _STARTED_KEYS}}
+        problems, changed = config_differences(journaled, mine)
+        if problems:
+            raise CampaignError(
+                f"cannot resume the campaign in {self.journal.path}: it was started with another configuration "
+                f"than this agent's:\n  - "
+                + "\n  - ".join(problems)
+                + "\nA resumed campaign must go on as the interrupted one would have. To resume it, launch the "
+                "agent with the journaled values; to run this configuration, start a new campaign: use a new "
+                "campaign_dir (bac launch --campaign-dir NEW_DIR, or bo_agent's campaign_dir parameter)."
+            )
+        return changed
+
     def start(self) -> list[Action]:
         """Begin a new campaign, or resume the one in the journal."""
         acts: list[Action] = []
@@ -298,128 +521,64 @@ class Campaign:
             )
         events = self.journal.events
         if not events:
-            self._j(
-                "campaign_started",
-                schema=SCHEMA_VERSION,
-                names=list(self.opt.names),
-                strategy=self.cfg.strategy,
-                budget=self.cfg.budget,
-                seed=self.cfg.seed,
-                config={
-                    "max_attempts": self.cfg.max_attempts,
-                    "apply_retries": self.cfg.apply_retries,
-                    "apply_timeout_s": self.cfg.apply_timeout_s,
-                    "run_timeout_s": self.cfg.run_timeout_s,
-                    "confirmation_run": self.cfg.confirmation_run,
-                    "max_consecutive_failures": self.cfg.max_consecutive_failures,
-                    "busy_retry_s": self.cfg.busy_retry_s,
-                    "busy_timeout_s": self.cfg.busy_timeout_s,
-                    **dict(self.cfg.extra),
-                },
-                definition=self.definition,
-            )
+            self._record("campaign_started", **self.started_record())
             acts.append(Log("info", f"campaign '{self.cfg.campaign_id}' started: budget {self.cfg.budget}"))
             return acts + self._next_trial()
         return acts + self._resume(events)
 
     def _resume(self, events: list[dict[str, Any]]) -> list[Action]:
-        first = events[0]
-        if first.get("event") != "campaign_started":
-            raise CampaignError(f"{self.journal.path}: the first event is {first.get('event')!r}, not campaign_started")
-        if list(first.get("names", [])) != list(self.opt.names) or first.get("strategy") != self.cfg.strategy:
-            raise CampaignError(
-                f"{self.journal.path} belongs to a campaign over {first.get('names')} with strategy "
-                f"{first.get('strategy')!r}; this agent optimizes {list(self.opt.names)} with {self.cfg.strategy!r}. "
-                "Use a new campaign_dir, or the same definition and strategy to resume."
-            )
-        if first.get("campaign_id") != self.cfg.campaign_id:
-            raise CampaignError(
-                f"{self.journal.path} belongs to campaign {first.get('campaign_id')!r}, not {self.cfg.campaign_id!r}"
-            )
+        changed = self.check_resume()
         self.resumed = True
-        trials: dict[int, _Trial] = {}
-        closed: set[int] = set()
-        done_event: dict[str, Any] | None = None
-        for ev in events[1:]:
-            kind = ev.get("event")
-            tid = int(ev.get("trial_id") or 0)
-            if kind == "trial_proposed":
-                trials[tid] = _Trial(
-                    tid,
-                    Kind(int(ev["kind"])),
-                    {str(k): float(v) for k, v in ev["params"].items()},
-                    _f(ev.get("predicted_j")),
-                    _f(ev.get("predicted_std")),
+        for ev in events:
+            self._reduce(ev, replay=True)
+        acts: list[Action] = []
+        if events[0].get("schema") != SCHEMA_VERSION:
+            acts.append(
+                Log(
+                    "warn",
+                    f"{self.journal.path} has journal schema {events[0].get('schema')} (an older bac): it does not "
+                    "hold the optimizer's random state, so the next calibrations will not be those the "
+                    "uninterrupted campaign would have proposed",
                 )
-                self.next_trial_id = max(self.next_trial_id, tid + 1)
-            elif kind == "run_ready" and tid in trials:
-                trials[tid].attempt = max(trials[tid].attempt, int(ev["attempt"]))
-            elif kind == "run_rejected" and tid in trials:
-                trials[tid].rejections += 1
-            elif kind == "trial_scored" and tid in trials:
-                closed.add(tid)
-                t = trials[tid]
-                j = float(ev["j"])
-                if t.kind == Kind.CONFIRMATION:
-                    self.confirmation_j = j
-                    self.confirmation_closed = True
-                else:
-                    outcomes = {str(k): float(v) for k, v in (ev.get("outcomes") or {}).items() if v is not None}
-                    self.opt.tell(t.params, j, outcomes)
-                    self._book_score(tid, j)
-                    if ev.get("violations"):
-                        self.violated_trials.append(tid)
-            elif kind == "trial_failed" and tid in trials:
-                closed.add(tid)
-                t = trials[tid]
-                if t.kind == Kind.CONFIRMATION:
-                    self.confirmation_closed = True
-                else:
-                    self.opt.tell_failed(t.params, str(ev.get("reason", "")))
-                    self.trials_done += 1
-                    self.consecutive_failures += 1
-            elif kind == "recommendation":
-                self.recommendation = Recommendation(
-                    {str(k): float(v) for k, v in ev["params"].items()},
-                    _f(ev.get("predicted_j")),
-                    _f(ev.get("predicted_std")),
-                    int(ev.get("n_observations", 0)),
-                )
-            elif kind == "campaign_done":
-                done_event = ev
-        open_trials = [t for tid, t in trials.items() if tid not in closed]
-        self._j(
+            )
+        if changed:
+            acts.append(Log("warn", "resumed with other time limits than journaled: " + "; ".join(changed)))
+        t = self._open_trial()
+        self._record(
             "campaign_resumed",
             trials_done=self.trials_done,
-            in_flight=[t.trial_id for t in open_trials],
+            in_flight=[t.trial_id] if t is not None else [],
             torn_bytes=len(self.journal.torn),
+            changed=changed,
         )
-        acts: list[Action] = [
+        acts.append(
             Log(
                 "info",
                 f"campaign '{self.cfg.campaign_id}' resumed from {self.journal.path}: "
                 f"{self.trials_done}/{self.cfg.budget} trials done"
-                + (f", trial {open_trials[-1].trial_id} interrupted: applying it again" if open_trials else ""),
+                + (f", trial {t.trial_id} interrupted: applying it again" if t is not None else ""),
             )
-        ]
-        if done_event is not None:
-            self.finished = True
-            return [*acts, self._status(State.DONE, self._done_text()), Finish(0, self.recommendation)]
-        if open_trials:
-            t = open_trials[-1]
-            self.current = t
-            return acts + self._apply(t)
+        )
+        if self.finished:
+            if self.exit_code == 0:
+                return [*acts, self._status(State.DONE, self._done_text()), Finish(0, self.recommendation)]
+            return [*acts, Log("error", "the campaign had ended without any scored run"), Finish(1, None)]
+        if t is not None:
+            return acts + self._continue(t)
         return acts + self._next_trial()
 
-    # --- the loop ------------------------------------------------------------------------------
-    def _book_score(self, trial_id: int, j: float) -> None:
-        self.trials_done += 1
-        self.consecutive_failures = 0
-        self.last_j = j
-        if not (self.best_j <= j):
-            self.best_j = j
-            self.best_trial_id = trial_id
+    def _continue(self, t: _Trial) -> list[Action]:
+        """Go on with the trial that was open when the agent stopped: a decision the journal holds the grounds of
+        but not the result (a failed try or a rejection that used up the trial's tries, journaled just before a
+        crash) is taken now, by the live code; otherwise the calibration is applied again (the ECU's state is
+        unknown to this process) and then driven with the next attempt number."""
+        if t.phase == State.APPLYING and t.apply_outcome == APPLY_FAILED:
+            return self._apply_failed(t, t.apply_message)
+        if t.phase == State.REJECTED and t.rejections >= self.cfg.max_attempts:
+            return self._after_reject(t, [])
+        return self._apply(t)
 
+    # --- the loop ------------------------------------------------------------------------------
     def _next_trial(self) -> list[Action]:
         if self.trials_done >= self.cfg.budget:
             return self._wrap_up()
@@ -434,20 +593,19 @@ class Campaign:
             ]
         s = self.opt.ask_with_info()
         tid = self.next_trial_id
-        self.next_trial_id += 1
-        t = _Trial(tid, _KIND_OF_SUGGESTION.get(s.kind, Kind.OPTIMIZED), dict(s.params), s.predicted_j, s.predicted_std)
-        self.current = t
         extra: dict[str, Any] = {"model": dict(s.info)} if s.info else {}
-        self._j(
+        self._record(
             "trial_proposed",
             trial_id=tid,
-            kind=int(t.kind),
-            params=t.params,
-            predicted_j=t.predicted_j,
-            predicted_std=t.predicted_std,
+            kind=int(_KIND_OF_SUGGESTION.get(s.kind, Kind.OPTIMIZED)),
+            params=dict(s.params),
+            predicted_j=s.predicted_j,
+            predicted_std=s.predicted_std,
             reason=s.kind,
+            optimizer_state=self.opt.ask_state(),
             **extra,
         )
+        t = self.trials[tid]
         acts: list[Action] = []
         if "no_safe_candidate" in s.info:
             acts.append(Log("warn", f"trial {tid}: {s.info['no_safe_candidate']}"))
@@ -458,10 +616,9 @@ class Campaign:
         ]
 
     def _apply(self, t: _Trial, delay_s: float = 0.0, instruction: str = "") -> list[Action]:
-        t.apply_try += 1
-        t.confirmed = False
-        t.phase = State.APPLYING
-        self._j("apply_requested", trial_id=t.trial_id, apply_try=t.apply_try, params=t.params, delay_s=delay_s)
+        self._record(
+            "apply_requested", trial_id=t.trial_id, apply_try=t.apply_try + 1, params=t.params, delay_s=delay_s
+        )
         return [
             self._status(
                 State.APPLYING,
@@ -489,8 +646,15 @@ class Campaign:
             problem = self.verify_applied(t.params, applied or {})
             if problem:
                 success, reason = False, f"the ECU echoed other values than requested: {problem}"
-        self._j(
+        now = self.clock()
+        outcome = APPLY_CONFIRMED if success else APPLY_FAILED
+        if not success and error_code == ERROR_ECU_BUSY:
+            since = now if math.isnan(t.busy_since) else t.busy_since
+            if now - since < self.cfg.busy_timeout_s:
+                outcome = APPLY_BUSY
+        self._record(
             "apply_result",
+            stamp=now,
             trial_id=trial_id,
             apply_try=apply_try,
             success=bool(success),
@@ -498,24 +662,19 @@ class Campaign:
             message=message if success else reason,
             applied=dict(applied or {}),
             latency_s=latency_s,
+            outcome=outcome,
         )
-        if success:
-            t.confirmed = True
-            t.busy_since = math.nan
+        if outcome == APPLY_CONFIRMED:
             return self._ready(t)
-        if error_code == ERROR_ECU_BUSY:
-            now = self.clock()
-            if math.isnan(t.busy_since):
-                t.busy_since = now
-            if now - t.busy_since < self.cfg.busy_timeout_s:
-                return [
-                    Log("info", f"trial {t.trial_id}: the ECU is busy (vehicle moving); asking again"),
-                    *self._apply(
-                        t,
-                        self.cfg.busy_retry_s,
-                        "Stop the vehicle: the ECU takes a new calibration only at standstill.",
-                    ),
-                ]
+        if outcome == APPLY_BUSY:
+            return [
+                Log("info", f"trial {t.trial_id}: the ECU is busy (vehicle moving); asking again"),
+                *self._apply(
+                    t,
+                    self.cfg.busy_retry_s,
+                    "Stop the vehicle: the ECU takes a new calibration only at standstill.",
+                ),
+            ]
         return self._apply_failed(t, reason)
 
     def on_apply_timeout(self, trial_id: int, apply_try: int, reason: str) -> list[Action]:
@@ -523,20 +682,25 @@ class Campaign:
         t = self.current
         if t is None or t.trial_id != trial_id or t.apply_try != apply_try or t.phase != State.APPLYING:
             return []
-        self._j("apply_result", trial_id=trial_id, apply_try=apply_try, success=False, error_code=-1, message=reason)
+        self._record(
+            "apply_result",
+            trial_id=trial_id,
+            apply_try=apply_try,
+            success=False,
+            error_code=-1,
+            message=reason,
+            outcome=APPLY_FAILED,
+        )
         return self._apply_failed(t, reason)
 
     def _apply_failed(self, t: _Trial, reason: str) -> list[Action]:
-        t.failed_applies += 1
-        t.busy_since = math.nan
+        # the failed try was counted by the reducer (apply_result)
         if t.failed_applies <= self.cfg.apply_retries:
             return [Log("warn", f"trial {t.trial_id}: {reason}; retrying the apply"), *self._apply(t)]
         return self._fail(t, f"{reason} (after {t.failed_applies} failed tries)")
 
     def _ready(self, t: _Trial) -> list[Action]:
-        t.attempt += 1
-        t.phase = State.READY_TO_DRIVE
-        self._j("run_ready", trial_id=t.trial_id, attempt=t.attempt)
+        self._record("run_ready", trial_id=t.trial_id, attempt=t.attempt + 1)
         what = "confirmation run of the recommendation" if t.kind == Kind.CONFIRMATION else f"trial {t.trial_id}"
         if t.attempt > 1:
             text = (
@@ -574,7 +738,7 @@ class Campaign:
             why = f"trial {trial_id} is not waiting for a run (state {t.phase.name}, ECU confirmed: {t.confirmed})"
         if why:
             if campaign_id == self.cfg.campaign_id:
-                self._j("score_ignored", trial_id=trial_id, attempt=attempt, reason=why)
+                self._record("score_ignored", trial_id=trial_id, attempt=attempt, reason=why)
             return [Log("warn", f"score ignored: {why}")]
         assert t is not None
         if valid and not math.isfinite(j):
@@ -583,7 +747,7 @@ class Campaign:
             return self._reject(t, reason or "invalid run (no reason given)")
         measured = {str(k): float(v) for k, v in (outcomes or {}).items()}
         broken = violations(self.cfg.limits, measured)
-        self._j(
+        self._record(
             "trial_scored",
             trial_id=t.trial_id,
             attempt=attempt,
@@ -599,20 +763,13 @@ class Campaign:
         note: list[Action] = []
         if broken:
             note.append(Log("warn", f"trial {t.trial_id} broke an outcome limit: {'; '.join(broken)}"))
-        t.phase = State.SCORED
         if t.kind == Kind.CONFIRMATION:
-            self.confirmation_j = float(j)
-            self.confirmation_closed = True
             return [
                 *note,
                 Log("info", f"confirmation run of the recommendation: J={j:.4g}"),
                 self._status(State.SCORED, f"Confirmation run scored J={j:.4g}.", "; ".join(broken), t=t),
                 *self._done(),
             ]
-        self.opt.tell(t.params, float(j), measured)
-        self._book_score(t.trial_id, float(j))
-        if broken:
-            self.violated_trials.append(t.trial_id)
         line = (
             f"trial {self.trials_done}/{self.cfg.budget} {fmt_params(t.params)} J={j:.4g} "
             f"best={self.best_j:.4g} (trial {self.best_trial_id})"
@@ -636,61 +793,59 @@ class Campaign:
         return self._reject(t, f"no valid score within run_timeout_s = {self.cfg.run_timeout_s:g} s")
 
     def _reject(self, t: _Trial, reason: str) -> list[Action]:
-        t.rejections += 1
-        t.last_reason = reason
-        self._j("run_rejected", trial_id=t.trial_id, attempt=t.attempt, reason=reason)
-        acts: list[Action] = [
-            Log("warn", f"trial {t.trial_id} run {t.attempt} rejected: {reason}"),
-            self._status(State.REJECTED, f"Run rejected: {reason}. The same calibration is driven again.", reason),
-        ]
+        self._record("run_rejected", trial_id=t.trial_id, attempt=t.attempt, reason=reason)
+        return self._after_reject(
+            t,
+            [
+                Log("warn", f"trial {t.trial_id} run {t.attempt} rejected: {reason}"),
+                self._status(State.REJECTED, f"Run rejected: {reason}. The same calibration is driven again.", reason),
+            ],
+        )
+
+    def _after_reject(self, t: _Trial, acts: list[Action]) -> list[Action]:
         if t.rejections >= self.cfg.max_attempts:
-            return acts + self._fail(t, f"{t.rejections} invalid runs, the last: {reason}")
+            return acts + self._fail(t, f"{t.rejections} invalid runs, the last: {t.last_reason}")
         return acts + self._ready(t)
 
     def _fail(self, t: _Trial, reason: str) -> list[Action]:
-        t.phase = State.FAILED
-        self._j("trial_failed", trial_id=t.trial_id, kind=int(t.kind), params=t.params, reason=reason)
+        self._record("trial_failed", trial_id=t.trial_id, kind=int(t.kind), params=t.params, reason=reason)
         acts: list[Action] = [
             Log("warn", f"trial {t.trial_id} failed: {reason}"),
             self._status(State.FAILED, f"Trial {t.trial_id} given up: {reason}", reason, t=t),
         ]
         if t.kind == Kind.CONFIRMATION:
-            self.confirmation_closed = True
             return acts + self._done()
-        self.opt.tell_failed(t.params, reason)
-        self.trials_done += 1
-        self.consecutive_failures += 1
         return acts + self._next_trial()
 
     # --- the end -----------------------------------------------------------------------------------
     def _wrap_up(self) -> list[Action]:
         if self.recommendation is None:
             try:
-                rec = self.opt.recommend()
+                made = self.opt.recommend()
             except BacError as exc:
-                self._j("campaign_failed", reason=f"no recommendation: {exc}")
-                self.finished = True
+                self._record("campaign_failed", reason=f"no recommendation: {exc}")
                 return [
                     Log("error", f"campaign ended without any scored run: {exc}"),
                     Finish(1, None),
                 ]
-            self.recommendation = rec
             extra: dict[str, Any] = {}
-            if rec.predicted_outcomes:
-                extra["predicted_outcomes"] = dict(rec.predicted_outcomes)
-            if rec.transfer:
-                extra["transfer"] = dict(rec.transfer)
-            self._j(
+            if made.predicted_outcomes:
+                extra["predicted_outcomes"] = dict(made.predicted_outcomes)
+            if made.transfer:
+                extra["transfer"] = dict(made.transfer)
+            self._record(
                 "recommendation",
-                params=rec.params,
-                predicted_j=rec.predicted_j,
-                predicted_std=rec.predicted_std,
-                n_observations=rec.n_observations,
-                best_observed_params=rec.best_observed_params,
-                best_observed_j=rec.best_observed_j,
+                params=made.params,
+                predicted_j=made.predicted_j,
+                predicted_std=made.predicted_std,
+                n_observations=made.n_observations,
+                best_observed_params=made.best_observed_params,
+                best_observed_j=made.best_observed_j,
+                rule=made.rule,
                 **extra,
             )
         rec = self.recommendation
+        assert rec is not None
         acts: list[Action] = [
             Log(
                 "info",
@@ -700,22 +855,19 @@ class Campaign:
         ]
         if self.cfg.confirmation_run and not self.confirmation_closed:
             tid = self.next_trial_id
-            self.next_trial_id += 1
-            t = _Trial(tid, Kind.CONFIRMATION, dict(rec.params), rec.predicted_j, rec.predicted_std)
-            self.current = t
-            self._j(
+            self._record(
                 "trial_proposed",
                 trial_id=tid,
-                kind=int(t.kind),
-                params=t.params,
-                predicted_j=t.predicted_j,
-                predicted_std=t.predicted_std,
+                kind=int(Kind.CONFIRMATION),
+                params=dict(rec.params),
+                predicted_j=rec.predicted_j,
+                predicted_std=rec.predicted_std,
                 reason="confirmation",
             )
             return [
                 *acts,
                 self._status(State.PROPOSED, "Wait: confirmation run of the recommendation next."),
-                *self._apply(t),
+                *self._apply(self.trials[tid]),
             ]
         return acts + self._done()
 
@@ -728,32 +880,88 @@ class Campaign:
             f"(predicted J={rec.predicted_j:.4g}). You can stop."
         )
 
+    def recommendation_record(self) -> dict[str, Any]:
+        """What ``recommendation.json`` holds (from the campaign's state)."""
+        rec = self.recommendation
+        assert rec is not None
+        return {
+            "campaign_id": self.cfg.campaign_id,
+            "strategy": self.cfg.strategy,
+            "params": rec.params,
+            "predicted_j": rec.predicted_j,
+            "predicted_std": rec.predicted_std,
+            "n_observations": rec.n_observations,
+            "trials_done": self.trials_done,
+            "best_observed_params": rec.best_observed_params,
+            "best_observed_j": rec.best_observed_j,
+            "best_trial_id": self.best_trial_id,
+            "confirmation_j": self.confirmation_j,
+            "predicted_outcomes": dict(rec.predicted_outcomes),
+            "transfer": dict(rec.transfer),
+            "violated_trials": list(self.violated_trials),
+        }
+
     def _done(self) -> list[Action]:
         rec = self.recommendation
         assert rec is not None
-        write_json_atomic(
-            self.campaign_dir / RECOMMENDATION_NAME,
-            {
-                "campaign_id": self.cfg.campaign_id,
-                "strategy": self.cfg.strategy,
-                "params": rec.params,
-                "predicted_j": rec.predicted_j,
-                "predicted_std": rec.predicted_std,
-                "n_observations": rec.n_observations,
-                "trials_done": self.trials_done,
-                "best_observed_params": rec.best_observed_params,
-                "best_observed_j": rec.best_observed_j,
-                "best_trial_id": self.best_trial_id,
-                "confirmation_j": self.confirmation_j,
-                "predicted_outcomes": dict(rec.predicted_outcomes),
-                "transfer": dict(rec.transfer),
-                "violated_trials": list(self.violated_trials),
-            },
-        )
-        self._j("campaign_done", trials_done=self.trials_done, confirmation_j=self.confirmation_j)
-        self.finished = True
-        self.current = None
+        write_json_atomic(self.campaign_dir / RECOMMENDATION_NAME, self.recommendation_record())
+        self._record("campaign_done", trials_done=self.trials_done, confirmation_j=self.confirmation_j)
         return [self._status(State.DONE, self._done_text()), Finish(0, rec)]
+
+
+# the fields of campaign_started compared on resume (with campaign_id)
+_STARTED_KEYS = ("names", "strategy", "budget", "seed", "config", "definition")
+# config entries a resume may change: waiting limits, which change neither what the optimizer is told nor what a
+# run measures (the journal keeps the new values in campaign_resumed.changed); definition_file is the spelling of a
+# path, the definition itself is compared
+RESUME_MAY_CHANGE = frozenset({"apply_timeout_s", "run_timeout_s", "busy_retry_s", "busy_timeout_s", "definition_file"})
+_MISSING = object()
+
+
+def _json_form(value: Any) -> Any:
+    """``value`` as it reads back from the journal (strict JSON: tuples are lists, NaN is null)."""
+    return json.loads(json.dumps(strict_json(value), allow_nan=False))
+
+
+def _show(value: Any) -> str:
+    if value is _MISSING:
+        return "(not journaled: an older bac)"
+    text = json.dumps(value, sort_keys=True)
+    return text if len(text) <= 80 else text[:77] + "..."
+
+
+def _diff_paths(a: Any, b: Any, path: str, out: list[tuple[str, Any, Any]]) -> None:
+    if isinstance(a, dict) and isinstance(b, dict):
+        for k in list(a) + [k for k in b if k not in a]:
+            _diff_paths(a.get(k, _MISSING), b.get(k, _MISSING), f"{path}.{k}" if path else str(k), out)
+    elif isinstance(a, list) and isinstance(b, list) and len(a) == len(b):
+        for i, (x, y) in enumerate(zip(a, b, strict=True)):
+            _diff_paths(x, y, f"{path}[{i}]", out)
+    elif a != b or (type(a) is not type(b) and not (isinstance(a, int | float) and isinstance(b, int | float))):
+        out.append((path, a, b))
+
+
+def config_differences(journaled: Mapping[str, Any], mine: Mapping[str, Any]) -> tuple[list[str], list[str]]:
+    """(differences that forbid a resume, time limits that changed), each as ``what: journaled X, this agent
+    Y``; both configurations as ``campaign_started`` holds them (with ``campaign_id``)."""
+    diffs: list[tuple[str, Any, Any]] = []
+    _diff_paths(_json_form(dict(journaled)), _json_form(dict(mine)), "", diffs)
+    problems: list[str] = []
+    changed: list[str] = []
+    shown_definition = 0
+    for path, a, b in diffs:
+        line = f"{path}: journaled {_show(a)}, this agent {_show(b)}"
+        if path.startswith("config.") and path.split(".")[1] in RESUME_MAY_CHANGE:
+            changed.append(line)
+        elif path.startswith("definition"):
+            shown_definition += 1
+            if shown_definition <= 5:
+                problems.append(line)
+            elif shown_definition == 6:
+                problems.append("definition: more differences")
+        else:
+            problems.append(line)
+    return problems, changed
 
 
 def _f(v: Any) -> float:

@@ -29,7 +29,7 @@ from typing import Any
 
 from bac_common.errors import BacError
 
-SCHEMA_VERSION = 1
+SCHEMA_VERSION = 2  # 2 (2026-11-24): trial_proposed.optimizer_state, apply_result.outcome
 JOURNAL_NAME = "journal.jsonl"
 
 
@@ -59,6 +59,12 @@ def _clean(value: Any) -> Any:
     if isinstance(value, list | tuple):
         return [_clean(v) for v in value]
     return value
+
+
+def strict_json(value: Any) -> Any:
+    """``value`` in the form the journal writes it: non-finite floats as None, mappings with str keys, tuples as
+    lists (recursively)."""
+    return _clean(value)
 
 
 def read_journal(path: str | Path) -> JournalRead:
@@ -96,19 +102,20 @@ def read_journal(path: str | Path) -> JournalRead:
 
 
 class Journal:
-    """An append-only, fsynced JSON-lines journal (see the module doc)."""
+    """An append-only, fsynced JSON-lines journal (see the module doc); ``name``: the file in ``campaign_dir``
+    (another log kept the same way, e.g. the recorder's index of bags)."""
 
-    def __init__(self, campaign_dir: str | Path) -> None:
+    def __init__(self, campaign_dir: str | Path, name: str = JOURNAL_NAME) -> None:
         self.dir = Path(campaign_dir)
         try:
             self.dir.mkdir(parents=True, exist_ok=True)
         except OSError as exc:
             raise JournalError(f"cannot create the campaign folder {self.dir}: {exc}") from exc
-        self.path = self.dir / JOURNAL_NAME
+        self.path = self.dir / name
         read = read_journal(self.path)
         self.torn: bytes = read.torn
         if read.torn:
-            torn_path = self.path.with_name(JOURNAL_NAME + ".torn")
+            torn_path = self.path.with_name(name + ".torn")
             with torn_path.open("ab") as f:
                 f.write(read.torn + b"\n")
                 f.flush()

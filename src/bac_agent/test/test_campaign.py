@@ -17,7 +17,6 @@ from bac_agent.campaign import (
     AwaitRun,
     Campaign,
     CampaignConfig,
-    CampaignError,
     Finish,
     Kind,
     Log,
@@ -249,14 +248,6 @@ def test_resume_after_a_crash_reapplies_the_interrupted_trial(tmp_path: Path) ->
     d3 = Driver(camp3)
     d3.feed(camp3.start())
     assert d3.finish is not None and d3.finish.code == 0 and d3.published[-1].state == State.DONE
-
-
-def test_resume_refuses_another_campaign(tmp_path: Path) -> None:
-    camp, _d, _ = make(tmp_path)
-    camp.journal.close()
-    other = Engine({"x": (0.0, 1.0)}, budget=5)
-    with pytest.raises(CampaignError, match="Use a new campaign_dir"):
-        Campaign(other, Journal(tmp_path), CampaignConfig("c1", budget=5), lambda: 0.0).start()
 
 
 def test_grid_strategy_through_the_campaign(tmp_path: Path) -> None:

@@ -69,13 +69,42 @@ def test_damage_before_the_end_is_an_error(tmp_path: Path) -> None:
         Journal(tmp_path)
 
 
-def test_each_event_is_on_disk_when_append_returns(tmp_path: Path) -> None:
+def test_each_event_is_visible_to_other_readers_when_append_returns(tmp_path: Path) -> None:
     j = Journal(tmp_path)
     j.append("a", v=1)
-    # another reader (another process) sees it at once, without close()
+    # another reader (another process) sees it at once, without close() (durability: the next test)
     assert read_journal(tmp_path / JOURNAL_NAME).events[0]["v"] == 1
-    fd_flags = os.stat(tmp_path / JOURNAL_NAME).st_size
-    assert fd_flags > 0
+    j.close()
+
+
+def test_append_fsyncs_the_line_before_it_returns(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """The event is on the disk (write, then fsync of the same file) when append returns, for every event."""
+    j = Journal(tmp_path)
+    calls: list[tuple[str, int, bytes]] = []
+    real_write, real_fsync = os.write, os.fsync
+
+    def write(fd: int, data: bytes) -> int:
+        calls.append(("write", fd, bytes(data)))
+        return real_write(fd, data)
+
+    def fsync(fd: int) -> None:
+        calls.append(("fsync", fd, b""))
+        real_fsync(fd)
+
+    monkeypatch.setattr(os, "write", write)
+    monkeypatch.setattr(os, "fsync", fsync)
+    for i in range(3):
+        n = len(calls)
+        rec = j.append("trial_scored", trial_id=i, j=1.0 + i)
+        mine = calls[n:]  # what this append did, in order, before it returned
+        writes = [k for k, c in enumerate(mine) if c[0] == "write"]
+        assert len(writes) == 1, mine
+        (w,) = writes
+        fd, line = mine[w][1], mine[w][2]
+        assert json.loads(line) == rec and line.endswith(b"\n")
+        assert os.path.samefile(f"/proc/self/fd/{fd}", tmp_path / JOURNAL_NAME)
+        assert ("fsync", fd, b"") in mine[w + 1 :], f"append {i} returned without an fsync after its write: {mine}"
+    monkeypatch.undo()
     j.close()
 
 

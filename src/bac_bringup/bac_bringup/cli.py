@@ -29,6 +29,7 @@ SUBCOMMANDS: dict[str, tuple[str, str, str]] = {
     "rescore": ("bac_bringup.tools", "rescore_main", "re-cut and re-score a campaign's bags (or any IMU bag) offline"),
     "replay": ("bac_bringup.tools", "replay_main", "play bags into the live graph on /clock (the replay profile)"),
     "report": ("bac_campaign.report", "main", "make a campaign's report (PNG + HTML)"),
+    "export": ("bac_campaign.export", "main", "write a campaign as ASAM MDF4 (--mf4) for asammdf, CANape, INCA"),
     "reduce": ("bac_reduce.cli", "main", "simulation phase: find the parameters that matter (paper sec. III-D)"),
     "ground-truth": ("bac_sim.ground_truth", "main", "recompute the simulator's true optima by dense grids"),
 }
@@ -63,6 +64,12 @@ def launch_main(argv: Sequence[str]) -> int:
         help="override one node parameter (repeatable)",
     )
     ap.add_argument("--params-file", action="append", default=[], help="extra ROS parameter YAML (repeatable)")
+    ap.add_argument(
+        "--process-per-node",
+        action="store_true",
+        help="every node in a process of its own, also those the profile puts in one (process:); CAN between "
+        "processes then goes over udp_multicast inside a private network namespace",
+    )
     ap.add_argument("--only", help="comma-separated node names to start (default: all)")
     ap.add_argument("--exclude", default="", help="comma-separated node names not to start")
     ap.add_argument("--log-dir", type=Path, help="write each node's output to LOG_DIR/<node>.log")
@@ -85,6 +92,8 @@ def launch_main(argv: Sequence[str]) -> int:
             only=args.only.split(",") if args.only else None,
             exclude=[x for x in args.exclude.split(",") if x],
         )
+        if args.process_per_node:
+            profile = profile.one_process_per_node()
         if profile.campaign:
             camp = args.campaign_dir or default_campaign_dir(profile.name)
             camp = camp.resolve()
@@ -92,6 +101,7 @@ def launch_main(argv: Sequence[str]) -> int:
             profile = profile.with_overrides(global_params={"campaign_dir": str(camp)})
             argv = [*argv, "--campaign-dir", str(camp)] if args.campaign_dir is None else argv
             logging.getLogger("bac.launch").info("campaign folder: %s", camp)
+        launcher.prepare(profile, args.single_process)  # refuses a CAN bus that cannot reach its nodes
     except ProfileError as exc:
         logging.getLogger("bac.launch").error("%s", exc)
         return 2

@@ -1,16 +1,21 @@
 """``bac demo`` (``make demo``): the main job, a calibration campaign on the simulated vehicle.
 
-It runs the real node graph of the ``sim`` profile, every node in its own
-process (vehicle_sim with its ECU on CAN, imu_ingest, run_segmenter,
-kpi_scorer, ecu_bridge, campaign_recorder, bo_agent) on sim time, faster than
-real time: Controller I on the speed bump with a budget of 15 trials (the
+It runs the real node graph of the ``sim`` profile (imu_ingest, run_segmenter,
+kpi_scorer, campaign_recorder, bo_agent each in its own process; vehicle_sim
+with its ECU and ecu_bridge sharing one, CAN on the in-process bus) on sim
+time, faster than real time: Controller I on the speed bump with a budget of 15 trials (the
 test road with ``--scenario road``). It shows the progress from the campaign
 journal, then writes the report and judges the recommendation against the
 simulator's true optimum; the last line reads ``recommendation_gap_pct <x>``
 (x = 100 × (J(θ_rec) − J*) / (J_med − J*), with the true, noise-free J).
 
     bac demo [--scenario bump|road] [--budget 15] [--seed 0] [--with-grid] [--campaign-dir DIR] [--single-process]
-             [--definition META_FILE [--truth-from RESULT_JSON]]
+             [--definition META_FILE [--truth-from RESULT_JSON]] [--visible]
+
+The demo's graph runs in a private network namespace of its own (when one can be made), so that no other ROS
+graph on the machine can disturb the campaign and its figures; ``--visible`` runs it in the machine's
+namespace instead, where ROS tools (``ros2 topic echo /bac/trial``, rqt, Foxglove) see it, as
+``bac launch sim`` does.
 
 With ``--definition`` the campaign calibrates another definition, e.g. the meta-parameter file of
 ``bac reduce`` (the experimental phase of paper sec. III-D: Controller II on the test road, the
@@ -29,6 +34,7 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
+from bac_bringup import netns
 from bac_bringup.profile import workspace_dir
 
 SCENARIOS = {
@@ -112,8 +118,12 @@ def run_campaign(
     overrides: list[str],
     single_process: bool,
     timeout_s: float,
+    private: bool = False,
 ) -> int:
-    """Launch the sim profile in a child process and follow its journal; return the launcher's exit code."""
+    """Launch the sim profile in a child process and follow its journal; return the launcher's exit code.
+
+    ``private``: the launcher runs in a private network namespace of its own (nothing else on the machine
+    shares its ROS graph)."""
     cmd = [
         sys.executable,
         "-m",
@@ -133,11 +143,14 @@ def run_campaign(
         cmd += ["-p", o]
     if single_process:
         cmd.append("--single-process")
+    env = None
+    if private and not netns.in_private_netns():
+        cmd, env = netns.wrap_command(cmd), netns.private_env()
     follower = JournalFollower(campaign_dir / "journal.jsonl")
     launcher_log = campaign_dir / "logs" / "launcher.log"
     launcher_log.parent.mkdir(parents=True, exist_ok=True)
     with launcher_log.open("wb") as log:
-        proc = subprocess.Popen(cmd, stdout=log, stderr=subprocess.STDOUT)
+        proc = subprocess.Popen(cmd, stdout=log, stderr=subprocess.STDOUT, env=env)
         try:
             while proc.poll() is None:
                 follower.poll()
@@ -162,7 +175,7 @@ def published_rates(log: Path) -> list[float]:
 
 
 def show_failure(campaign_dir: Path) -> None:
-    logs = sorted((campaign_dir / "logs").glob("*.log"))
+    logs = sorted(f for f in (campaign_dir / "logs").glob("*.log") if not f.is_symlink())  # a shared process: once
     for f in logs:
         lines = f.read_text(errors="replace").splitlines()
         bad = [x for x in lines if "ERROR" in x or "FATAL" in x or "Traceback" in x]
@@ -183,6 +196,12 @@ def main(argv: Sequence[str] | None = None) -> int:
     ap.add_argument("--campaign-dir", type=Path, help="campaign folder (default: campaigns/demo-<scenario>-<time>)")
     ap.add_argument("--single-process", action="store_true", help="all nodes in one process (virtual CAN bus)")
     ap.add_argument("--timeout", type=float, default=900.0, help="give up after this many seconds")
+    ap.add_argument(
+        "--visible",
+        action="store_true",
+        help="run the graph in this machine's network namespace, where ROS tools see it (default: a private "
+        "namespace of its own, so that no other ROS graph on the machine disturbs the campaign)",
+    )
     ap.add_argument(
         "--definition",
         type=Path,
@@ -233,14 +252,27 @@ def main(argv: Sequence[str] | None = None) -> int:
     seeds = [f"bo_agent.seed:={args.seed}", f"vehicle_sim.seed:={args.seed}"]
     where = "speed bump at 30 km/h" if args.scenario == "bump" else "1.5 km test road at 60 km/h"
     out(f"bac demo: {controller} on the simulated {where}")
+    private = not args.visible
+    if private and not netns.in_private_netns():
+        try:
+            netns.check_available()
+        except netns.NetnsError as exc:
+            out(f"bac demo: {exc}; the graph runs in this machine's network namespace")
+            private = False
+    layout = (
+        "in one process"
+        if args.single_process
+        else "each in its own process, but vehicle_sim and ecu_bridge share one (CAN stays in it)"
+    )
     out(
         f"  the node graph: vehicle_sim (+ its ECU on CAN), imu_ingest, run_segmenter, kpi_scorer, ecu_bridge, "
-        f"campaign_recorder, bo_agent, {'in one process' if args.single_process else 'each in its own process'}"
+        f"campaign_recorder, bo_agent, {layout}"
+        + (", in a private network namespace (--visible: where ROS tools see it)" if private else "")
     )
     out(f"  campaign folder: {camp}")
     t0 = time.monotonic()
     overrides = [f"bo_agent.budget:={args.budget}", *seeds, *definition_overrides]
-    rc = run_campaign(camp, files, overrides, args.single_process, args.timeout)
+    rc = run_campaign(camp, files, overrides, args.single_process, args.timeout, private)
     wall = time.monotonic() - t0
     if rc != 0 or not (camp / "recommendation.json").exists():
         out(f"bac demo: the campaign failed (launcher exit code {rc}); node logs in {camp / 'logs'}")
@@ -277,6 +309,7 @@ def main(argv: Sequence[str] | None = None) -> int:
             ],
             args.single_process,
             args.timeout * 4,
+            private,
         )
         if rc != 0:
             out(f"bac demo: the grid baseline failed (exit code {rc}); logs in {baseline / 'logs'}")

@@ -4,12 +4,15 @@ Two modes, the same profile:
 
 * **processes** (default): each node in its own process, as ``ros2 run``
   would start it (``python -m module --ros-args -r __node:=name
-  --params-file ... -p k:=v``). CAN between processes goes over python-can's
-  ``udp_multicast``, which is only allowed inside a private network
-  namespace: the launcher re-runs itself in one when needed.
+  --params-file ...``), except the nodes a profile puts in one process
+  (``process:``), which share one (``python -m bac_bringup.container``).
+  CAN that stays in one process uses python-can's in-process ``virtual`` bus;
+  CAN between processes goes over python-can's ``udp_multicast``, which is
+  only allowed inside a private network namespace: the launcher re-runs
+  itself in one when needed (the graph is then invisible to ROS tools
+  outside it).
 * **single process**: every node in this process on one multi-threaded
-  executor, as a component container would; CAN over python-can's in-process
-  ``virtual`` bus.
+  executor, as a component container would; CAN over the ``virtual`` bus.
 
 Either way every node gets ``ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST``; SIGINT
 and SIGTERM are forwarded and the graph shuts down cleanly; the launcher exits
@@ -21,7 +24,6 @@ from __future__ import annotations
 
 import ctypes
 import functools
-import importlib
 import logging
 import os
 import signal
@@ -35,11 +37,15 @@ from pathlib import Path
 from typing import Any
 
 from bac_bringup import netns
+from bac_bringup.container import ContainedNode, run_nodes, write_spec
 from bac_bringup.profile import (
     CAN_INTERFACES_CROSS_PROCESS,
+    CAN_INTERFACES_IN_PROCESS,
     CanSpec,
     NodeSpec,
+    ProcessSpec,
     Profile,
+    ProfileError,
 )
 from bac_common.contracts import ROS_ENV_DEFAULTS
 
@@ -114,18 +120,46 @@ def _die_with_parent() -> None:  # pragma: no cover - runs in the child before e
         pass
 
 
+def contained(profile: Profile, spec: NodeSpec) -> ContainedNode:
+    """A node as the container (or the single-process mode) creates it: with its own ROS arguments."""
+    return ContainedNode(spec.name, spec.entry, tuple(ros_args_for(profile, spec)), spec.ends_graph, spec.stop_order)
+
+
 @dataclass
 class NodeProcess:
-    spec: NodeSpec
+    """One process of the graph: a node of its own, or several nodes sharing it."""
+
+    spec: ProcessSpec
     proc: subprocess.Popen[bytes]
 
     @property
     def name(self) -> str:
-        return self.spec.name
+        return process_label(self.spec)
+
+
+def process_label(process: ProcessSpec) -> str:
+    """``imu_ingest``; ``vehicle (vehicle_sim, ecu_bridge)`` for a shared process."""
+    if len(process.nodes) == 1 and process.nodes[0].name == process.name:
+        return process.name
+    return f"{process.name} ({', '.join(n.name for n in process.nodes)})"
+
+
+def _link_node_logs(log_dir: Path, process: ProcessSpec) -> None:
+    """``<node>.log`` of each node of a shared process: a link to ``<process>.log`` (one output stream)."""
+    for n in process.nodes:
+        link = log_dir / f"{n.name}.log"
+        if link.name == f"{process.name}.log":
+            continue
+        if link.is_symlink():
+            link.unlink()
+        elif link.exists():  # a node log of an earlier launch in its own process (a resumed campaign): kept
+            LOG.warning("%s exists: %s's output of this launch goes to %s.log", link, n.name, process.name)
+            continue
+        link.symlink_to(f"{process.name}.log")
 
 
 class ProcessGraph:
-    """Each node of a profile in its own process (``ros2 run`` style)."""
+    """Each node of a profile in its own process (``ros2 run`` style), or in the process it shares."""
 
     def __init__(self, profile: Profile, env: dict[str, str] | None = None, log_dir: Path | None = None) -> None:
         self.profile = profile
@@ -134,17 +168,28 @@ class ProcessGraph:
         self.children: list[NodeProcess] = []
         self._stop_requested = False
 
-    def command_for(self, spec: NodeSpec) -> list[str]:
-        return [sys.executable, "-m", spec.module, *ros_args_for(self.profile, spec)]
+    def command_for(self, process: ProcessSpec) -> list[str]:
+        if len(process.nodes) == 1:
+            spec = process.nodes[0]
+            return [sys.executable, "-m", spec.module, *ros_args_for(self.profile, spec)]
+        spec_file = write_spec(
+            _override_dir() / f"{process.name}.process.json",
+            process.name,
+            [contained(self.profile, n) for n in process.nodes],
+            self.profile.linger_s,
+        )
+        return [sys.executable, "-m", "bac_bringup.container", str(spec_file)]
 
     def start(self) -> None:
-        for spec in self.profile.nodes:
-            cmd = self.command_for(spec)
+        for process in self.profile.processes():
+            cmd = self.command_for(process)
             out: Any = None
             if self.log_dir is not None:
                 self.log_dir.mkdir(parents=True, exist_ok=True)
-                out = (self.log_dir / f"{spec.name}.log").open("ab")
-            LOG.info("starting %s: %s", spec.name, " ".join(cmd))
+                out = (self.log_dir / f"{process.name}.log").open("ab")
+                if len(process.nodes) > 1:
+                    _link_node_logs(self.log_dir, process)
+            LOG.info("starting %s: %s", process_label(process), " ".join(cmd))
             proc = subprocess.Popen(
                 cmd,
                 env=self.env,
@@ -153,7 +198,7 @@ class ProcessGraph:
                 start_new_session=True,
                 preexec_fn=_die_with_parent,
             )
-            self.children.append(NodeProcess(spec, proc))
+            self.children.append(NodeProcess(process, proc))
 
     def request_stop(self) -> None:
         self._stop_requested = True
@@ -232,85 +277,42 @@ class SingleProcessGraph:
         self.profile = profile
 
     def run(self, timeout_s: float | None = None) -> int:
-        import rclpy
-        from rclpy.executors import ExternalShutdownException, MultiThreadedExecutor
-        from rclpy.utilities import ok, try_shutdown
-
         for k, v in ros_environment().items():
             os.environ.setdefault(k, v)
         os.environ["ROS_AUTOMATIC_DISCOVERY_RANGE"] = "LOCALHOST"
-        rclpy.init(args=["bac_launch"])
-        from bac_common.rosnode import drain_executor
-
-        nodes: list[Any] = []
-        executor: MultiThreadedExecutor | None = None
-        code = 0
-        try:
-            for spec in self.profile.nodes:
-                cls = getattr(importlib.import_module(spec.module), spec.class_name)
-                # node-local arguments: the same remapping and parameters as in its own process
-                nodes.append((spec, cls(cli_args=ros_args_for(self.profile, spec))))
-            executor = MultiThreadedExecutor(num_threads=max(4, len(nodes) + 2))
-            for _, n in nodes:
-                executor.add_node(n)
-            deadline = None if timeout_s is None else time.monotonic() + timeout_s
-            while ok():
-                executor.spin_once(timeout_sec=0.05)
-                done = [(s, n) for s, n in nodes if getattr(n, "exit_code", None) is not None]
-                if done:
-                    spec, node = done[0]
-                    if spec.ends_graph and node.exit_code == 0:
-                        LOG.info("%s finished: shutting down the graph", spec.name)
-                        linger_end = time.monotonic() + self.profile.linger_s
-                        while ok() and time.monotonic() < linger_end:
-                            executor.spin_once(timeout_sec=0.02)
-                        code = 0
-                    else:
-                        LOG.error("node %s ended with code %s", spec.name, node.exit_code)
-                        code = int(node.exit_code) or 1
-                    break
-                if deadline is not None and time.monotonic() > deadline:
-                    LOG.error("graph still running after %.0f s: stopping it", timeout_s)
-                    code = 124
-                    break
-        except (KeyboardInterrupt, ExternalShutdownException):
-            code = 0
-        except Exception:
-            if ok():
-                LOG.exception("a node crashed: shutting down the graph")
-                code = 1
-            else:  # SIGINT/SIGTERM shut the context down while the executor built its wait set (an RCLError)
-                code = 0
-        finally:
-            if executor is not None and not drain_executor(executor, STOP_GRACE_S / 2):
-                LOG.warning("a callback was still running at shutdown")
-            for _, n in sorted(reversed(nodes), key=lambda sn: sn[0].stop_order):
-                try:
-                    n.destroy_node()
-                except Exception:
-                    LOG.exception("destroying a node failed")
-            try_shutdown()
-        return code
+        nodes = [contained(self.profile, spec) for spec in self.profile.nodes]
+        return run_nodes(nodes, linger_s=self.profile.linger_s, timeout_s=timeout_s)
 
 
 def prepare(profile: Profile, single_process: bool) -> Profile:
-    """Adapt the CAN settings to the mode: the virtual bus in one process."""
-    if (
-        single_process
-        and profile.needs_can
-        and profile.can is not None
-        and profile.can.interface in CAN_INTERFACES_CROSS_PROCESS
-    ):
+    """Adapt the CAN settings to the processes: the virtual bus when CAN stays in one process.
+
+    Raises :class:`ProfileError` for a ``virtual`` bus between processes (it would never carry a frame).
+    """
+    if not profile.needs_can or profile.can is None:
+        return profile
+    can_processes = profile.can_processes
+    one_process = single_process or profile.can_in_one_process
+    if one_process and profile.can.interface in CAN_INTERFACES_CROSS_PROCESS:
         return replace(profile, can=CanSpec("virtual", f"bac-{os.getpid()}", profile.can.bitrate, {}))
+    if len(can_processes) > 1 and not single_process and profile.can.interface in CAN_INTERFACES_IN_PROCESS:
+        raise ProfileError(
+            f"profile '{profile.name}': CAN interface '{profile.can.interface}' reaches only the same process, but "
+            f"its CAN nodes run in {len(can_processes)} processes ({', '.join(can_processes)}): give them one "
+            "process (process: NAME), use --single-process, or a bus between processes (udp_multicast, socketcan)"
+        )
     return profile
 
 
 def needs_private_netns(profile: Profile, single_process: bool) -> bool:
+    """True when CAN goes over udp_multicast (between processes, or to a peer outside the graph) and this process
+    is not in a private namespace yet."""
     return (
         not single_process
         and profile.needs_can
         and profile.can is not None
         and profile.can.interface in CAN_INTERFACES_CROSS_PROCESS
+        and not profile.can_in_one_process
         and not netns.in_private_netns()
     )
 

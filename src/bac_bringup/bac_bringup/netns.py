@@ -1,4 +1,4 @@
-"""Run a command inside a private network namespace (DESIGN.md's network rule).
+"""Run a command inside a private network namespace (README.md, "The network rule").
 
 CAN over python-can's ``udp_multicast`` between processes, and the DDS traffic
 of the graph, must never leave this machine. Inside a fresh network namespace

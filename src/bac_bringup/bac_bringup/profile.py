@@ -21,6 +21,14 @@ parameters. ``ends_graph: true`` marks the node whose normal exit (code 0)
 ends the whole graph; any other node exiting is a failure. ``stop_order`` (default 0): at shutdown
 the nodes stop in waves of increasing ``stop_order`` (the simulated vehicle, whose ECU the bridge
 still talks to while it stops, goes last).
+
+``process: NAME`` puts nodes in one process (``bac_bringup.container``, as a component container would):
+the nodes with the same process name share a process and its executor, the others keep one process each
+(a node's process name is its own name unless it has ``process:``). CAN
+stays in one process when the ``can: true`` nodes (two or more) share one: the launcher then uses python-can's
+in-process ``virtual`` bus whatever the profile's ``can.interface`` says for the cross-process case
+(``udp_multicast``), and the graph needs no private network namespace, so ROS tools on this machine see
+it. A ``virtual`` bus between processes is refused (it cannot carry a frame from one process to another).
 """
 
 from __future__ import annotations
@@ -33,7 +41,8 @@ from typing import Any
 
 from bac_common.errors import BacError
 
-CAN_INTERFACES_CROSS_PROCESS = ("udp_multicast",)
+CAN_INTERFACES_CROSS_PROCESS = ("udp_multicast",)  # needs a private network namespace between processes
+CAN_INTERFACES_IN_PROCESS = ("virtual",)  # reaches only the buses opened in the same process
 
 
 class ProfileError(BacError, ValueError):
@@ -48,6 +57,12 @@ class NodeSpec:
     ends_graph: bool = False
     params: Mapping[str, Any] = field(default_factory=dict)  # per-node overrides
     stop_order: int = 0  # nodes stop in waves of increasing stop_order
+    process: str = ""  # nodes with the same process name share one process; "" = a process of its own
+
+    @property
+    def process_name(self) -> str:
+        """The name of the process this node runs in (its own name when it has a process of its own)."""
+        return self.process or self.name
 
     @property
     def module(self) -> str:
@@ -56,6 +71,27 @@ class NodeSpec:
     @property
     def class_name(self) -> str:
         return self.entry.split(":", 1)[1]
+
+
+@dataclass(frozen=True)
+class ProcessSpec:
+    """One process of a graph: a node of its own, or several nodes sharing it (``process:`` in the profile)."""
+
+    name: str
+    nodes: tuple[NodeSpec, ...]
+
+    @property
+    def ends_graph(self) -> bool:
+        return any(n.ends_graph for n in self.nodes)
+
+    @property
+    def stop_order(self) -> int:
+        """A shared process stops with its last node's wave (inside, the nodes stop in their own order)."""
+        return max(n.stop_order for n in self.nodes)
+
+    @property
+    def can(self) -> bool:
+        return any(n.can for n in self.nodes)
 
 
 @dataclass(frozen=True)
@@ -91,6 +127,30 @@ class Profile:
     @property
     def needs_can(self) -> bool:
         return self.can is not None and any(n.can for n in self.nodes)
+
+    def processes(self) -> tuple[ProcessSpec, ...]:
+        """The processes of the process mode, in the order of their first node."""
+        groups: dict[str, list[NodeSpec]] = {}
+        for n in self.nodes:
+            groups.setdefault(n.process_name, []).append(n)
+        return tuple(ProcessSpec(name, tuple(nodes)) for name, nodes in groups.items())
+
+    @property
+    def can_processes(self) -> tuple[str, ...]:
+        """The processes that open the CAN bus (process mode)."""
+        return tuple(p.name for p in self.processes() if p.can) if self.needs_can else ()
+
+    @property
+    def can_in_one_process(self) -> bool:
+        """True when CAN connects nodes of one process only (process mode): several CAN nodes, one process.
+
+        A lone CAN node talks to something outside the graph (a real ECU, ``python -m bac_sim.ecu``), so its
+        bus is the profile's."""
+        return sum(n.can for n in self.nodes) >= 2 and len(self.can_processes) == 1
+
+    def one_process_per_node(self) -> Profile:
+        """A copy without the ``process:`` groups: every node in a process of its own."""
+        return replace(self, nodes=tuple(replace(n, process="") for n in self.nodes))
 
     def node(self, name: str) -> NodeSpec:
         for n in self.nodes:
@@ -192,11 +252,19 @@ def load_profile(name_or_path: str | Path) -> Profile:
                 ends_graph=bool(n.get("ends_graph", False)),
                 stop_order=int(n.get("stop_order", 0)),
                 params=dict(n.get("params") or {}),
+                process=str(n.get("process") or ""),
             )
         )
     names = [n.name for n in nodes]
     if len(set(names)) != len(names):
         raise ProfileError(f"{path}: node names must be unique")
+    for n in nodes:
+        other = nodes[names.index(n.process)] if n.process in names else None
+        if other is not None and other.process_name != n.process:
+            raise ProfileError(
+                f"{path}: node '{n.name}' asks for process '{n.process}', but node '{n.process}' runs in process "
+                f"'{other.process_name}'; name the shared process differently"
+            )
     files = []
     for f in data.get("params_files") or []:
         fp = (path.parent / str(f)).resolve()

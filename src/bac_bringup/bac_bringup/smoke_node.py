@@ -53,10 +53,21 @@ class TrialListener(BacNode):
 
 
 def main(args: list[str] | None = None) -> int:
-    """Run one of the two smoke nodes: ``python -m bac_bringup.smoke_node [listener] --ros-args ...``."""
+    """Run one of the two smoke nodes: ``python -m bac_bringup.smoke_node --ros-args -r __node:=trial_listener``
+    (the listener when the node is named so, else the announcer)."""
     argv = list(sys.argv if args is None else args)
     cls = TrialListener if "__node:=trial_listener" in " ".join(argv) else TrialAnnouncer
     return run_node(cls, argv)
+
+
+def announcer_main(args: list[str] | None = None) -> int:
+    """``trial_announcer`` (console script)."""
+    return run_node(TrialAnnouncer, list(sys.argv if args is None else args))
+
+
+def listener_main(args: list[str] | None = None) -> int:
+    """``trial_listener`` (console script)."""
+    return run_node(TrialListener, list(sys.argv if args is None else args))
 
 
 if __name__ == "__main__":

@@ -26,7 +26,9 @@ def rescore_main(argv: Sequence[str]) -> int:
 def replay_main(argv: Sequence[str]) -> int:
     """``bac replay``: the replay profile with the given bags."""
     ap = argparse.ArgumentParser(prog="bac replay", description=__doc__, formatter_class=argparse.RawTextHelpFormatter)
-    ap.add_argument("bags", nargs="+", help="campaign folders and/or bags (rosbag2 folder/mcap/db3, ROS 1 .bag)")
+    ap.add_argument(
+        "bags", nargs="+", help="campaign folders and/or bags (rosbag2 folder/mcap/db3, ROS 1 .bag) or MDF files"
+    )
     ap.add_argument("--rate", type=float, default=10.0, help="playback speed, multiple of real time")
     ap.add_argument(
         "--topic-map",
@@ -36,6 +38,10 @@ def replay_main(argv: Sequence[str]) -> int:
         help="remap a bag topic, e.g. /imu/data:=imu/data_raw (repeatable)",
     )
     ap.add_argument("--output", type=Path, help="write recorded vs replayed J as JSON")
+    ap.add_argument("--channel-map", type=Path, help="MDF files: YAML mapping roles to channels")
+    ap.add_argument(
+        "--channel", action="append", default=[], metavar="ROLE=NAME", help="MDF files: map one role (repeatable)"
+    )
     ap.add_argument("--single-process", action="store_true", help="run the replay graph in one process")
     ap.add_argument("--params-file", action="append", default=[], help="extra ROS parameter YAML (repeatable)")
     args = ap.parse_args(list(argv))
@@ -50,5 +56,9 @@ def replay_main(argv: Sequence[str]) -> int:
         "topic_map": args.topic_map,
         "output": str(args.output.resolve()) if args.output else "",
     }
+    if args.channel_map:
+        player["channel_map"] = str(args.channel_map.resolve())
+    if args.channel:
+        player["channels"] = list(args.channel)
     profile = load_profile("replay").with_overrides(params={"bag_player": player}, extra_params_files=args.params_file)
     return run_graph(profile, single_process=args.single_process)

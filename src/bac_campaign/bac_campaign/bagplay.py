@@ -1,7 +1,9 @@
 """Reading bags for replay: every message of chosen topics, in time order, as CDR bytes for ROS 2.
 
 Pure Python (``rosbags``, no ROS runtime). Accepts a campaign folder (its
-``bags/trial_*``), rosbag2 folders or files (mcap, sqlite3) and ROS 1 bags;
+``bags/trial_*``), rosbag2 folders or files (mcap, sqlite3), ROS 1 bags and MDF
+files (MDF4 / MDF 3: their IMU and speed channels become ``imu/data_raw`` and
+``vehicle/odom``, :mod:`bac_measure.mdfio`);
 ROS 1 messages are converted to their ROS 2 Jazzy form (a Header loses its
 ``seq``) and serialized as CDR, so a live ROS 2 graph can take them.
 """
@@ -18,6 +20,7 @@ from rosbags.highlevel import AnyReader
 from rosbags.typesys.store import Typestore
 
 from bac_common.errors import BacError
+from bac_measure.mdfio import ChannelMap, is_mdf
 from bac_measure.recording import bac_typestore
 
 
@@ -85,13 +88,35 @@ def _zero(typ: Any) -> Any:
     return {"str": "", "bool": False, "float": 0.0, "int": 0}.get(str(typ), 0)
 
 
+def mdf_messages(path: Path, topics: Sequence[str], channels: ChannelMap | None = None) -> Iterator[BagMessage]:
+    """An MDF recording as the messages a driver would have sent: ``imu/data_raw`` (sensor_msgs/Imu) and, when a
+    speed or distance channel is mapped or found, ``vehicle/odom`` (nav_msgs/Odometry), at their stamps."""
+    from bac_measure.bagio import IMU_TYPE, ODOM_TYPE, imu_to_cdr, odom_to_cdr
+    from bac_measure.mdfio import read_mdf
+
+    rec = read_mdf(path, channels)
+    wanted = {_norm(t) for t in topics}
+    items: list[BagMessage] = []
+    if "imu/data_raw" in wanted:
+        items += [BagMessage("imu/data_raw", IMU_TYPE, t, b) for t, b in imu_to_cdr(rec.imu)]
+    if rec.odom is not None and "vehicle/odom" in wanted:
+        items += [BagMessage("vehicle/odom", ODOM_TYPE, t, b) for t, b in odom_to_cdr(rec.odom)]
+    items.sort(key=lambda m: m.time_ns)
+    yield from items
+
+
 def iter_bag_messages(
     bag: str | Path,
     topics: Sequence[str],
     topic_map: Mapping[str, str] | None = None,
+    channels: ChannelMap | None = None,
 ) -> Iterator[BagMessage]:
-    """Messages of ``topics`` (names after remapping, without leading '/') in time order."""
+    """Messages of ``topics`` (names after remapping, without leading '/') in time order. An MDF file gives its
+    IMU and odometry channels (``channels``: the channel map; None: found by units and names)."""
     path = Path(bag)
+    if is_mdf(path):
+        yield from mdf_messages(path, topics, channels)
+        return
     store = bac_typestore()
     mapping = {_norm(k): _norm(v) for k, v in (topic_map or {}).items()}
     wanted = {_norm(t) for t in topics}

@@ -2,7 +2,10 @@
 
 Subscribes every topic of a run (raw and ingested IMU, odometry, trial,
 segment, score, confirmed calibration) without deserializing them and writes
-the bytes as they arrived into ``<campaign_dir>/bags/trial_NNNN/``.
+the bytes as they arrived into ``<campaign_dir>/bags/trial_NNNN/``, with the
+metadata ``ros2 bag record`` (Jazzy) writes: each topic offered reliable +
+transient local, so ``ros2 bag play`` feeds every reader of the graph
+(:mod:`bac_measure.recording`).
 
 Topics are not ordered with respect to each other (a lagging IMU subscription
 can deliver a run's last samples after the next trial was announced), so a
@@ -11,6 +14,11 @@ message goes to a trial by its *stamp*: trial k owns the stamps from its first
 open for ``close_grace_s`` after the next trial starts, to take late arrivals;
 Trial, RunSegment, RunScore and Calibration messages go by their trial id (and
 wait for their trial's announcement when they overtake it).
+
+Each bag opened is first written down in ``<campaign_dir>/launches.jsonl``
+with this process's launch id (:mod:`bac_campaign.launches`): a resumed campaign
+holds bags of several launches whose sim times overlap, and offline tools cut each
+run from the launch that drove it.
 """
 
 from __future__ import annotations
@@ -27,6 +35,7 @@ from rclpy.clock_type import ClockType
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 from rclpy.serialization import deserialize_message
 
+from bac_campaign.launches import LaunchIndex
 from bac_common.contracts import TOPIC_CALIBRATION, TOPIC_RUN_SCORE, TOPIC_RUN_SEGMENT, TOPIC_TRIAL
 from bac_common.rosnode import QOS_EVENTS, QOS_LATCHED_READER, BacNode, run_node
 from bac_common.topic_drain import TopicDrain
@@ -104,6 +113,7 @@ class CampaignRecorderNode(BacNode):
         self._pending: dict[int, list[tuple[str, int, bytes]]] = {}  # messages of trials not announced yet
         self.dropped = 0  # messages that belong to no open trial
         self.bags: list[Path] = []
+        self._launches: LaunchIndex | None = None  # opened with the first bag
         group = MutuallyExclusiveCallbackGroup()
         self._subs = [
             self.create_subscription(
@@ -206,6 +216,9 @@ class CampaignRecorderNode(BacNode):
         while path.exists():  # a resumed campaign re-drives a trial: never overwrite
             path = path.with_name(f"{trial_bag_dir(self.campaign_dir, trial_id).name}.r{n}")
             n += 1
+        if self._launches is None:
+            self._launches = LaunchIndex(self.campaign_dir)
+        self._launches.bag_opened(path, trial_id, start_ns)  # durably, before the bag holds anything
         self._open_bags[trial_id] = (TrialBagWriter(path, storage=self.storage), start_ns)
         self._current = trial_id
         for topic, t_ns, data in self._pending.pop(trial_id, []):
@@ -236,6 +249,8 @@ class CampaignRecorderNode(BacNode):
                 self.get_logger().warning(f"last drain failed: {exc}")
             for trial_id in list(self._open_bags):
                 self._close(trial_id)
+            if self._launches is not None:
+                self._launches.close()
         for _, drain in self._drains:
             drain.destroy()
         if self._trial_drain is not None:

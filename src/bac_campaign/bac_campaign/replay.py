@@ -29,6 +29,7 @@ from rclpy.serialization import deserialize_message
 from bac_campaign.bagplay import BagMessage, expand_bag_paths, iter_bag_messages, parse_topic_map
 from bac_common.contracts import TOPIC_CLOCK, TOPIC_RUN_SCORE, TOPIC_TRIAL
 from bac_common.rosnode import QOS_EVENTS, QOS_LATCHED, BacNode, run_node
+from bac_measure.recording import OLD_MESSAGE_PAD
 from bac_msgs.msg import RunScore, Trial
 
 PLAY_TOPICS = ("imu/data_raw", "vehicle/odom", "bac/trial")
@@ -49,6 +50,14 @@ def _types() -> dict[str, Any]:
         "vehicle/odom": (Odometry, QOS_PLAY),
         "bac/trial": (Trial, QOS_LATCHED),
     }
+
+
+def _run_score(cdr: bytes) -> RunScore:
+    """A recorded RunScore; one recorded before outcome_names / outcome_values (2026-11-24) with them empty."""
+    try:
+        return deserialize_message(cdr, RunScore)
+    except Exception:  # rclpy raises a bare RuntimeError-like error for a message that ends early
+        return deserialize_message(cdr + OLD_MESSAGE_PAD, RunScore)
 
 
 class BagPlayerNode(BacNode):
@@ -87,6 +96,15 @@ class BagPlayerNode(BacNode):
             60.0,
         )
         self.output = self.declare_str("output", "", "write recorded vs replayed J as JSON to this file")
+        channel_map = self.declare_str(
+            "channel_map",
+            "",
+            "MDF files: YAML mapping roles (accel_x ... gyro_z, speed, distance) to channels",
+            read_only=True,
+        )
+        channels = self.declare_str_list(
+            "channels", [], "MDF files: ROLE=CHANNEL pairs (win over channel_map)", read_only=True
+        )
         self.hold_s = self.declare_float(
             "hold_for_score_s",
             30.0,
@@ -99,6 +117,9 @@ class BagPlayerNode(BacNode):
             raise ValueError("bag_player: parameter 'bags' is empty: give campaign folders or bag paths")
         self.paths = expand_bag_paths(bags)
         self.topic_map = parse_topic_map(topic_map)
+        from bac_measure.mdfio import ChannelMap
+
+        self.channels = ChannelMap.load(channel_map or None, channels)
         self.queue, self.recorded = self._load()
         self.get_logger().info(
             f"{len(self.queue)} messages from {len(self.paths)} bags; {len(self.expected)} runs to rescore"
@@ -129,11 +150,11 @@ class BagPlayerNode(BacNode):
         recorded: dict[RunKey, float] = {}
         self.expected: set[RunKey] = set()
         for k, path in enumerate(self.paths, start=1):
-            msgs = list(iter_bag_messages(path, [*PLAY_TOPICS, TOPIC_RUN_SCORE], self.topic_map))
+            msgs = list(iter_bag_messages(path, [*PLAY_TOPICS, TOPIC_RUN_SCORE], self.topic_map, self.channels))
             play = [m for m in msgs if m.topic in PLAY_TOPICS]
             for m in msgs:
                 if m.topic == TOPIC_RUN_SCORE:
-                    s = deserialize_message(m.cdr, RunScore)
+                    s = _run_score(m.cdr)
                     recorded[(s.campaign_id, s.trial_id, s.attempt)] = s.j if s.valid else math.nan
             trials = [deserialize_message(m.cdr, Trial) for m in play if m.topic == TOPIC_TRIAL]
             for t in trials:

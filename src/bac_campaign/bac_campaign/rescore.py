@@ -11,18 +11,34 @@ runs go through the same pure cores as the live nodes (ingestion,
   recorded ``imu/vehicle`` stream (what the live segmenter got) is re-cut, so
   the same configuration reproduces the live J exactly; ``--reingest`` runs
   ingestion again from ``imu/data_raw`` (to change ingestion parameters).
-  The reference run for alignment is rebuilt as live: the campaign's first
-  valid run (under the configuration in use).
-* **Any bag** with sensor_msgs/Imu (rosbag2 mcap/sqlite3, ROS 1): its IMU is
-  ingested; with ``--window whole`` the whole recording is scored as one run,
-  otherwise it is cut like a bac run starting at its first sample (event or
-  distance mode from the parameters; distance mode needs odometry).
+  A run is found by its (campaign, trial, attempt): a resumed campaign holds
+  bags of several launches of the graph, whose sim times overlap (sim time
+  starts again with each launch), so the bags are grouped by the launch that
+  recorded them (``launches.jsonl``, written by the recorder; for older
+  campaigns, the launch of the agent that announced their runs, from the
+  journal) and each run is cut from its own launch's data, from its own
+  READY_TO_DRIVE announcement there. The live J of a run is the agent's
+  verdict in the journal (else the RunScore in the bags). The reference run
+  for alignment is the one the live segmenter took (its ``reference.npz``
+  names it), rebuilt from its data under the configuration in use; without
+  that file, or when that run is invalid now, the first valid run in the live
+  order.
+* **Any bag** with sensor_msgs/Imu (rosbag2 mcap/sqlite3, ROS 1) or **MDF file**
+  (MDF4 ``.mf4``, MDF 3 ``.mdf``/``.dat`` from INCA, CANape, a data logger; the
+  channels by ``--channel-map``/``--channel``, else guessed from units and names,
+  :mod:`bac_measure.mdfio`): its IMU is ingested (whole-recording health, mount
+  and bias from a standstill, clipping: :mod:`bac_measure.offline`); with
+  ``--window whole`` the whole recording is scored as one run (``min_coverage``
+  honoured), otherwise it is cut like a bac run starting at its first sample
+  (event or distance mode from the parameters; distance mode needs odometry: a
+  speed or distance channel of an MDF file).
 
 ``--refit`` fits the campaign's GP again on the rescored J values and prints
 the new recommendation.
 
     bac rescore CAMPAIGN_DIR [--params-file F ...] [-p node.param=value ...] [--reingest] [--refit] [--json out.json]
     bac rescore any.bag --window whole [--imu-topic /imu/data] [-p imu_ingest.output_rate_hz=50]
+    bac rescore drive.mf4 [--channel-map imu_channels.yaml] [--channel speed=VehSpd] [--window whole]
 """
 
 from __future__ import annotations
@@ -31,6 +47,7 @@ import argparse
 import dataclasses
 import json
 import math
+import re
 import sys
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
@@ -41,12 +58,16 @@ import numpy as np
 from numpy.typing import NDArray
 
 from bac_agent.journal import JOURNAL_NAME, journaled_engine_options, read_journal
+from bac_campaign.launches import launch_of_bags
 from bac_common.errors import BacError
 from bac_imu.ingest import IngestConfig, ingest_all
 from bac_measure.bagio import (
+    IMU_TYPE,
+    ODOM_TYPE,
     BagError,
     ImuArrays,
     OdomArrays,
+    TrialEvent,
     bag_topics,
     read_imu,
     read_messages,
@@ -55,21 +76,27 @@ from bac_measure.bagio import (
     run_starts,
 )
 from bac_measure.kpi import KpiConfig, Score, score
+from bac_measure.mdfio import ChannelMap, is_mdf, read_mdf
 from bac_measure.measure_config import (
     NODE_IMU_INGEST,
     NODE_KPI_SCORER,
     NODE_RUN_SEGMENTER,
+    ParamsFileError,
+    check_overrides,
     ingest_config,
     kpi_config,
+    load_node_params,
+    parse_value,
     segment_config,
 )
+from bac_measure.offline import OFFLINE_DEFAULTS, fit_rates, whole_recording
 from bac_measure.segmentation import (
     ImuSeries,
     OdomSeries,
     Reference,
-    ReferenceStore,
     RunId,
     Segment,
+    SegmentationError,
     SegmentConfig,
     cut_run,
     window_segment,
@@ -89,7 +116,7 @@ class RescoreError(BacError, ValueError):
 class RunResult:
     run: RunId
     params: Mapping[str, float] | None  # the trial's calibration (from the journal), when known
-    live_j: float | None  # J the live graph scored (NaN: scored invalid), None when not recorded
+    live_j: float | None  # J the live agent booked (journal) or the scorer published (bag); NaN: invalid; None: neither
     live_reason: str
     segment: Segment
     score: Score
@@ -175,55 +202,193 @@ def _concat_odom(parts: list[OdomArrays]) -> OdomArrays:
         recv_ns=np.concatenate([p.recv_ns for p in parts])[idx],
         distance_m=np.concatenate([p.distance_m for p in parts])[idx],
         speed_mps=np.concatenate([p.speed_mps for p in parts])[idx],
+        position_y_m=np.concatenate([p.series().position_y_m for p in parts])[idx],
+        position_z_m=np.concatenate([p.series().position_z_m for p in parts])[idx],
     )
 
 
 @dataclass
 class _Recording:
+    """The data of one launch of the graph (or of bags given by hand), merged in time order."""
+
     imu_vehicle: ImuArrays | None
     imu_raw: ImuArrays | None
     odom: OdomArrays | None
-    starts: list[Any]  # TrialEvent of each run's READY_TO_DRIVE
+    starts: list[TrialEvent]  # each run's first READY_TO_DRIVE
     live: dict[RunKey, tuple[float, str]]  # live J (NaN when invalid) and reason
+    bags: list[Path] = field(default_factory=list)
 
 
-def read_recording(bags: Sequence[Path], imu_topic: str | None, odom_topic: str | None) -> _Recording:
-    veh: list[ImuArrays] = []
-    raw: list[ImuArrays] = []
-    odo: list[OdomArrays] = []
-    trials: list[Any] = []
-    live: dict[RunKey, tuple[float, str]] = {}
-    for bag in bags:
-        topics = {"/" + t.lstrip("/") for t in bag_topics(bag)}
-        if imu_topic is not None:
-            raw.append(read_imu(bag, imu_topic))
-        else:
-            if VEHICLE_TOPIC in topics:
-                veh.append(read_imu(bag, VEHICLE_TOPIC))
-            if RAW_TOPIC in topics:
-                raw.append(read_imu(bag, RAW_TOPIC))
-            elif VEHICLE_TOPIC not in topics:
-                raw.append(read_imu(bag))  # the bag's only IMU topic
+@dataclass
+class _BagData:
+    path: Path
+    imu_vehicle: ImuArrays | None
+    imu_raw: ImuArrays | None
+    odom: OdomArrays | None
+    trials: list[TrialEvent]
+    live: dict[RunKey, tuple[float, str]]
+
+
+def read_bag(bag: Path, imu_topic: str | None, odom_topic: str | None) -> _BagData:
+    """What one bag holds of a run; a stream the bag lacks is None (a bag opened by a launch that was killed
+    before any sample arrived holds only bac/trial), unless the caller named the topic."""
+    topics = {"/" + t.lstrip("/"): typ for t, (typ, _) in bag_topics(bag).items()}
+    veh = raw = None
+    if imu_topic is not None:
+        raw = read_imu(bag, imu_topic)
+    else:
+        if VEHICLE_TOPIC in topics:
+            veh = read_imu(bag, VEHICLE_TOPIC)
+        if RAW_TOPIC in topics:
+            raw = read_imu(bag, RAW_TOPIC)
+        elif VEHICLE_TOPIC not in topics and IMU_TYPE in topics.values():
+            raw = read_imu(bag)  # the bag's only IMU topic
+    odom = None
+    if odom_topic is not None or ODOM_TYPE in topics.values():
         try:
-            odo.append(read_odom(bag, odom_topic))
+            odom = read_odom(bag, odom_topic)
         except BagError:
             if odom_topic is not None:
                 raise
-        if "/bac/trial" in topics:
-            trials.extend(read_trials(bag))
-        if "/bac/run_score" in topics:
-            for _, m in read_messages(bag, "bac/run_score"):
-                live[(str(m.campaign_id), int(m.trial_id), int(m.attempt))] = (
-                    float(m.j) if m.valid else math.nan,
-                    str(m.reason),
-                )
+    trials = read_trials(bag) if "/bac/trial" in topics else []
+    live: dict[RunKey, tuple[float, str]] = {}
+    if "/bac/run_score" in topics:
+        for _, m in read_messages(bag, "bac/run_score"):
+            live[(str(m.campaign_id), int(m.trial_id), int(m.attempt))] = (
+                float(m.j) if m.valid else math.nan,
+                str(m.reason),
+            )
+    return _BagData(bag, veh, raw, odom, trials, live)
+
+
+def merge_bags(parts: Sequence[_BagData]) -> _Recording:
+    """One recording of bags that share one clock (one launch), merged in time order."""
+    veh = [b.imu_vehicle for b in parts if b.imu_vehicle is not None and len(b.imu_vehicle)]
+    raw = [b.imu_raw for b in parts if b.imu_raw is not None and len(b.imu_raw)]
+    odo = [b.odom for b in parts if b.odom is not None and len(b.odom.stamp_ns)]
+    trials = sorted((e for b in parts for e in b.trials), key=lambda e: (e.stamp_ns, e.recv_ns))
+    live: dict[RunKey, tuple[float, str]] = {}
+    for b in parts:
+        live.update(b.live)
     return _Recording(
         imu_vehicle=_concat_imu(veh) if veh else None,
         imu_raw=_concat_imu(raw) if raw else None,
         odom=_concat_odom(odo) if odo else None,
         starts=run_starts(trials),
         live=live,
+        bags=[b.path for b in parts],
     )
+
+
+def read_recording(
+    bags: Sequence[Path],
+    imu_topic: str | None,
+    odom_topic: str | None,
+    channels: ChannelMap | None = None,
+    notes: list[str] | None = None,
+) -> _Recording:
+    """Bags or MDF files that share one clock (one launch, or recordings given by hand) as one recording."""
+    parts = []
+    for bag in bags:
+        if is_mdf(bag):  # an MDF recording: IMU and odometry channels, no bac topics
+            mdf = read_mdf(bag, channels)
+            parts.append(_BagData(bag, None, mdf.imu, mdf.odom, [], {}))
+            if notes is not None:
+                notes.extend(f"{bag.name}: {n}" for n in mdf.notes)
+            continue
+        if channels is not None and bag.is_file():
+            raise RescoreError(f"{bag} is not an MDF file: --channel-map / --channel apply to MDF recordings only")
+        parts.append(read_bag(bag, imu_topic, odom_topic))
+    return merge_bags(parts)
+
+
+def _bag_order(bag: Path) -> tuple[int, int, str]:
+    """trial_0003 < trial_0003.r1 < trial_0003.r2 < trial_0004: the order a campaign's recorders created them."""
+    m = re.fullmatch(r"trial_(\d+)(?:\.r(\d+))?", bag.name)
+    return (int(m.group(1)), int(m.group(2) or 0), "") if m else (1 << 62, 0, bag.name)
+
+
+def journal_verdicts(campaign_dir: Path | None) -> dict[RunKey, tuple[float, str]]:
+    """The agent's verdict on each run it booked: J (``trial_scored``) or NaN and the reason (``run_rejected``).
+    The live J of a run, even when the recorder missed its RunScore (a graph stopped right after it)."""
+    if campaign_dir is None or not (campaign_dir / JOURNAL_NAME).exists():
+        return {}
+    out: dict[RunKey, tuple[float, str]] = {}
+    for e in read_journal(campaign_dir / JOURNAL_NAME).events:
+        if e.get("event") in ("trial_scored", "run_rejected") and e.get("attempt") is not None:
+            key = (str(e.get("campaign_id")), int(e["trial_id"]), int(e["attempt"]))
+            j = e.get("j") if e["event"] == "trial_scored" else None
+            out[key] = (float(j) if j is not None else math.nan, str(e.get("reason", "")))
+    return out
+
+
+def journal_runs(campaign_dir: Path | None) -> dict[RunKey, tuple[int, int]]:
+    """Each run READY_TO_DRIVE in the journal -> (launch of the agent, counted from 0; the event's seq)."""
+    return _journal_launches(campaign_dir)[0]
+
+
+def _journal_launches(campaign_dir: Path | None) -> tuple[dict[RunKey, tuple[int, int]], dict[int, list[int]]]:
+    """(each run -> (launch, seq) as :func:`journal_runs`; each trial id -> the launches that announced it, in
+    order: the recorder of each opened one bag for it, trial_NNNN, then trial_NNNN.r1, ...)."""
+    if campaign_dir is None or not (campaign_dir / JOURNAL_NAME).exists():
+        return {}, {}
+    launch = -1
+    runs: dict[RunKey, tuple[int, int]] = {}
+    trials: dict[int, list[int]] = {}
+    for e in read_journal(campaign_dir / JOURNAL_NAME).events:
+        kind = e.get("event")
+        if kind in ("campaign_started", "campaign_resumed"):
+            launch += 1
+        elif kind in ("trial_proposed", "apply_requested", "run_ready") and e.get("trial_id") is not None:
+            seen = trials.setdefault(int(e["trial_id"]), [])
+            if not seen or seen[-1] != launch:
+                seen.append(launch)
+            if kind == "run_ready":
+                key = (str(e.get("campaign_id")), int(e["trial_id"]), int(e["attempt"]))
+                runs.setdefault(key, (launch, int(e.get("seq", 0))))
+    return runs, trials
+
+
+def campaign_launches(
+    campaign_dir: Path, imu_topic: str | None, odom_topic: str | None, notes: list[str]
+) -> list[_Recording]:
+    """The campaign's bags grouped by the launch of the graph that recorded them, each launch merged into one
+    recording. A resumed campaign holds several launches whose sim times overlap: a run is cut from its own
+    launch's data only. The launch of a bag is the recorder's (``launches.jsonl``); for bags recorded
+    before that index existed, the launch of the agent that announced its runs (the journal)."""
+    bags = sorted(campaign_bags(campaign_dir), key=_bag_order)
+    index = launch_of_bags(campaign_dir)
+    runs, trial_launches = _journal_launches(campaign_dir)
+    groups: dict[tuple[str, str], list[_BagData]] = {}
+    from_journal: list[str] = []
+    for bag in bags:
+        data = read_bag(bag, imu_topic, odom_topic)
+        if bag.name in index:
+            key = ("recorder", index[bag.name][1])
+        else:
+            keys = [(e.campaign_id, e.trial_id, e.attempt) for e in run_starts(data.trials)]
+            launches = {runs[k][0] for k in keys if k in runs}
+            if len(launches) > 1:
+                raise RescoreError(
+                    f"{bag} holds runs that the journal puts in different launches ({sorted(launches)}): "
+                    "the bag or the journal is not this campaign's"
+                )
+            if not launches:  # no run in it: the n-th bag of a trial is from the n-th launch that announced it
+                tid, n, _ = _bag_order(bag)
+                announced = trial_launches.get(tid, [])
+                if n < len(announced):
+                    launches = {announced[n]}
+            key = ("agent", str(launches.pop())) if launches else ("bag", bag.name)
+            from_journal.append(bag.name)
+        groups.setdefault(key, []).append(data)
+    if from_journal:
+        notes.append(
+            f"{len(from_journal)} bags are not in launches.jsonl (recorded before it existed): their launch "
+            "is the one whose agent announced their runs (the journal)"
+        )
+    if len(groups) > 1:
+        notes.append(f"{len(groups)} launches (a resumed campaign): each run is cut from its own launch's bags")
+    return [merge_bags(parts) for parts in groups.values()]
 
 
 def journal_params(campaign_dir: Path | None) -> tuple[dict[int, dict[str, float]], dict[str, Any] | None]:
@@ -244,6 +409,18 @@ def journal_params(campaign_dir: Path | None) -> tuple[dict[int, dict[str, float
 # --- rescoring -------------------------------------------------------------------------------------------
 
 
+@dataclass
+class _Run:
+    start: TrialEvent
+    rec: _Recording
+    imu: ImuSeries
+    odom: OdomSeries
+
+    @property
+    def key(self) -> RunKey:
+        return (self.start.campaign_id, self.start.trial_id, self.start.attempt)
+
+
 def rescore(
     paths: Sequence[str | Path],
     files: Sequence[str | Path] | None = None,
@@ -252,8 +429,9 @@ def rescore(
     window: str = "run",
     imu_topic: str | None = None,
     odom_topic: str | None = None,
+    channels: ChannelMap | None = None,
 ) -> RescoreResult:
-    """Cut and score every run of a campaign (or bags) again; see the module doc."""
+    """Cut and score every run of a campaign (or bags, or MDF files) again; see the module doc."""
     if window not in ("run", "whole"):
         raise RescoreError(f"window must be 'run' or 'whole', got {window!r}")
     ps = [Path(p) for p in paths]
@@ -261,68 +439,178 @@ def rescore(
         if not p.exists():
             raise RescoreError(f"no such campaign folder or bag: {p}")
     campaign_dir = ps[0] if len(ps) == 1 and (ps[0] / "bags").is_dir() else None
-    bags = campaign_bags(campaign_dir) if campaign_dir is not None else ps
     files = [Path(f) for f in files] if files else default_params_files(campaign_dir)
     ov = {k: dict(v) for k, v in (overrides or {}).items()}
-    ing_cfg = ingest_config(files, ov.get(NODE_IMU_INGEST))
+    notes: list[str] = []
+    for node, values in ov.items():
+        if node not in (NODE_IMU_INGEST, NODE_RUN_SEGMENTER, NODE_KPI_SCORER):
+            raise RescoreError(f"-p {node}.*: only imu_ingest, run_segmenter and kpi_scorer apply")
+        notes += check_overrides(node, values)
+    foreign = campaign_dir is None
+    ing_ov = dict(ov.get(NODE_IMU_INGEST, {}))
+    if foreign:  # a recording that is not a bac campaign: mount and bias from a standstill unless configured
+        in_files = load_node_params(files, NODE_IMU_INGEST)
+        ing_ov = {**{k: v for k, v in OFFLINE_DEFAULTS.items() if k not in in_files}, **ing_ov}
+    ing_cfg = ingest_config(files, ing_ov)
     seg_cfg = segment_config(files, ov.get(NODE_RUN_SEGMENTER))
     kpi_cfg = kpi_config(files, ov.get(NODE_KPI_SCORER))
-    rec = read_recording(bags, imu_topic, odom_topic)
-    notes: list[str] = []
-
-    if rec.imu_vehicle is not None and not reingest:
-        source = "imu/vehicle (recorded)"
-        v = rec.imu_vehicle
-        imu = ImuSeries(v.stamp_ns, v.accel[:, 2].copy(), v.gyro[:, 1].copy())
+    if campaign_dir is not None:
+        recs = campaign_launches(campaign_dir, imu_topic, odom_topic, notes)
     else:
-        if rec.imu_raw is None:
-            raise RescoreError("the bags hold no raw IMU stream to ingest (imu/data_raw or --imu-topic)")
+        recs = [read_recording(ps, imu_topic, odom_topic, channels, notes)]
+    if not any(r.imu_vehicle is not None or r.imu_raw is not None for r in recs):
+        raise RescoreError("the bags hold no IMU stream (imu/vehicle, imu/data_raw or --imu-topic)")
+
+    use_vehicle = not reingest and any(r.imu_vehicle is not None for r in recs)
+    problems: dict[int, str] = {}  # a recording whose ingestion left gravity in a_z: no J from it
+    source = "imu/vehicle (recorded)"
+    series: list[ImuSeries] = []
+    for rec in recs:  # ingestion starts again with each launch, as the live imu_ingest did
+        if use_vehicle:
+            v = rec.imu_vehicle
+            series.append(
+                ImuSeries(v.stamp_ns, v.accel[:, 2].copy(), v.gyro[:, 1].copy()) if v is not None else ImuSeries.empty()
+            )
+            continue
         r = rec.imu_raw
+        if r is None:
+            if rec.starts:
+                raise RescoreError(
+                    f"{', '.join(str(b) for b in rec.bags)}: no raw IMU stream to ingest (imu/data_raw or --imu-topic)"
+                )
+            series.append(ImuSeries.empty())
+            continue
         source = f"{r.topic} (re-ingested)"
         ing_cfg, seg_cfg = _fit_rates(r, ing_cfg, seg_cfg, ov, notes)
+        if foreign:
+            ing_cfg, _ = whole_recording(r, ing_cfg, ov.get(NODE_IMU_INGEST, {}), notes)
         out, health = ingest_all(r.stamp_ns, r.accel, r.gyro, ing_cfg)
-        imu = ImuSeries(out.stamp_ns, out.accel_z, out.pitch_rate)
+        series.append(ImuSeries(out.stamp_ns, out.accel_z, out.pitch_rate))
         notes.append(
-            f"ingestion: {health.samples_in} samples at {health.rate_hz:.1f} Hz, {health.gaps} gaps, "
-            f"{health.nonfinite} NaN/inf, {health.restarts} stream restarts, {health.clock_jumps} clock jumps"
+            f"ingestion: {health.samples_in} samples at {health.rate_hz:.1f} Hz, {health.samples_expected} "
+            f"expected, {health.lost_samples} lost, {health.gaps} gaps, {health.nonfinite} NaN/inf, "
+            f"{health.saturated} saturated, {health.restarts} stream restarts, {health.clock_jumps} clock jumps; "
+            f"mount roll {health.mount_rpy_deg[0]:.1f} pitch {health.mount_rpy_deg[1]:.1f} deg from "
+            f"{health.mount_source}, bias from {health.bias_source}"
         )
-    odom = (
-        OdomSeries(rec.odom.stamp_ns, rec.odom.distance_m, rec.odom.speed_mps)
-        if rec.odom is not None
-        else OdomSeries.empty()
-    )
+        problems[id(rec)] = health.gravity_problem()
+    notes[:] = list(dict.fromkeys(notes))  # the same note for each launch once
     jparams, _ = journal_params(campaign_dir)
 
-    runs: list[RunResult] = []
     if window == "whole":
+        imu = series[0]
         rid = RunId("rescore", 1, 1)
-        seg = window_segment(imu, imu_rate_hz=seg_cfg.imu_rate_hz, run=rid)
-        runs.append(RunResult(rid, None, None, "", seg, score(seg, kpi_cfg)))
-        return RescoreResult(runs, list(files), source, notes)
+        seg = window_segment(imu, imu_rate_hz=seg_cfg.imu_rate_hz, run=rid, min_coverage=seg_cfg.min_coverage)
+        if seg.valid and seg.coverage < 1.0:
+            notes.append(
+                f"{(1.0 - seg.coverage) * seg.window_length_s:.2f} s of holes bridged by linear interpolation "
+                f"(coverage {seg.coverage:.3f}, min_coverage {seg_cfg.min_coverage:g})"
+            )
+        sc = _refuse(score(seg, kpi_cfg), problems.get(id(recs[0]), ""))
+        return RescoreResult([RunResult(rid, None, None, "", seg, sc)], list(files), source, notes)
 
-    starts = [(s.campaign_id, s.trial_id, s.attempt, s.stamp_ns) for s in rec.starts]
-    if not starts:
-        notes.append("no bac/trial in the bags: one run per recording, from its first IMU sample")
-        starts = [("rescore", 1, 1, int(imu.stamp_ns[0]) if len(imu) else 0)]
+    todo: list[_Run] = []
+    seen: dict[RunKey, _Recording] = {}
+    for rec, imu in zip(recs, series, strict=True):
+        odom = rec.odom.series() if rec.odom is not None else OdomSeries.empty()
+        starts = rec.starts
+        if not starts and campaign_dir is None:
+            notes.append("no bac/trial in the bags: one run per recording, from its first IMU sample")
+            starts = [TrialEvent(0, int(imu.stamp_ns[0]) if len(imu) else 0, "rescore", 1, 1, 3, "")]
+        for st in starts:
+            run = _Run(st, rec, imu, odom)
+            if run.key in seen:
+                raise RescoreError(
+                    f"run {RunId(*run.key)} was announced in two recordings ({', '.join(map(str, seen[run.key].bags))} "
+                    f"and {', '.join(map(str, rec.bags))}): these bags are not one campaign's"
+                )
+            seen[run.key] = rec
+            todo.append(run)
+    # the live order: the journal's (a resumed campaign's launches overlap in time), else each recording's own
+    jruns = journal_runs(campaign_dir)
+    todo = [r for _, r in sorted(enumerate(todo), key=lambda kr: (jruns.get(kr[1].key, (0, 1 << 62))[1], kr[0]))]
+
     template = _segmenter_template(files, ov.get(NODE_RUN_SEGMENTER))
-    store = ReferenceStore(template=Reference.load(template) if template else None)
-    for cid, tid, att, start_ns in starts:
-        rid = RunId(cid, tid, att)
-        ref = store.get(cid)
-        seg = cut_run(imu, odom, seg_cfg, start_ns, ref, rid)
-        store.offer(seg, seg_cfg)
-        live = rec.live.get((cid, tid, att))
+    refs = _references(todo, seg_cfg, Reference.load(template) if template else None, campaign_dir, files, ov, notes)
+    verdicts = journal_verdicts(campaign_dir)
+    runs: list[RunResult] = []
+    for k, run in enumerate(todo):
+        ref_at, ref = refs.get(run.start.campaign_id, (len(todo), None))
+        # runs up to the reference run were cut live before there was a reference
+        seg = cut_run(run.imu, run.odom, seg_cfg, run.start.stamp_ns, ref if k > ref_at else None, RunId(*run.key))
+        live = verdicts.get(run.key) or run.rec.live.get(run.key)
         runs.append(
             RunResult(
-                run=rid,
-                params=jparams.get(tid),
+                run=RunId(*run.key),
+                params=jparams.get(run.start.trial_id),
                 live_j=None if live is None else live[0],
                 live_reason="" if live is None else live[1],
                 segment=seg,
-                score=score(seg, kpi_cfg),
+                score=_refuse(score(seg, kpi_cfg), problems.get(id(run.rec), "")),
             )
         )
     return RescoreResult(runs, list(files), source, notes)
+
+
+def _refuse(sc: Score, problem: str) -> Score:
+    """No J when the ingestion left gravity in a_z (a wrong mount): the reason names the likely cause."""
+    if not problem or not sc.valid:
+        return sc
+    return dataclasses.replace(sc, j=math.nan, valid=False, reason=f"ingestion: {problem}")
+
+
+def _references(
+    todo: Sequence[_Run],
+    seg_cfg: SegmentConfig,
+    template: Reference | None,
+    campaign_dir: Path | None,
+    files: Sequence[Path],
+    ov: Mapping[str, Mapping[str, Any]],
+    notes: list[str],
+) -> dict[str, tuple[int, Reference]]:
+    """The alignment reference of each campaign, as live: (index in ``todo`` after which runs are aligned with
+    it, the reference). A template when one is configured (every run aligned); else the run the live segmenter
+    made the reference (its reference file names it), rebuilt from its own data under the configuration in
+    use; else (no such file, or that run is invalid now) the first valid run in the live order."""
+    out: dict[str, tuple[int, Reference]] = {}
+    for cid in dict.fromkeys(r.start.campaign_id for r in todo):
+        if template is not None:
+            out[cid] = (-1, template)
+            continue
+        mine = [(k, r) for k, r in enumerate(todo) if r.start.campaign_id == cid]
+        live_ref = _live_reference_run(campaign_dir, cid, files, ov)
+        if live_ref is not None:
+            mine.sort(key=lambda kr: kr[1].key != live_ref)  # that run first, then the live order
+        for k, r in mine:
+            seg = cut_run(r.imu, r.odom, seg_cfg, r.start.stamp_ns, None, RunId(*r.key))
+            if seg.valid:
+                out[cid] = (k, Reference.from_segment(seg, seg_cfg))
+                break
+            if r.key == live_ref:
+                notes.append(
+                    f"the live reference run {RunId(*r.key)} is invalid now ({seg.reason}): the first valid run "
+                    "is the reference"
+                )
+    return out
+
+
+def _live_reference_run(
+    campaign_dir: Path | None, campaign_id: str, files: Sequence[Path], ov: Mapping[str, Mapping[str, Any]]
+) -> RunKey | None:
+    """The run the live run_segmenter made the campaign's reference (from its reference file), if known."""
+    if campaign_dir is None:
+        return None
+    from bac_measure.measure_config import load_node_params
+
+    name = str(load_node_params(files, NODE_RUN_SEGMENTER, ov.get(NODE_RUN_SEGMENTER)).get("reference_file", "") or "")
+    path = Path(name.replace("{campaign_id}", campaign_id or "default")) if name else campaign_dir / "reference.npz"
+    if not path.exists():
+        return None
+    try:
+        run = Reference.load(path).run
+    except SegmentationError:
+        return None
+    return (run.campaign_id, run.trial_id, run.attempt) if run.campaign_id == campaign_id else None
 
 
 def _fit_rates(
@@ -333,29 +621,10 @@ def _fit_rates(
     notes: list[str],
 ) -> tuple[IngestConfig, SegmentConfig]:
     """Keep the ingestion's output rate at or below the recording's rate, and the segmenter's equal to it,
-    unless the user set them."""
-    if len(raw) > 10:
-        step = float(np.median(np.diff(raw.stamp_ns))) / NS
-        measured = 1.0 / step if step > 0 else 0.0
-        if (
-            measured > 0
-            and ing.output_rate_hz > measured * 1.01
-            and "output_rate_hz" not in ov.get(NODE_IMU_INGEST, {})
-        ):
-            notes.append(
-                f"the recording is {measured:.1f} Hz: ingestion output {ing.output_rate_hz:g} -> {measured:.1f} Hz"
-            )
-            ing = dataclasses.replace(ing, output_rate_hz=round(measured, 6), input_rate_hz=0.0)
-        elif (
-            ing.input_rate_hz
-            and abs(ing.input_rate_hz - measured) > 0.05 * measured
-            and "input_rate_hz" not in ov.get(NODE_IMU_INGEST, {})
-        ):
-            notes.append(f"the recording is {measured:.1f} Hz, not {ing.input_rate_hz:g} Hz: input rate measured")
-            ing = dataclasses.replace(ing, input_rate_hz=0.0)
-    if abs(seg.imu_rate_hz - ing.output_rate_hz) > 1e-9 and "imu_rate_hz" not in ov.get(NODE_RUN_SEGMENTER, {}):
-        seg = dataclasses.replace(seg, imu_rate_hz=ing.output_rate_hz)
-    return ing, seg
+    unless the user set them (:func:`bac_measure.offline.fit_rates`)."""
+    ing, fitted = fit_rates(raw, ing, seg, ov.get(NODE_IMU_INGEST, {}), ov.get(NODE_RUN_SEGMENTER, {}), notes)
+    assert fitted is not None
+    return ing, fitted
 
 
 def _segmenter_template(files: Sequence[Path], overrides: Mapping[str, Any] | None) -> str:
@@ -465,14 +734,15 @@ def to_json(result: RescoreResult) -> dict[str, Any]:
 
 def parse_override(text: str) -> tuple[str, str, Any]:
     """``node.param=value`` (or ``:=``) -> (node, param, value parsed as YAML)."""
-    import yaml
-
     sep = ":=" if ":=" in text else "="
     if sep not in text or "." not in text.split(sep, 1)[0]:
         raise argparse.ArgumentTypeError(f"expected node.param=value, got {text!r}")
     key, raw = text.split(sep, 1)
     node, param = key.split(".", 1)
-    return node, param, yaml.safe_load(raw)
+    try:
+        return node.strip(), param.strip(), parse_value(raw)
+    except ParamsFileError as exc:
+        raise argparse.ArgumentTypeError(str(exc)) from exc
 
 
 def main(argv: Sequence[str] | None = None, profile_params: Callable[[str], list[Path]] | None = None) -> int:
@@ -510,6 +780,18 @@ def main(argv: Sequence[str] | None = None, profile_params: Callable[[str], list
     )
     ap.add_argument("--imu-topic", help="IMU topic of a foreign bag (default: its only sensor_msgs/Imu topic)")
     ap.add_argument("--odom-topic", help="odometry topic of a foreign bag (default: vehicle/odom or its only one)")
+    ap.add_argument(
+        "--channel-map",
+        type=Path,
+        help="MDF files: a YAML mapping roles (accel_x ... gyro_z, speed, distance) to channels",
+    )
+    ap.add_argument(
+        "--channel",
+        action="append",
+        default=[],
+        metavar="ROLE=NAME",
+        help="MDF files: map one role to a channel, e.g. speed=VehSpd (repeatable; wins over --channel-map)",
+    )
     ap.add_argument("--refit", action="store_true", help="fit the GP again on the rescored J and recommend")
     ap.add_argument("--json", type=Path, help="write the results as JSON")
     args = ap.parse_args(list(sys.argv[1:] if argv is None else argv))
@@ -534,6 +816,7 @@ def main(argv: Sequence[str] | None = None, profile_params: Callable[[str], list
             window=args.window,
             imu_topic=args.imu_topic,
             odom_topic=args.odom_topic,
+            channels=ChannelMap.load(args.channel_map, args.channel),
         )
         if args.refit:
             campaign = Path(args.paths[0])
@@ -543,7 +826,9 @@ def main(argv: Sequence[str] | None = None, profile_params: Callable[[str], list
         return 2
     sys.stdout.write(format_table(result) + "\n")
     if args.json:
-        args.json.write_text(json.dumps(to_json(result), indent=2))
+        from bac_measure.imu_health import jsonable
+
+        args.json.write_text(json.dumps(jsonable(to_json(result)), indent=2, allow_nan=False))
     return 0
 
 

@@ -27,6 +27,7 @@ IMU_GYRO = slice(13, 16)
 IMU_ACCEL = slice(25, 28)
 ODOM_DOUBLES = 85  # pose: position 3, orientation 4, covariance 36; twist: linear 3, angular 3, covariance 36
 ODOM_X = 0  # pose.pose.position.x
+ODOM_POSITION = slice(0, 3)  # pose.pose.position x, y, z
 ODOM_VX = 43  # twist.twist.linear.x
 
 
@@ -94,11 +95,11 @@ def imu(raws: Sequence[bytes]) -> tuple[IntArray, FloatArray, FloatArray] | None
 
 
 def odometry(raws: Sequence[bytes]) -> tuple[IntArray, FloatArray, FloatArray] | None:
-    """(stamps ns, pose.position.x, twist.linear.x) of CDR nav_msgs/Odometry messages, or None."""
+    """(stamps ns, pose.pose.position (n, 3), twist.twist.linear.x) of CDR nav_msgs/Odometry messages, or None."""
     d = decode(raws, ODOM_DOUBLES, 2)
     if d is None:
         return None
-    return d[0], d[1][:, ODOM_X].copy(), d[1][:, ODOM_VX].copy()
+    return d[0], np.ascontiguousarray(d[1][:, ODOM_POSITION]), d[1][:, ODOM_VX].copy()
 
 
 def frame_id(raw: bytes) -> str:

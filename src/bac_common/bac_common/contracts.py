@@ -23,7 +23,7 @@ SRV_APPLY_CALIBRATION = "ecu_bridge/apply_calibration"  # bac_msgs/srv/ApplyCali
 SRV_READ_CALIBRATION = "ecu_bridge/read_calibration"  # bac_msgs/srv/ReadCalibration
 SRV_RESTORE_BASELINE = "ecu_bridge/restore_baseline"  # std_srvs/srv/Trigger
 
-# environment every ROS process of bac gets (the network rule, DESIGN.md)
+# environment every ROS process of bac gets (README.md, "The network rule")
 ROS_ENV_DEFAULTS = {
     "ROS_AUTOMATIC_DISCOVERY_RANGE": "LOCALHOST",
     "RMW_IMPLEMENTATION": "rmw_fastrtps_cpp",

@@ -264,7 +264,7 @@ def drain_executor(executor: MultiThreadedExecutor, timeout_s: float) -> bool:
     return True
 
 
-def _start_exit_watchdog(name: str, timeout_s: float, code: int) -> None:
+def start_exit_watchdog(name: str, timeout_s: float, code: int) -> None:
     """Start a daemon thread that ends the process with ``code`` if it is still alive after ``timeout_s``.
 
     Clean-up after the job is done (the journal and bags are flushed as they go) must not keep a node
@@ -314,7 +314,7 @@ def run_node(
     finally:
         name = node.get_name() if node is not None else getattr(node_cls, "__name__", "bac")
         own = node.cleanup_time_s() if isinstance(node, BacNode) else 0.0
-        _start_exit_watchdog(name, cleanup_timeout_s + own, code)  # also covers the interpreter's exit
+        start_exit_watchdog(name, cleanup_timeout_s + own, code)  # also covers the interpreter's exit
         if executor is not None and not drain_executor(executor, cleanup_timeout_s / 2):
             sys.stderr.write(f"[{name}] a callback was still running at shutdown\n")
         if node is not None:

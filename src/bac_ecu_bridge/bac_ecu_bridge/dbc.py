@@ -290,8 +290,14 @@ def write_dbc(definition: CalibrationDefinition, path: str | Path, ids: CanIds |
 
 
 def shipped_dbc(name: str) -> Path:
-    """The DBC file shipped for a definition of ``ros_ws/config/calibrations`` (e.g. ``controller_ii``)."""
-    path = Path(str(resources.files("bac_ecu_bridge") / "dbc" / f"{name}.dbc"))
+    """The DBC file shipped for a definition of ``ros_ws/config/calibrations`` (e.g. ``controller_ii``):
+    ``share/bac_ecu_bridge/dbc/`` of the install space (ament index), else the package's own copy."""
+    from bac_common.paths import package_share
+
+    share = package_share("bac_ecu_bridge")
+    path = share / "dbc" / f"{name}.dbc" if share is not None else Path()
+    if share is None or not path.is_file():
+        path = Path(str(resources.files("bac_ecu_bridge") / "dbc" / f"{name}.dbc"))
     if not path.is_file():
         raise FileNotFoundError(f"no shipped DBC for '{name}'; generate one: python -m bac_ecu_bridge dbc --help")
     return path

@@ -11,6 +11,7 @@ import pytest
 
 from bac_common.errors import DefinitionError, OutOfBoundsError, UnknownParameterError
 from bac_common.paramspace import CalibrationDefinition, MetaParameter, RawParameter, uniform_parameters
+from bac_common.paths import resolve_definition
 from bac_ecu_bridge.errors import FrameError, InvalidRequestError, ProtocolConfigError
 from bac_ecu_bridge.protocol import (
     Ack,
@@ -145,7 +146,7 @@ def test_quantized_value_never_exceeds_upper_when_the_range_is_not_a_multiple_of
 
 
 def test_agrees_with_the_definitions_own_quantization() -> None:
-    d = CalibrationDefinition.load("ros_ws/config/calibrations/controller_ii.yaml")
+    d = CalibrationDefinition.load(resolve_definition("controller_ii"))
     codec = CalibrationCodec(d)
     for v in (0.0, 0.004, 0.005, 123.456789, 999.995, 1000.0):
         assert codec.param("p07").quantize(v) == d.parameter("p07").quantize(v)
@@ -166,7 +167,7 @@ def test_can_ids_are_checked() -> None:
 
 
 def test_codec_encodes_sets_by_name_and_refuses_before_sending() -> None:
-    d = CalibrationDefinition.load("ros_ws/config/calibrations/controller_i.yaml")
+    d = CalibrationDefinition.load(resolve_definition("controller_i"))
     codec = CalibrationCodec(d)
     assert codec.encode_set({"damping_rear": 0.25, "damping_front": 1.0}) == {1: 2500, 0: 10000}
     with pytest.raises(UnknownParameterError, match="damping_middle"):

@@ -54,7 +54,10 @@ IntArray = npt.NDArray[np.int64]
 BoolArray = npt.NDArray[np.bool_]
 
 MOUNT_SOURCES = ("config", "standstill")
+STANDSTILL_FALLBACKS = ("mean", "config")
 BIAS_SOURCES = ("none", "standstill")
+OFFSET_WARN_MPS2 = 0.1  # a mean a_z beyond this without a standstill bias: an offset that goes into RMS(a_z)
+MOUNT_CHECK_S = 2.0  # the mean a_z is judged once this much output holds data
 
 
 class IngestError(BacError, ValueError):
@@ -69,6 +72,9 @@ class IngestConfig:
     input_rate_hz: float = 0.0  # nominal rate of imu/data_raw, Hz; 0 = measured from the first samples
     rate_probe_samples: int = 50  # samples used to measure the input rate when input_rate_hz = 0
     mount_source: str = "config"  # "config": mount_*_deg; "standstill": roll/pitch from gravity at standstill
+    # without a standstill: "mean": what needs one (mount roll/pitch, bias) from the long-run mean of the
+    # accelerometer and gyro over standstill_timeout_s; "config": the configured mount, nominal gravity, no gyro bias
+    standstill_fallback: str = "mean"
     mount_roll_deg: float = 0.0  # sensor frame relative to the vehicle frame, intrinsic z-y-x (yaw, pitch, roll)
     mount_pitch_deg: float = 0.0
     mount_yaw_deg: float = 0.0
@@ -85,7 +91,8 @@ class IngestConfig:
     antialias_ratio: float = 0.8  # anti-alias cutoff as a fraction of the output Nyquist frequency
     antialias_order: int = 8  # Butterworth order of the anti-alias filter (-48 dB an octave above the cutoff)
     highpass_hz: float = 0.0  # optional 2nd-order high-pass on every axis (drift), Hz; 0 = off
-    health_window: int = 1000  # recent stamp steps used for rate and jitter
+    health_window: int = 1000  # recent stamp steps used for rate and jitter; 0 = all (offline: the whole recording)
+    max_mean_accel_z: float = 1.0  # |mean a_z| after gravity removal beyond this: gravity is not removed, m/s^2
 
     def __post_init__(self) -> None:
         problems = []
@@ -97,6 +104,10 @@ class IngestConfig:
             problems.append(f"rate_probe_samples must be >= 5, got {self.rate_probe_samples}")
         if self.mount_source not in MOUNT_SOURCES:
             problems.append(f"mount_source must be one of {MOUNT_SOURCES}, got {self.mount_source!r}")
+        if self.standstill_fallback not in STANDSTILL_FALLBACKS:
+            problems.append(
+                f"standstill_fallback must be one of {STANDSTILL_FALLBACKS}, got {self.standstill_fallback!r}"
+            )
         if self.bias_source not in BIAS_SOURCES:
             problems.append(f"bias_source must be one of {BIAS_SOURCES}, got {self.bias_source!r}")
         for name in ("mount_roll_deg", "mount_pitch_deg", "mount_yaw_deg"):
@@ -120,8 +131,10 @@ class IngestConfig:
             problems.append("antialias_order must be in [1, 10]")
         if self.highpass_hz < 0 or self.highpass_hz >= self.output_rate_hz / 4:
             problems.append("highpass_hz must be >= 0 and below a quarter of output_rate_hz")
-        if self.health_window < 10:
-            problems.append("health_window must be >= 10")
+        if self.health_window != 0 and self.health_window < 10:
+            problems.append("health_window must be 0 (all) or >= 10")
+        if not self.max_mean_accel_z > 0:
+            problems.append("max_mean_accel_z must be > 0")
         if problems:
             raise IngestError("invalid IMU ingestion configuration: " + "; ".join(problems))
 
@@ -131,14 +144,48 @@ class IngestConfig:
 
     @classmethod
     def from_params(cls, params: dict[str, Any]) -> IngestConfig:
-        """Build from a node's parameters (``ros__parameters`` of imu_ingest); unknown keys are ignored."""
+        """Build from a node's parameters (``ros__parameters`` of imu_ingest); unknown keys are ignored, a value
+        of the wrong type raises :class:`IngestError` naming it."""
         known = {f.name: f for f in fields(cls)}
         kwargs: dict[str, Any] = {}
         for k, v in params.items():
             if k in known:
-                default = known[k].default
-                kwargs[k] = type(default)(v) if isinstance(default, int | float | str) else v
+                try:
+                    kwargs[k] = typed_value(k, v, known[k].default)
+                except ValueError as exc:
+                    raise IngestError(f"imu_ingest: {exc}") from exc
         return cls(**kwargs)
+
+
+def typed_value(name: str, value: Any, default: Any) -> Any:
+    """``value`` as the type of ``default`` (a parameter's declared type), strictly: a bool is true/false, a
+    number a number (an int for an int parameter), a string a string; ValueError naming ``name`` otherwise."""
+    if isinstance(default, bool):
+        if isinstance(value, bool):
+            return value
+        if isinstance(value, str) and value.strip().lower() in ("true", "false"):
+            return value.strip().lower() == "true"
+        raise ValueError(f"{name} must be true or false, got {value!r}")
+    if isinstance(default, int):
+        if isinstance(value, int) and not isinstance(value, bool):
+            return value
+        if isinstance(value, float) and value.is_integer():
+            return int(value)
+        raise ValueError(f"{name} must be an integer, got {value!r}")
+    if isinstance(default, float):
+        if isinstance(value, int | float) and not isinstance(value, bool):
+            return float(value)
+        if isinstance(value, str):
+            try:
+                return float(value)
+            except ValueError:
+                pass
+        raise ValueError(f"{name} must be a number, got {value!r}")
+    if isinstance(default, str):
+        if isinstance(value, str):
+            return value
+        raise ValueError(f"{name} must be a string, got {value!r}")
+    return value
 
 
 def rotation_matrix(roll_deg: float, pitch_deg: float, yaw_deg: float) -> FloatArray:
@@ -164,6 +211,12 @@ def roll_pitch_from_gravity(accel_mean: npt.ArrayLike) -> tuple[float, float]:
     roll = math.atan2(float(a[1]), float(a[2]))
     pitch = math.atan2(-float(a[0]), math.hypot(float(a[1]), float(a[2])))
     return math.degrees(roll), math.degrees(pitch)
+
+
+def _tilt_deg(v: FloatArray) -> float:
+    """Angle between ``v`` and the +z axis, degrees."""
+    n = float(np.linalg.norm(v))
+    return math.degrees(math.acos(max(-1.0, min(1.0, float(v[2]) / n)))) if n > 0 else math.nan
 
 
 def _rotate(R: FloatArray, x: FloatArray) -> FloatArray:
@@ -247,6 +300,7 @@ class StreamHealth:
     gaps: int = 0
     gap_total_s: float = 0.0
     longest_gap_s: float = 0.0
+    lost_samples: int = 0  # samples the nominal rate says are missing between received stamps (gaps included)
     nonfinite: int = 0
     saturated: int = 0
     duplicates: int = 0
@@ -259,8 +313,77 @@ class StreamHealth:
     gyro_bias: tuple[float, float, float] = (0.0, 0.0, 0.0)
     bias_source: str = "none"
     standstill_window_ns: tuple[int, int] | None = None
+    # gravity at standstill (or in the long-run mean) in the vehicle frame with the mount used: along +z when
+    # the mount is right; NaN without either
+    gravity_tilt_deg: float = math.nan
+    mean_accel_mps2: tuple[float, float, float] = (math.nan, math.nan, math.nan)  # mean of the output (with data)
+    mean_samples: int = 0  # output samples with data in that mean
+    max_mean_accel_z: float = 1.0  # the limit of |mean a_z| (IngestConfig.max_mean_accel_z)
+    health_window: int = 1000  # steps the rate and jitter figures cover (0: the whole stream)
     started: bool = False  # False while waiting for the rate probe or the standstill
     events: list[StreamEvent] = field(default_factory=list)  # most recent faults (bounded)
+
+    @property
+    def samples_expected(self) -> int:
+        """Samples the nominal rate says should have arrived between the first and last stamp (restarts apart)."""
+        return self.samples_in - self.duplicates - self.out_of_order + self.lost_samples
+
+    @property
+    def loss_pct(self) -> float:
+        return 100.0 * self.lost_samples / self.samples_expected if self.samples_expected else 0.0
+
+    def gravity_problem(self) -> str:
+        """Why the output still holds gravity, naming the likely cause; "" when it does not (or too little
+        output to tell)."""
+        out_rate = self.output_rate_hz or 1.0
+        mz = self.mean_accel_mps2[2]
+        tilt = self.gravity_tilt_deg
+        mount = f"mount roll {self.mount_rpy_deg[0]:.1f} pitch {self.mount_rpy_deg[1]:.1f} deg from {self.mount_source}"
+        fix = (
+            "give the mount (mount_roll_deg, mount_pitch_deg: the sensor's rotation in the vehicle frame, e.g. "
+            "roll 180 for an IMU upside down, roll 90 for its y axis up, -90 for it down), or set mount_source "
+            "standstill and record a standstill of a few seconds"
+        )
+        if math.isfinite(tilt) and tilt > 20.0:
+            return (
+                f"gravity is {tilt:.0f} deg off the vehicle's z axis with the {mount}: the mount is wrong, the "
+                f"vertical acceleration and pitch rate are other axes; {fix}"
+            )
+        if self.mean_samples >= MOUNT_CHECK_S * out_rate and math.isfinite(mz) and abs(mz) > self.max_mean_accel_z:
+            mx, my = self.mean_accel_mps2[0], self.mean_accel_mps2[1]
+            g = np.array([mx, my, mz + self.gravity_mps2])
+            axis = ["x", "y", "z"][int(np.argmax(np.abs(g)))]
+            sign = "+" if g["xyz".index(axis)] > 0 else "-"
+            where = (
+                "the IMU is upside down"
+                if axis == "z" and sign == "-"
+                else f"gravity is on the vehicle's {sign}{axis} axis"
+                if axis != "z"
+                else "gravity is removed too little (a wrong gravity value or a large accelerometer offset)"
+            )
+            sensor = rotation_matrix(*self.mount_rpy_deg).T @ g
+            roll, pitch = roll_pitch_from_gravity(sensor)
+            return (
+                f"mean a_z {mz:+.2f} m/s^2 after gravity removal (limit {self.max_mean_accel_z:g}): {where} with the "
+                f"{mount} (the mean acceleration says roll {round(roll) + 0:d} pitch {round(pitch) + 0:d} deg); J "
+                f"would measure gravity, not the ride; {fix}"
+            )
+        return ""
+
+    def offset_warning(self) -> str:
+        """An offset of the vertical acceleration that goes into RMS(a_z) (no standstill bias); "" when none."""
+        mz = self.mean_accel_mps2[2]
+        if (
+            self.bias_source != "standstill"
+            and self.mean_samples >= MOUNT_CHECK_S * (self.output_rate_hz or 1.0)
+            and math.isfinite(mz)
+            and OFFSET_WARN_MPS2 < abs(mz) <= self.max_mean_accel_z
+        ):
+            return (
+                f"mean a_z {mz:+.3f} m/s^2 without a standstill to measure the bias: an accelerometer offset goes "
+                "straight into RMS(a_z) (set bias_source standstill and record a standstill, or kpi detrend)"
+            )
+        return ""
 
     @property
     def span_s(self) -> float:
@@ -292,7 +415,12 @@ class StreamHealth:
         parts = [
             f"{self.samples_in} samples over {self.span_s:.1f} s",
             f"rate {self.rate_hz:.2f} Hz (nominal {self.nominal_rate_hz:.2f} Hz)",
-            f"jitter {self.jitter_ms:.3f} ms (largest step {self.max_step_ms:.2f} ms)",
+            f"jitter {self.jitter_ms:.3f} ms (largest step {self.max_step_ms:.2f} ms"
+            + (
+                ", over the whole stream)"
+                if self.health_window == 0
+                else f", over the last {self.health_window} steps)"
+            ),
         ]
         if math.isfinite(self.arrival_jitter_ms):
             parts.append(f"arrival jitter {self.arrival_jitter_ms:.3f} ms, latency {self.latency_ms:.3f} ms")
@@ -301,6 +429,10 @@ class StreamHealth:
                 f"upsampled {self.nominal_rate_hz:.1f} -> {self.output_rate_hz:.1f} Hz: interpolation attenuates "
                 "the content near the input Nyquist frequency (set output_rate_hz <= the IMU rate)"
             )
+        parts.append(
+            f"{self.samples_expected} samples expected at the nominal rate, {self.samples_in} received, "
+            f"{self.lost_samples} lost ({self.loss_pct:.2f} %)"
+        )
         if self.gaps:
             parts.append(f"{self.gaps} gap(s), {self.gap_total_s:.3f} s in total, longest {self.longest_gap_s:.3f} s")
         else:
@@ -317,6 +449,9 @@ class StreamHealth:
         r, p, y = self.mount_rpy_deg
         parts.append(f"mount roll {r:.2f} deg pitch {p:.2f} deg yaw {y:.2f} deg from {self.mount_source}")
         parts.append(f"gravity {self.gravity_mps2:.4f} m/s^2, gyro bias from {self.bias_source}")
+        if self.mean_samples:
+            mx, my, mz = self.mean_accel_mps2
+            parts.append(f"mean acceleration after gravity removal x {mx:+.3f} y {my:+.3f} z {mz:+.3f} m/s^2")
         return "; ".join(parts)
 
 
@@ -346,7 +481,11 @@ class ImuIngestor:
             mount_source="config",
             gravity_mps2=c.gravity,
             bias_source="none",
+            max_mean_accel_z=c.max_mean_accel_z,
+            health_window=c.health_window,
         )
+        self._acc_sum = np.zeros(3)  # sum of the output's accelerations with data (the mean a_z check)
+        self._acc_n = 0
         self._events: deque[StreamEvent] = deque(maxlen=self.MAX_EVENTS)
         self._steps: deque[IntArray] = deque()  # recent stamp steps (ns), for rate and jitter
         self._steps_len = 0
@@ -433,7 +572,7 @@ class ImuIngestor:
             self._last_recv = int(r[-1])
             self._recv.append(np.column_stack([r, t]))
             self._recv_len += n
-            while self._recv_len - self._recv[0].shape[0] > self.config.health_window:
+            while self.config.health_window and self._recv_len - self._recv[0].shape[0] > self.config.health_window:
                 self._recv_len -= self._recv.popleft().shape[0]
         return IngestOutput.concatenate([o for o in outputs if len(o)])
 
@@ -450,14 +589,20 @@ class ImuIngestor:
         h.started = self.started
         h.nominal_rate_hz = self._nominal_rate
         h.output_rate_hz = self.config.output_rate_hz
+        if self._acc_n:
+            m = self._acc_sum / self._acc_n
+            h.mean_accel_mps2 = (float(m[0]), float(m[1]), float(m[2]))
+            h.mean_samples = self._acc_n
         if self._recv:
             w = self.config.health_window
-            pairs = np.concatenate(list(self._recv))[-w - 1 :]
+            pairs = np.concatenate(list(self._recv))
+            pairs = pairs[-w - 1 :] if w else pairs
             if pairs.shape[0] > 2:
                 h.arrival_jitter_ms = float(np.std(np.diff(pairs[:, 0]))) / 1e6
             h.latency_ms = float(np.median(pairs[:, 0] - pairs[:, 1])) / 1e6
         if self._steps_len:
-            steps = np.concatenate(list(self._steps))[-self.config.health_window :]
+            steps = np.concatenate(list(self._steps))
+            steps = steps[-self.config.health_window :] if self.config.health_window else steps
             med = float(np.median(steps))
             h.rate_hz = NS / med if med > 0 else 0.0
             h.jitter_ms = float(np.std(steps)) / 1e6
@@ -589,7 +734,7 @@ class ImuIngestor:
                 timed_out = (int(t[-1]) - int(t[0])) > round(c.standstill_timeout_s * NS)
                 if not (timed_out or force):
                     return IngestOutput.empty()
-                self._no_standstill()
+                self._no_standstill(t, x, bad)
             else:
                 self._use_standstill(t, x, *found)
         self._design_filter()
@@ -636,6 +781,7 @@ class ImuIngestor:
             self._R = rotation_matrix(roll, pitch, c.mount_yaw_deg)
             h.mount_rpy_deg = (roll, pitch, c.mount_yaw_deg)
             h.mount_source = "standstill"
+        h.gravity_tilt_deg = _tilt_deg(self._R @ mean[:3])
         if c.bias_source == "standstill":
             v = self._R @ mean[:3]
             gyro_bias = self._R @ mean[3:]
@@ -646,18 +792,48 @@ class ImuIngestor:
             h.gyro_bias = (float(gyro_bias[0]), float(gyro_bias[1]), float(gyro_bias[2]))
             h.bias_source = "standstill"
 
-    def _no_standstill(self) -> None:
+    def _no_standstill(self, t: IntArray, x: FloatArray, bad: BoolArray) -> None:
+        c = self.config
         h = self._health
-        if self.config.mount_source == "standstill":
+        used = "configured mount, nominal gravity and no gyro bias used (an accelerometer offset stays in a_z)"
+        if c.mount_source == "standstill":
             h.mount_source = "config (no standstill found)"
-        if self.config.bias_source == "standstill":
+        if c.bias_source == "standstill":
             h.bias_source = "none (no standstill found)"
+        # the long-run mean: the car's own accelerations average out over a drive, gravity (and the sensor's
+        # offsets) stay; over the searched span only, so that a stream pushed in chunks gives the same result
+        inside = (t <= int(t[0]) + round(c.standstill_timeout_s * NS)) & ~bad if t.size else np.zeros(0, bool)
+        if c.standstill_fallback == "mean" and np.count_nonzero(inside) >= 2:
+            mean = x[inside].mean(axis=0)
+            span = (int(t[inside][-1]) - int(t[inside][0])) / NS
+            if abs(float(np.linalg.norm(mean[:3])) - c.gravity) <= 0.25 * c.gravity:
+                what = f"mean accelerometer over {span:.1f} s (no standstill found)"
+                parts = []
+                if c.mount_source == "standstill":
+                    roll, pitch = roll_pitch_from_gravity(mean[:3])
+                    self._R = rotation_matrix(roll, pitch, c.mount_yaw_deg)
+                    h.mount_rpy_deg = (roll, pitch, c.mount_yaw_deg)
+                    h.mount_source = what
+                    parts.append("roll and pitch")
+                if c.bias_source == "standstill":
+                    v = self._R @ mean[:3]
+                    gyro_bias = self._R @ mean[3:]
+                    gyro_bias[2] = 0.0  # the mean yaw rate is the drive's turns, not a bias
+                    self._offset = np.concatenate([[v[0], v[1], v[2]], gyro_bias])
+                    if c.mount_source == "standstill":
+                        self._offset[0:2] = 0.0
+                    h.gravity_mps2 = float(v[2])
+                    h.gyro_bias = (float(gyro_bias[0]), float(gyro_bias[1]), 0.0)
+                    h.bias_source = f"long-run mean over {span:.1f} s (no standstill found)"
+                    parts.append("gravity and the roll/pitch gyro bias")
+                h.gravity_tilt_deg = _tilt_deg(self._R @ mean[:3])
+                if parts:
+                    used = f"{', '.join(parts)} from the long-run mean over {span:.1f} s"
         self._event(
             "no_standstill",
             int(h.first_stamp_ns or 0),
             int(h.last_stamp_ns or 0),
-            f"no standstill of {self.config.standstill_s} s within the first {self.config.standstill_timeout_s} s:"
-            " configured mount and nominal gravity used",
+            f"no standstill of {c.standstill_s} s within the first {c.standstill_timeout_s} s: {used}",
         )
 
     def _design_filter(self) -> None:
@@ -699,6 +875,9 @@ class ImuIngestor:
         prev = np.concatenate([[t[0] if first else self._last_stamp], t[:-1]]).astype(np.int64)
         steps = t - prev
         gap = steps > self.gap_threshold_ns
+        period = NS / (self._nominal_rate or self.config.output_rate_hz)
+        missing = np.rint(steps / period).astype(np.int64) - 1
+        h.lost_samples += int(np.sum(missing[missing > 0]))
         for i in np.flatnonzero(gap):
             gs = int(steps[i]) / NS
             h.gaps += 1
@@ -709,7 +888,7 @@ class ImuIngestor:
         if ok.size:
             self._steps.append(ok)
             self._steps_len += int(ok.size)
-            while self._steps_len - self._steps[0].size >= self.config.health_window:
+            while self.config.health_window and self._steps_len - self._steps[0].size >= self.config.health_window:
                 self._steps_len -= self._steps.popleft().size
         self._last_stamp = int(t[-1])
         # a mark = a bad sample, or a gap just before a sample; a good sample after a mark starts anew
@@ -773,7 +952,12 @@ class ImuIngestor:
             inside_hole = H[idx] & ~exact
             out[inside_hole] = np.nan
         self._health.samples_out += int(g.size)
-        self._health.samples_out_nan += int(np.count_nonzero(np.isnan(out[:, 2])))
+        have = ~np.isnan(out[:, 2])
+        self._health.samples_out_nan += int(g.size - np.count_nonzero(have))
+        if have.any():
+            a = out[have, :3]
+            self._acc_sum += (a[:, 0].sum(), a[:, 1].sum(), a[:, 2].sum())
+            self._acc_n += int(a.shape[0])
         return IngestOutput(g.astype(np.int64), out[:, :3].copy(), out[:, 3:].copy())
 
 
@@ -812,9 +996,19 @@ def diagnose(
         "stream restart": now.restarts - b.restarts,
     }
     problems = [f"{n} {k}{'s' if n > 1 else ''}" for k, n in new.items() if n > 0]
+    lost = now.lost_samples - b.lost_samples
+    if lost > 0 and not new["gap"]:
+        problems.append(f"{lost} lost sample{'s' if lost > 1 else ''} ({now.loss_pct:.2f} % of the stream)")
     level = OK
     if problems:
         level = ERROR if (new["gap"] or new["NaN/inf sample"] or new["saturated sample"] or new["clock jump"]) else WARN
+    gravity = now.gravity_problem()
+    if gravity:
+        problems.insert(0, gravity)
+        level = ERROR
+    elif now.offset_warning():
+        problems.append(now.offset_warning())
+        level = max(level, WARN)
     expected = expected_rate_hz or now.nominal_rate_hz
     if expected > 0 and now.rate_hz > 0 and abs(now.rate_hz - expected) > 0.1 * expected:
         problems.append(f"rate {now.rate_hz:.1f} Hz, expected {expected:.1f} Hz")
@@ -851,6 +1045,8 @@ def diagnose(
         ("samples_in", str(now.samples_in)),
         ("samples_out", str(now.samples_out)),
         ("samples_out_without_data", str(now.samples_out_nan)),
+        ("samples_expected", str(now.samples_expected)),
+        ("lost_samples", str(now.lost_samples)),
         ("gaps", str(now.gaps)),
         ("gap_total_s", f"{now.gap_total_s:.4f}"),
         ("longest_gap_s", f"{now.longest_gap_s:.4f}"),
@@ -867,6 +1063,8 @@ def diagnose(
         ("gravity_mps2", f"{now.gravity_mps2:.5f}"),
         ("gyro_bias_rad_s", ", ".join(f"{v:.5f}" for v in now.gyro_bias)),
         ("bias_source", now.bias_source),
+        ("mean_accel_z_mps2", f"{now.mean_accel_mps2[2]:.4f}"),
+        ("gravity_tilt_deg", f"{now.gravity_tilt_deg:.2f}"),
         ("started", str(now.started).lower()),
         ("first_stamp_ns", str(now.first_stamp_ns if now.first_stamp_ns is not None else "")),
         ("last_stamp_ns", str(now.last_stamp_ns if now.last_stamp_ns is not None else "")),
@@ -875,6 +1073,62 @@ def diagnose(
         e = now.events[-1]
         values.append(("last_fault", f"{e.kind} at {e.start_ns / NS:.3f} s: {e.detail}"))
     return Diagnosis(level, message, values)
+
+
+@dataclass(frozen=True)
+class Clipping:
+    """A sensor axis that sits flat at its extreme: the sensor's range was reached (clipped), whatever range
+    is configured."""
+
+    axis: str  # "accel_z", "gyro_x", ...
+    level: float  # the value it is flat at (m/s^2 or rad/s)
+    samples: int  # samples at that value
+    longest_run: int  # longest run of consecutive samples at it
+
+    def describe(self) -> str:
+        unit = "m/s^2" if self.axis.startswith("accel") else "rad/s"
+        extra = f" ({abs(self.level) / GRAVITY:.2f} g)" if self.axis.startswith("accel") else ""
+        return (
+            f"{self.axis} clipped at {self.level:+.4g} {unit}{extra}: {self.samples} samples flat at the recording's "
+            f"extreme, up to {self.longest_run} in a row"
+        )
+
+
+def find_clipping(accel: npt.ArrayLike, gyro: npt.ArrayLike, min_samples: int = 3) -> list[Clipping]:
+    """Axes whose recording sits flat at its maximum or minimum: a clipped sensor.
+
+    A natural peak passes through the levels just below it at least as often as it sits at its top (and a float
+    signal never repeats its maximum); a clipped one piles samples on one value: at least ``min_samples`` at the
+    extreme, two of them in a row, more than twice as many as at the next value below, and the extreme far from
+    the bulk of the signal (beyond 5 robust standard deviations from the median). Vectorized over each axis.
+    """
+    out: list[Clipping] = []
+    a = np.asarray(accel, dtype=np.float64)
+    w = np.asarray(gyro, dtype=np.float64)
+    for prefix, x in (("accel", a), ("gyro", w)):
+        for i, name in enumerate("xyz"):
+            col = x[:, i] if x.ndim == 2 and x.shape[1] > i else np.zeros(0)
+            col = col[np.isfinite(col)]
+            if col.size < 10:
+                continue
+            med = float(np.median(col))
+            spread = 1.4826 * float(np.median(np.abs(col - med)))
+            for level in (float(col.max()), float(col.min())):
+                if abs(level - med) <= max(5.0 * spread, 1e-12):
+                    continue
+                at = np.asarray(np.asarray(x[:, i]) == level)
+                n_at = int(np.count_nonzero(at))
+                if n_at < min_samples:
+                    continue
+                others = col[col != level]
+                nearest = others.max() if level > med else others.min()
+                if n_at <= 2 * int(np.count_nonzero(col == nearest)):
+                    continue
+                runs = np.diff(np.flatnonzero(np.diff(np.concatenate([[0], at.astype(np.int8), [0]]))))[::2]
+                longest = int(runs.max()) if runs.size else 0
+                if longest >= 2:
+                    out.append(Clipping(f"{prefix}_{name}", level, n_at, longest))
+    return out
 
 
 def ingest_all(

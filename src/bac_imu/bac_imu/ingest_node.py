@@ -51,6 +51,11 @@ INGEST_PARAMS = {
         "where the mounting rotation comes from: config (mount_*_deg) or standstill (roll and pitch from gravity)",
         choices=("config", "standstill"),
     ),
+    "standstill_fallback": ParamSpec(
+        "without a standstill (mount_source standstill): mean (roll and pitch from the mean accelerometer over "
+        "standstill_timeout_s) or config (mount_*_deg)",
+        choices=("mean", "config"),
+    ),
     "mount_roll_deg": ParamSpec("IMU mount roll relative to the vehicle frame, deg", -180.0, 180.0),
     "mount_pitch_deg": ParamSpec("IMU mount pitch relative to the vehicle frame, deg", -180.0, 180.0),
     "mount_yaw_deg": ParamSpec("IMU mount yaw relative to the vehicle frame, deg (never estimated)", -180.0, 180.0),
@@ -71,6 +76,11 @@ INGEST_PARAMS = {
     "antialias_order": ParamSpec("Butterworth order of the anti-alias filter", 1, 10),
     "highpass_hz": ParamSpec("optional high-pass on every axis against drift, Hz; 0 = off", 0.0, 1000.0),
     "health_window": ParamSpec("recent stamp steps used for rate and jitter", 10, 1_000_000),
+    "max_mean_accel_z": ParamSpec(
+        "|mean a_z| after gravity removal beyond this is an ERROR naming the cause (a wrong mount), m/s^2",
+        1e-3,
+        100.0,
+    ),
 }
 
 

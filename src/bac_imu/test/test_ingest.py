@@ -155,7 +155,13 @@ def test_no_standstill_falls_back_to_configured_mount_and_says_so() -> None:
     fs, n = 100.0, 4000
     k = np.arange(n)
     t, acc, gyr = stream(n, fs, az=3.0 * np.sin(2 * np.pi * 1.0 * k / fs))
-    cfg = IngestConfig(output_rate_hz=100.0, mount_source="standstill", standstill_timeout_s=10.0, mount_roll_deg=1.0)
+    cfg = IngestConfig(
+        output_rate_hz=100.0,
+        mount_source="standstill",
+        standstill_fallback="config",
+        standstill_timeout_s=10.0,
+        mount_roll_deg=1.0,
+    )
     ing = ImuIngestor(cfg)
     first = ing.push(t[:900], acc[:900], gyr[:900])
     assert len(first) == 0 and not ing.started  # still looking within the first 10 s
@@ -164,6 +170,24 @@ def test_no_standstill_falls_back_to_configured_mount_and_says_so() -> None:
     assert ing.started and len(rest) > 3000
     assert h.mount_source == "config (no standstill found)" and h.mount_rpy_deg == (1.0, 0.0, 0.0)
     assert any(e.kind == "no_standstill" for e in h.events)
+
+
+def test_no_standstill_takes_roll_and_pitch_from_the_long_run_mean_of_the_accelerometer() -> None:
+    """The default fallback: gravity from the mean over the searched span; chunked == one shot."""
+    fs, n = 100.0, 4000
+    k = np.arange(n)
+    t, acc, gyr = stream(n, fs, az=3.0 * np.sin(2 * np.pi * 1.0 * k / fs))
+    R = rotation_matrix(-90.0, 4.0, 0.0)  # y axis up, a little pitched
+    acc_s, gyr_s = acc @ R, gyr @ R  # sensor = R.T @ vehicle
+    cfg = IngestConfig(output_rate_hz=100.0, mount_source="standstill", standstill_timeout_s=10.0)
+    out, h = ingest_all(t, acc_s, gyr_s, cfg)
+    assert h.mount_source.startswith("mean accelerometer over 10.0 s")
+    assert h.mount_rpy_deg[0] == pytest.approx(-90.0, abs=0.5) and h.mount_rpy_deg[1] == pytest.approx(4.0, abs=0.5)
+    assert abs(h.mean_accel_mps2[2]) < 0.05 and h.gravity_problem() == ""
+    ing = ImuIngestor(cfg)
+    parts = [ing.push(t[i : i + 333], acc_s[i : i + 333], gyr_s[i : i + 333]) for i in range(0, n, 333)]
+    chunked = IngestOutput.concatenate([p for p in [*parts, ing.flush()] if len(p)])
+    assert np.array_equal(chunked.accel, out.accel) and np.array_equal(chunked.gyro, out.gyro)
 
 
 # --- faults -------------------------------------------------------------------------------------------

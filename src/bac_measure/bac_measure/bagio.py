@@ -29,11 +29,13 @@ from typing import Any
 import numpy as np
 import numpy.typing as npt
 from rosbags.highlevel import AnyReader
+from rosbags.interfaces import Qos
 from rosbags.typesys.store import Typestore
 
 from bac_common import cdr
 from bac_common.errors import BacError
 from bac_measure.recording import bac_typestore
+from bac_measure.segmentation import OdomSeries
 
 FloatArray = npt.NDArray[np.float64]
 IntArray = npt.NDArray[np.int64]
@@ -62,6 +64,12 @@ class ImuArrays:
     recv_ns: IntArray  # bag (receive) time, ns
     accel: FloatArray  # (n, 3) linear_acceleration, m/s^2
     gyro: FloatArray  # (n, 3) angular_velocity, rad/s
+    has_recv: bool = True  # False: recv_ns are the stamps (a recording without receive times, e.g. MDF)
+
+    @property
+    def recv_or_none(self) -> IntArray | None:
+        """The receive times when the recording has them (for the arrival jitter), else None."""
+        return self.recv_ns if self.has_recv else None
 
     def __len__(self) -> int:
         return int(self.stamp_ns.shape[0])
@@ -69,7 +77,8 @@ class ImuArrays:
 
 @dataclass(frozen=True)
 class OdomArrays:
-    """nav_msgs/Odometry messages of one topic: bac's distance (pose.position.x) and speed (twist.linear.x)."""
+    """nav_msgs/Odometry messages of one topic: the pose's position (``distance_m`` is its x: bac's odometer with
+    ``distance_source: position_x``; y, z default to 0) and the forward speed (twist.linear.x)."""
 
     topic: str
     frame_id: str
@@ -77,9 +86,20 @@ class OdomArrays:
     recv_ns: IntArray
     distance_m: FloatArray
     speed_mps: FloatArray
+    position_y_m: FloatArray | None = None
+    position_z_m: FloatArray | None = None
+
+    def __post_init__(self) -> None:
+        for name in ("position_y_m", "position_z_m"):
+            if getattr(self, name) is None:
+                object.__setattr__(self, name, np.zeros(np.shape(self.stamp_ns)))
 
     def __len__(self) -> int:
         return int(self.stamp_ns.shape[0])
+
+    def series(self) -> OdomSeries:
+        """As the segmentation's :class:`~bac_measure.segmentation.OdomSeries` (position and speed)."""
+        return OdomSeries(self.stamp_ns, self.distance_m, self.speed_mps, self.position_y_m, self.position_z_m)
 
 
 @dataclass(frozen=True)
@@ -99,13 +119,69 @@ def _norm(topic: str) -> str:
     return topic if topic.startswith("/") else "/" + topic
 
 
+BAG_KINDS = "a rosbag2 folder, .mcap, .db3 or ROS 1 .bag"
+_MAGIC = {
+    b"#ROSBAG V2.0": "bag",
+    b"\x89MCAP0\r\n": "bag",
+    b"SQLite format 3\x00": "bag",
+    b"MDF     ": "an MDF measurement file (read it with --channel-map / bac_measure.mdfio)",
+    b"UnFinMF ": "an MDF measurement file that was not finalized",
+    b"\x89PNG": "a PNG image",
+    b"\xff\xd8\xff": "a JPEG image",
+    b"GIF8": "a GIF image",
+    b"%PDF": "a PDF document",
+    b"PK\x03\x04": "a ZIP archive (unpack it first)",
+    b"\x1f\x8b": "a gzip archive (unpack it first)",
+    b"BZh": "a bzip2 archive (unpack it first)",
+    b"(\xb5/\xfd": "a zstd-compressed file (unpack it first)",
+    b"\x7fELF": "a program (ELF)",
+}
+
+
+def describe_file(path: Path) -> str:
+    """What a file is by its first bytes: "bag" for a bag, else a short description (a PNG image, a text
+    file, ...)."""
+    with path.open("rb") as f:
+        head = f.read(512)
+    for magic, what in _MAGIC.items():
+        if head.startswith(magic):
+            return what
+    try:
+        text = head.decode("utf-8")
+    except UnicodeDecodeError:
+        return "binary data of an unknown kind"
+    first = text.strip().splitlines()[0][:60] if text.strip() else ""
+    return f"a text file (it begins {first!r})" if first else "a text file of blank lines"
+
+
+def check_bag_path(path: Path) -> None:
+    """Raise BagError saying what was found when ``path`` is not something a bag reader can open."""
+    if not path.exists():
+        raise BagError(f"no such bag: {path}")
+    if path.is_dir():
+        if (path / "metadata.yaml").exists() or any(path.glob("*.mcap")) or any(path.glob("*.db3")):
+            return
+        if (path / "bags").is_dir():
+            return
+        entries = sorted(p.name for p in path.iterdir())
+        shown = ", ".join(entries[:8]) + (", ..." if len(entries) > 8 else "") if entries else "nothing"
+        raise BagError(
+            f"{path} is a folder but not a rosbag2 (no metadata.yaml, .mcap or .db3 in it; it holds {shown}); "
+            f"give {BAG_KINDS}"
+        )
+    if path.stat().st_size == 0:
+        raise BagError(f"{path} is empty (0 bytes): the recording was never written (a recorder that died at start?)")
+    kind = describe_file(path)
+    if kind != "bag":
+        raise BagError(f"{path} is not a bag: it is {kind}; give {BAG_KINDS}")
+
+
 class _Bag:
     """An open bag with friendly errors."""
 
     def __init__(self, path: str | Path) -> None:
         self.path = Path(path)
-        if not self.path.exists():
-            raise BagError(f"no such bag: {self.path}")
+        check_bag_path(self.path)
         self.store: Typestore = bac_typestore()
         try:
             self.reader = AnyReader([self.path], default_typestore=self.store)
@@ -120,7 +196,7 @@ class _Bag:
             "(ros2 bag reindex, mcap recover, rosbag reindex) and retry"
         )
         if isinstance(exc, UnicodeDecodeError | ValueError) and "codec" in text:
-            hint = "this is not a bag (rosbag2 folder, .mcap, .db3 or ROS 1 .bag)"
+            hint = f"this is not a bag ({BAG_KINDS})"
         return BagError(f"cannot read bag {self.path}: {text}; {hint}")
 
     def __enter__(self) -> _Bag:
@@ -148,9 +224,15 @@ class _Bag:
             if topics[t][0] != msgtype:
                 raise BagError(f"{self.path}: topic {t} carries {topics[t][0]}, not {msgtype}")
             return t
-        cands = sorted(t for t, (typ, _) in topics.items() if typ == msgtype)
+        cands = sorted(t for t, (typ, n) in topics.items() if typ == msgtype)
         if not cands:
-            raise BagError(f"{self.path} holds no {msgtype} messages; topics: {', '.join(sorted(topics)) or 'none'}")
+            shown = ", ".join(f"{t} ({typ}, {n})" for t, (typ, n) in sorted(topics.items())) or "none"
+            what = {
+                IMU_TYPE: "record the IMU driver's sensor_msgs/Imu topic (ros2 bag record /imu/data_raw ...)",
+                ODOM_TYPE: "record the odometry (nav_msgs/Odometry) to cut runs, or score the whole recording "
+                "(--window whole)",
+            }.get(msgtype, "record it")
+            raise BagError(f"{self.path} holds no {msgtype} messages; its topics: {shown}; {what}")
         if len(cands) == 1:
             return cands[0]
         for p in preferred:
@@ -176,6 +258,19 @@ def bag_topics(path: str | Path) -> dict[str, tuple[str, int]]:
     """Topic -> (message type, count) of a bag."""
     with _Bag(path) as bag:
         return bag.topics()
+
+
+def offered_qos(path: str | Path) -> dict[str, list[Qos]]:
+    """Topic -> the QoS profiles its publishers offered, as the bag recorded them (rosbag2 ``offered_qos_profiles``:
+    metadata.yaml, or an mcap channel's metadata); an empty list for a bag that recorded none (bags written by bac
+    before 2026-11-24, ROS 1 bags). :func:`bac_measure.recording.playback_qos` gives what ``ros2 bag play``
+    offers from them."""
+    with _Bag(path) as bag:
+        out: dict[str, list[Qos]] = {}
+        for c in bag.reader.connections:
+            profiles = getattr(getattr(c, "ext", None), "offered_qos_profiles", None) or []
+            out.setdefault(c.topic, []).extend(profiles)
+        return out
 
 
 # --- vectorized CDR (bac_common.cdr) ----------------------------------------------------------------------
@@ -234,26 +329,38 @@ def _odom_arrays(bag: _Bag, t: str, conns: list[Any], recv: list[int], raws: lis
         stamps, d = fast
         for i in (0, len(raws) - 1):
             m = bag.deserialize(raws[i], conns[i])
-            got = (d[i, cdr.ODOM_X], d[i, cdr.ODOM_VX], stamps[i])
-            want = (m.pose.pose.position.x, m.twist.twist.linear.x, _stamp(m.header))
+            got = (d[i, 0], d[i, 1], d[i, 2], d[i, cdr.ODOM_VX], stamps[i])
+            p = m.pose.pose.position
+            want = (p.x, p.y, p.z, m.twist.twist.linear.x, _stamp(m.header))
             if not all(_same(a, b) for a, b in zip(got, want, strict=True)):
                 fast = None
                 break
     if fast is not None:
         stamps, d = fast
-        return OdomArrays(t, _frame(raws[0]), stamps, recv_ns, d[:, cdr.ODOM_X].copy(), d[:, cdr.ODOM_VX].copy())
+        pos = d[:, cdr.ODOM_POSITION]
+        return OdomArrays(
+            t,
+            _frame(raws[0]),
+            stamps,
+            recv_ns,
+            pos[:, 0].copy(),
+            d[:, cdr.ODOM_VX].copy(),
+            pos[:, 1].copy(),
+            pos[:, 2].copy(),
+        )
     stamps = np.zeros(len(raws), np.int64)
-    dist = np.zeros(len(raws))
+    pos = np.zeros((len(raws), 3))
     speed = np.zeros(len(raws))
     frame = ""
     for i, (c, raw) in enumerate(zip(conns, raws, strict=True)):
         m = bag.deserialize(raw, c)
         stamps[i] = _stamp(m.header)
-        dist[i] = m.pose.pose.position.x
+        p = m.pose.pose.position
+        pos[i] = (p.x, p.y, p.z)
         speed[i] = m.twist.twist.linear.x
         if i == 0:
             frame = str(m.header.frame_id)
-    return OdomArrays(t, frame, stamps, recv_ns, dist, speed)
+    return OdomArrays(t, frame, stamps, recv_ns, pos[:, 0].copy(), speed, pos[:, 1].copy(), pos[:, 2].copy())
 
 
 def _collect(bag: _Bag, topics: list[str]) -> dict[str, tuple[list[Any], list[int], list[bytes]]]:
@@ -348,6 +455,67 @@ def run_starts(trials: Sequence[TrialEvent]) -> list[TrialEvent]:
 # --- writing (tests, benchmarks, conversions) ---------------------------------------------------------
 
 
+def _header(T: Any, ns: int, frame: str) -> Any:
+    return T["std_msgs/msg/Header"](
+        stamp=T["builtin_interfaces/msg/Time"](sec=int(ns // 1_000_000_000), nanosec=int(ns % 1_000_000_000)),
+        frame_id=frame,
+    )
+
+
+def imu_to_cdr(imu: ImuArrays) -> list[tuple[int, bytes]]:
+    """(receive time, ROS 2 CDR bytes of a sensor_msgs/Imu) of every sample: what a driver would have sent."""
+    ts = bac_typestore()
+    T = ts.types
+    zeros9 = np.zeros(9)
+    V3, Quat = T["geometry_msgs/msg/Vector3"], T["geometry_msgs/msg/Quaternion"]
+    out = []
+    for i in range(len(imu)):
+        m = T[IMU_TYPE](
+            header=_header(T, int(imu.stamp_ns[i]), imu.frame_id),
+            orientation=Quat(x=0.0, y=0.0, z=0.0, w=1.0),
+            orientation_covariance=np.array([-1.0, *zeros9[1:]]),
+            angular_velocity=V3(x=float(imu.gyro[i, 0]), y=float(imu.gyro[i, 1]), z=float(imu.gyro[i, 2])),
+            angular_velocity_covariance=zeros9,
+            linear_acceleration=V3(x=float(imu.accel[i, 0]), y=float(imu.accel[i, 1]), z=float(imu.accel[i, 2])),
+            linear_acceleration_covariance=zeros9,
+        )
+        out.append((int(imu.recv_ns[i]), bytes(ts.serialize_cdr(m, IMU_TYPE))))
+    return out
+
+
+def odom_to_cdr(odom: OdomArrays) -> list[tuple[int, bytes]]:
+    """(receive time, ROS 2 CDR bytes of a nav_msgs/Odometry) of every sample: distance (or the pose's x) in
+    pose.x with the pose's y and z when the arrays carry them, speed in twist.linear.x, as bac reads them."""
+    ts = bac_typestore()
+    T = ts.types
+    zeros36 = np.zeros(36)
+    V3, Quat = T["geometry_msgs/msg/Vector3"], T["geometry_msgs/msg/Quaternion"]
+    P, Pose, PwC = T["geometry_msgs/msg/Point"], T["geometry_msgs/msg/Pose"], T["geometry_msgs/msg/PoseWithCovariance"]
+    Tw, TwC = T["geometry_msgs/msg/Twist"], T["geometry_msgs/msg/TwistWithCovariance"]
+    series = odom.series()
+    oy = series.position_y_m if series.position_y_m is not None else np.zeros(len(odom))
+    oz = series.position_z_m if series.position_z_m is not None else np.zeros(len(odom))
+    out = []
+    for i in range(len(odom)):
+        m = T[ODOM_TYPE](
+            header=_header(T, int(odom.stamp_ns[i]), odom.frame_id),
+            child_frame_id="base_link",
+            pose=PwC(
+                pose=Pose(
+                    position=P(x=float(odom.distance_m[i]), y=float(oy[i]), z=float(oz[i])),
+                    orientation=Quat(x=0.0, y=0.0, z=0.0, w=1.0),
+                ),
+                covariance=zeros36,
+            ),
+            twist=TwC(
+                twist=Tw(linear=V3(x=float(odom.speed_mps[i]), y=0.0, z=0.0), angular=V3(x=0.0, y=0.0, z=0.0)),
+                covariance=zeros36,
+            ),
+        )
+        out.append((int(odom.recv_ns[i]), bytes(ts.serialize_cdr(m, ODOM_TYPE))))
+    return out
+
+
 def write_bag(
     path: str | Path,
     imu: ImuArrays | None = None,
@@ -361,61 +529,16 @@ def write_bag(
     if plugin is None:
         raise BagError(f"storage must be mcap or sqlite3, got {storage!r}")
     ts = bac_typestore()
-    T = ts.types
     p = Path(path)
-    zeros9 = np.zeros(9)
-    zeros36 = np.zeros(36)
-
-    def header(ns: int, frame: str) -> Any:
-        return T["std_msgs/msg/Header"](
-            stamp=T["builtin_interfaces/msg/Time"](sec=int(ns // 1_000_000_000), nanosec=int(ns % 1_000_000_000)),
-            frame_id=frame,
-        )
-
-    V3, Quat = T["geometry_msgs/msg/Vector3"], T["geometry_msgs/msg/Quaternion"]
     items: list[tuple[int, int, bytes]] = []  # (time, connection number, bytes)
     with Writer(p, version=9, storage_plugin=plugin) as w:
         conns = []
         if imu is not None:
             conns.append(w.add_connection(_norm(imu.topic), IMU_TYPE, typestore=ts))
-            for i in range(len(imu)):
-                m = T[IMU_TYPE](
-                    header=header(int(imu.stamp_ns[i]), imu.frame_id),
-                    orientation=Quat(x=0.0, y=0.0, z=0.0, w=1.0),
-                    orientation_covariance=np.array([-1.0, *zeros9[1:]]),
-                    angular_velocity=V3(x=float(imu.gyro[i, 0]), y=float(imu.gyro[i, 1]), z=float(imu.gyro[i, 2])),
-                    angular_velocity_covariance=zeros9,
-                    linear_acceleration=V3(
-                        x=float(imu.accel[i, 0]), y=float(imu.accel[i, 1]), z=float(imu.accel[i, 2])
-                    ),
-                    linear_acceleration_covariance=zeros9,
-                )
-                items.append((int(imu.recv_ns[i]), len(conns) - 1, bytes(ts.serialize_cdr(m, IMU_TYPE))))
+            items += [(t, len(conns) - 1, b) for t, b in imu_to_cdr(imu)]
         if odom is not None:
             conns.append(w.add_connection(_norm(odom.topic), ODOM_TYPE, typestore=ts))
-            P, Pose, PwC = (
-                T["geometry_msgs/msg/Point"],
-                T["geometry_msgs/msg/Pose"],
-                T["geometry_msgs/msg/PoseWithCovariance"],
-            )
-            Tw, TwC = T["geometry_msgs/msg/Twist"], T["geometry_msgs/msg/TwistWithCovariance"]
-            for i in range(len(odom)):
-                m = T[ODOM_TYPE](
-                    header=header(int(odom.stamp_ns[i]), odom.frame_id),
-                    child_frame_id="base_link",
-                    pose=PwC(
-                        pose=Pose(
-                            position=P(x=float(odom.distance_m[i]), y=0.0, z=0.0),
-                            orientation=Quat(x=0.0, y=0.0, z=0.0, w=1.0),
-                        ),
-                        covariance=zeros36,
-                    ),
-                    twist=TwC(
-                        twist=Tw(linear=V3(x=float(odom.speed_mps[i]), y=0.0, z=0.0), angular=V3(x=0.0, y=0.0, z=0.0)),
-                        covariance=zeros36,
-                    ),
-                )
-                items.append((int(odom.recv_ns[i]), len(conns) - 1, bytes(ts.serialize_cdr(m, ODOM_TYPE))))
+            items += [(t, len(conns) - 1, b) for t, b in odom_to_cdr(odom)]
         items.sort(key=lambda x: x[0])
         for t_ns, ci, data in items:
             w.write(conns[ci], t_ns, data)

@@ -13,7 +13,9 @@ It is applied in the frequency domain with the analog response itself
 bilinear IIR at 200 Hz misses the standard's table by 0.65 % at 12.5 Hz
 because of frequency warping. The signal is zero-padded by
 ``PAD_S`` seconds so that the circular convolution equals the linear one
-(the filter starts from rest at the first sample, like a causal filter).
+(the filter starts from rest at the first sample, like a causal filter); a
+``pre_roll`` of the signal before the window (the segmenter keeps ``pre_roll_s``
+of it) lets the window be weighted as part of the recording, not from rest.
 """
 
 from __future__ import annotations
@@ -60,16 +62,25 @@ def wk_response(frequency_hz: npt.ArrayLike) -> npt.NDArray[np.complex128]:
     return np.asarray(high * low * transition * step, dtype=np.complex128)
 
 
-def wk_filter(x: npt.ArrayLike, fs: float) -> FloatArray:
-    """The Wk-weighted signal of ``x`` sampled at ``fs`` Hz (filter starts from rest)."""
+def wk_filter(x: npt.ArrayLike, fs: float, pre_roll: npt.ArrayLike | None = None) -> FloatArray:
+    """The Wk-weighted signal of ``x`` sampled at ``fs`` Hz.
+
+    ``pre_roll``: the signal just before ``x`` (same rate): the filter runs through it first and the part over
+    ``x`` is returned, so ``x`` is weighted as the middle of a recording, not from rest (the 0.4 Hz band limit
+    rings for ~4 s). Without it the filter starts from rest at the first sample of ``x``.
+    """
     a = np.asarray(x, dtype=np.float64)
     n = a.shape[0]
     if n == 0:
         return a.copy()
-    nfft = 1 << math.ceil(math.log2(n + PAD_S * fs))
+    pre = np.zeros(0) if pre_roll is None else np.asarray(pre_roll, dtype=np.float64).reshape(-1)
+    if pre.size:
+        a = np.concatenate([pre, a])
+    m = a.shape[0]
+    nfft = 1 << math.ceil(math.log2(m + PAD_S * fs))
     spectrum = np.fft.rfft(a, nfft)
     h = wk_response(np.fft.rfftfreq(nfft, 1.0 / fs))
-    return np.asarray(np.fft.irfft(spectrum * h, nfft)[:n], dtype=np.float64)
+    return np.asarray(np.fft.irfft(spectrum * h, nfft)[pre.size : m], dtype=np.float64)
 
 
 def weighted_rms(x: npt.ArrayLike, fs: float) -> float:

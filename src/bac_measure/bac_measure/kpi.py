@@ -127,8 +127,13 @@ def score_signals(
     config: KpiConfig | None = None,
     run: RunId | None = None,
     window_start_ns: int = 0,
+    pre_roll_accel_z: npt.ArrayLike | None = None,
 ) -> Score:
-    """Score aligned signals (vertical acceleration m/s^2, pitch rate rad/s) sampled at ``sample_rate_hz``."""
+    """Score aligned signals (vertical acceleration m/s^2, pitch rate rad/s) sampled at ``sample_rate_hz``.
+
+    ``pre_roll_accel_z``: a_z just before the window (same rate), run through the Wk filter first so that the
+    weighted parts (Wk RMS, VDV) are those of the window inside the recording, not from rest. RMS(a_z) and
+    RMS(pitch rate) are of the window alone."""
     c = config or KpiConfig()
     az = np.asarray(accel_z, dtype=np.float64).reshape(-1)
     q = np.asarray(pitch_rate, dtype=np.float64).reshape(-1)
@@ -163,12 +168,16 @@ def score_signals(
     if bad:
         return invalid(f"{bad} non-finite sample(s) in the window")
     outcomes = {"peak_accel_z": float(np.max(np.abs(az))), "peak_pitch_rate": float(np.max(np.abs(q)))}
+    pre = np.zeros(0) if pre_roll_accel_z is None else np.asarray(pre_roll_accel_z, dtype=np.float64).reshape(-1)
+    pre = pre[int(np.flatnonzero(~np.isfinite(pre))[-1]) + 1 :] if pre.size and not np.all(np.isfinite(pre)) else pre
     if c.detrend:
-        az = az - az.mean()
+        mean_az = az.mean()
+        az = az - mean_az
+        pre = pre - mean_az
         q = q - q.mean()
     rms_az = rms(az)
     rms_q = rms(q)
-    aw = wk_filter(az, sample_rate_hz)
+    aw = wk_filter(az, sample_rate_hz, pre)
     wrms = rms(aw)
     vdv = vibration_dose_value(aw, sample_rate_hz)
     a_term = {"rms": rms_az, "iso_wk_rms": wrms, "vdv": vdv}[c.kpi]
@@ -202,7 +211,13 @@ def score(segment: Segment, config: KpiConfig | None = None) -> Score:
         s = score_signals(np.zeros(0), np.zeros(0), 1.0, c, segment.run, segment.window_start_ns)
         return _replace_reason(s, f"segment invalid: {segment.reason or 'no reason given'}")
     return score_signals(
-        segment.accel_z, segment.pitch_rate, segment.sample_rate_hz, c, segment.run, segment.window_start_ns
+        segment.accel_z,
+        segment.pitch_rate,
+        segment.sample_rate_hz,
+        c,
+        segment.run,
+        segment.window_start_ns,
+        segment.pre_roll_accel_z,
     )
 
 

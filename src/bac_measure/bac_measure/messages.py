@@ -31,6 +31,7 @@ def segment_to_msg(seg: Segment) -> RunSegment:
     m.coverage = float(seg.coverage)
     m.accel_z = np.asarray(seg.accel_z, dtype=np.float64)
     m.pitch_rate = np.asarray(seg.pitch_rate, dtype=np.float64)
+    m.accel_z_pre_roll = np.asarray(seg.pre_roll_accel_z, dtype=np.float64)
     m.valid = bool(seg.valid)
     m.reason = seg.reason
     return m
@@ -55,6 +56,8 @@ def segment_from_msg(m: RunSegment) -> Segment:
         pitch_rate=np.array(m.pitch_rate, dtype=np.float64),
         valid=bool(m.valid),
         reason=str(m.reason),
+        # a bag recorded before the field existed has none
+        pre_roll_accel_z=np.array(getattr(m, "accel_z_pre_roll", []), dtype=np.float64),
     )
 
 

@@ -1,9 +1,9 @@
 """Run segmentation: "cut & align" of paper algorithm 1 (pure core of ``run_segmenter``).
 
 A run is the IMU stream (``imu/vehicle``: vertical acceleration without
-gravity, pitch rate, fixed rate) and the odometry (``vehicle/odom``:
-distance since the run started, speed) buffered from the moment its trial
-became ready to drive. :func:`cut_run` cuts the segment of interest out of
+gravity, pitch rate, fixed rate) and the odometry (``vehicle/odom``, any
+nav_msgs/Odometry: the pose's position, the forward speed ``twist.linear.x``)
+buffered from the moment its trial became ready to drive. :func:`cut_run` cuts the segment of interest out of
 it and aligns it with a reference run:
 
 * **event** mode (a speed bump): the impact is the first sample whose
@@ -15,10 +15,22 @@ it and aligns it with a reference run:
   in one IMU sample), so that a run driven a little faster or slower is not
   stretched against the reference.
 
+**The distance** is what ``distance_source`` says: ``path_length`` (the length of the path of the
+pose, the sum of ``|Δ position|`` in x, y, z: any odometry after REP 105, wheel odometry,
+robot_localization, a GNSS/INS driver), ``speed_integral`` (the integral of the forward speed
+``twist.linear.x`` over the stamps: what a speed-only source gives) or ``position_x``
+(``pose.position.x`` read as an odometer: bac's convention before 2026-11-24, a trip or cumulative
+odometer). Path length and speed integral have no origin of their own: a drive's distance counts from
+its start (``distance_origin`` applies to ``position_x`` only). Each drive's distance is summed from its
+own first sample, so the live node and an offline tool given the same drive get the same distances,
+bit for bit, whatever else they buffered.
+
 **A run is one drive.** The odometry is split into drives: a drive begins where the distance
 counter resets, where the odometry was silent for ``odom_gap_s``, or where the vehicle speeds up
 through ``new_drive_speed_fraction`` of the target speed after being slower (a standstill, a turn:
-the drive begins at its slowest point). The run of an attempt is cut from the first drive that
+the drive begins at its slowest point). For ``path_length`` a jump of the pose (a
+step longer than ``ODOM_RESET_M`` plus twice what the speed allows: a reset of the odometry) also begins
+a drive, and the jump is not counted. The run of an attempt is cut from the first drive that
 holds the whole window after the attempt became ready to drive: for a first attempt that may be
 the drive in progress (a rolling start), for a **retry** (``retry=True``) only a drive that began
 after it, so the tail of an earlier run is never taken for the new one. A drive that began past
@@ -69,7 +81,9 @@ MODE_DISTANCE = 1  # bac_msgs/RunSegment.MODE_DISTANCE
 MODES = {"event": MODE_EVENT, "distance": MODE_DISTANCE}
 ALIGN_SIGNALS = ("accel_z", "pitch_rate", "both", "none")
 DISTANCE_ORIGINS = ("odom", "run_start")
-ODOM_RESET_M = 1.0  # a drop of the odometry distance larger than this is a reset (a new run)
+DISTANCE_SOURCES = ("position_x", "path_length", "speed_integral")
+ODOM_RESET_M = 1.0  # a drop of pose.x (position_x), or a pose jump beyond what the speed allows (path_length), larger
+# than this is a reset (a new drive)
 SPLINE_MARGIN = 16  # samples around a re-sampled window (the cubic prefilter's support, to 1e-9)
 RATE_PROBE = 200  # stamp steps used to measure the IMU rate when it is not configured
 
@@ -118,24 +132,41 @@ class ImuSeries:
 
 @dataclass(frozen=True)
 class OdomSeries:
-    """``vehicle/odom`` samples: stamps (ns), distance since the run started (m), speed (m/s)."""
+    """``vehicle/odom`` samples (nav_msgs/Odometry): stamps (ns), ``pose.pose.position`` x, y, z (m) and the
+    forward speed ``twist.twist.linear.x`` (m/s). ``distance_m`` is the position's x (bac's odometer with
+    ``distance_source: position_x``); y and z default to 0."""
 
     stamp_ns: IntArray
     distance_m: FloatArray
     speed_mps: FloatArray
+    position_y_m: FloatArray | None = None
+    position_z_m: FloatArray | None = None
 
     def __post_init__(self) -> None:
         t = np.asarray(self.stamp_ns, dtype=np.int64).reshape(-1)
         d = np.asarray(self.distance_m, dtype=np.float64).reshape(-1)
         v = np.asarray(self.speed_mps, dtype=np.float64).reshape(-1)
-        if not (t.shape == d.shape == v.shape):
-            raise SegmentationError(f"odometry arrays differ in length: {t.shape}, {d.shape}, {v.shape}")
+        y = np.zeros(t.shape) if self.position_y_m is None else np.asarray(self.position_y_m, np.float64).reshape(-1)
+        z = np.zeros(t.shape) if self.position_z_m is None else np.asarray(self.position_z_m, np.float64).reshape(-1)
+        if not (t.shape == d.shape == v.shape == y.shape == z.shape):
+            raise SegmentationError(
+                f"odometry arrays differ in length: {t.shape}, {d.shape}, {v.shape}, {y.shape}, {z.shape}"
+            )
         object.__setattr__(self, "stamp_ns", t)
         object.__setattr__(self, "distance_m", d)
         object.__setattr__(self, "speed_mps", v)
+        object.__setattr__(self, "position_y_m", y)
+        object.__setattr__(self, "position_z_m", z)
 
     def __len__(self) -> int:
         return int(self.stamp_ns.shape[0])
+
+    @property
+    def position(self) -> FloatArray:
+        """(n, 3) pose positions, m."""
+        y, z = self.position_y_m, self.position_z_m
+        assert y is not None and z is not None  # set by __post_init__
+        return np.column_stack([self.distance_m, y, z])
 
     @staticmethod
     def empty() -> OdomSeries:
@@ -153,6 +184,8 @@ class SegmentConfig:
     align_signal: str = "both"  # cross-correlated with the reference: accel_z, pitch_rate, both, none (no refinement)
     min_alignment: float = 0.5  # minimum normalized cross-correlation with the reference
     min_coverage: float = 1.0  # minimum fraction of the window with valid IMU samples (1 = every sample)
+    max_mean_accel_z: float = 1.0  # |mean a_z| over the window beyond this: gravity is in it (wrong mount), m/s^2
+    pre_roll_s: float = 5.0  # a_z before the window kept for the scorer's Wk filter (not from rest), s; 0 = none
     # event mode
     trigger_threshold_mps2: float = 1.0  # |a_z| that marks the impact, m/s^2
     trigger_after_m: float = 0.0  # ignore impacts before this odometry distance, m
@@ -164,7 +197,9 @@ class SegmentConfig:
     distance_end_m: float = 1600.0  # section end s1, odometry m
     distance_step_m: float = 0.0  # distance grid step, m; 0 = target speed / IMU rate
     max_shift_m: float = 15.0  # alignment search range, +- m (covers the driver's start offset)
-    distance_origin: str = "odom"  # "odom": pose.x is the distance since the run started; "run_start": subtract it
+    distance_source: str = "position_x"  # position_x (pose.x as an odometer), path_length, speed_integral
+    distance_origin: str = "odom"  # position_x: "odom": pose.x is the distance since the run started; "run_start":
+    # subtract its value at the drive's start (path_length and speed_integral always count from the drive's start)
     # drives (a retry is a new drive)
     new_drive_speed_fraction: float = 0.5  # a drive begins where the speed rises through this fraction of the target
     odom_gap_s: float = 1.0  # odometry silent this long (stamps): what follows is a new drive
@@ -185,6 +220,10 @@ class SegmentConfig:
             p.append(f"min_alignment must be in [-1, 1], got {self.min_alignment}")
         if not (0.0 < self.min_coverage <= 1.0):
             p.append(f"min_coverage must be in (0, 1], got {self.min_coverage}")
+        if not self.max_mean_accel_z > 0:
+            p.append(f"max_mean_accel_z must be > 0, got {self.max_mean_accel_z}")
+        if not (0.0 <= self.pre_roll_s <= 60.0):
+            p.append(f"pre_roll_s must be in [0, 60], got {self.pre_roll_s}")
         if not self.trigger_threshold_mps2 > 0:
             p.append("trigger_threshold_mps2 must be > 0")
         if not (0.0 <= self.pre_trigger_s < self.window_s):
@@ -199,6 +238,8 @@ class SegmentConfig:
             p.append("distance_step_m must be >= 0 (0 = automatic)")
         if not (0.0 <= self.max_shift_m <= 1000.0):
             p.append(f"max_shift_m must be in [0, 1000], got {self.max_shift_m}")
+        if self.distance_source not in DISTANCE_SOURCES:
+            p.append(f"distance_source must be one of {DISTANCE_SOURCES}, got {self.distance_source!r}")
         if self.distance_origin not in DISTANCE_ORIGINS:
             p.append(f"distance_origin must be one of {DISTANCE_ORIGINS}, got {self.distance_origin!r}")
         if not (0.0 < self.new_drive_speed_fraction < 1.0):
@@ -220,13 +261,17 @@ class SegmentConfig:
 
 
 def from_params(cls: Any, params: Mapping[str, Any]) -> Any:
-    """Build the dataclass ``cls`` from a mapping of node parameters (same names; others ignored)."""
+    """Build the dataclass ``cls`` from a mapping of node parameters (same names; others ignored). A value of
+    the wrong type (``detrend: "no"``, ``window_s: fast``) raises :class:`SegmentationError` naming it."""
+    from bac_imu.ingest import typed_value
+
     kwargs: dict[str, Any] = {}
     for f in fields(cls):
         if f.name in params:
-            default = f.default
-            v = params[f.name]
-            kwargs[f.name] = type(default)(v) if isinstance(default, bool | int | float | str) else v
+            try:
+                kwargs[f.name] = typed_value(f.name, params[f.name], f.default)
+            except ValueError as exc:
+                raise SegmentationError(f"{cls.__name__}: {exc}") from exc
     return cls(**kwargs)
 
 
@@ -250,6 +295,9 @@ class Segment:
     pitch_rate: FloatArray = field(repr=False)
     valid: bool
     reason: str
+    # a_z just before the window on the same grid (up to pre_roll_s, data of the same drive only): what the
+    # scorer's Wk filter runs through first, so the window does not start from rest; may be empty
+    pre_roll_accel_z: FloatArray = field(default_factory=lambda: np.zeros(0), repr=False)
 
     @property
     def window_start_s(self) -> float:
@@ -567,21 +615,28 @@ class _Drive:
     rolling: bool  # it began before the run's start (a first attempt may use it from there)
 
 
-def drive_starts(t: IntArray, d: FloatArray, v: FloatArray, config: SegmentConfig) -> IntArray:
+def drive_starts(
+    t: IntArray, d: FloatArray, v: FloatArray, config: SegmentConfig, resets: IntArray | None = None
+) -> IntArray:
     """Indices (into time-sorted odometry) where a drive begins; 0 is always one.
 
-    A drive begins at a reset of the distance counter, after odometry silent for ``odom_gap_s``, or at the
-    slowest point before the speed rises through ``new_drive_speed_fraction`` of the target speed.
+    A drive begins at a reset of the distance counter (``resets``; by default where ``d``, pose.x, drops by more
+    than ``ODOM_RESET_M``), after odometry silent for ``odom_gap_s``, or at the slowest point (smallest
+    ``|speed|``: a standstill, also between reversing and driving off) before the speed rises through
+    ``new_drive_speed_fraction`` of the target speed.
     """
     n = t.size
     if n == 0:
         return np.zeros(0, np.int64)
     starts = {0}
     dt = np.diff(t)
-    starts.update((np.flatnonzero(np.diff(d) < -ODOM_RESET_M) + 1).tolist())
+    if resets is None:
+        resets = np.flatnonzero(np.diff(d) < -ODOM_RESET_M) + 1
+    starts.update(np.asarray(resets, np.int64).tolist())
     starts.update((np.flatnonzero(dt > config.odom_gap_s * NS) + 1).tolist())
     thr = config.new_drive_speed_fraction * config.target_speed_mps
-    slow = v < thr
+    speed = np.abs(v)
+    slow = speed < thr
     rises = np.flatnonzero(slow[:-1] & ~slow[1:]) + 1
     if rises.size:
         # the slow stretch before each rise begins after the last fast sample before it
@@ -589,16 +644,48 @@ def drive_starts(t: IntArray, d: FloatArray, v: FloatArray, config: SegmentConfi
         for i in rises.tolist():  # one per slowdown, not per sample
             k = int(np.searchsorted(fast, i)) - 1
             j = int(fast[k]) + 1 if k >= 0 else 0
-            seg = v[j:i]
+            seg = speed[j:i]
             starts.add(j + int(seg.size - 1 - np.argmin(seg[::-1])))  # the last of its slowest samples
     return np.array(sorted(starts), dtype=np.int64)
 
 
+def odometry_steps(
+    odom: OdomSeries, config: SegmentConfig
+) -> tuple[IntArray, FloatArray, FloatArray, IntArray, FloatArray]:
+    """The odometry in stamp order as (stamps, pose.x, speed, resets) and the distance of each step ``i -> i + 1``
+    by ``distance_source`` (n - 1 values; 0 across a silence of ``odom_gap_s`` and across a reset)::
+
+        t, x, v, resets, steps = odometry_steps(odom, config)     # (t, x, v, resets) as sorted; steps: m
+
+    ``position_x``: the steps of pose.x (resets: where it drops by more than ``ODOM_RESET_M``);
+    ``path_length``: ``|Δ position|`` (resets: pose jumps longer than ``ODOM_RESET_M`` + twice the distance the
+    speed allows); ``speed_integral``: the trapezoid of ``twist.linear.x`` over the stamps (no resets).
+    """
+    order = np.argsort(odom.stamp_ns, kind="stable")
+    t, x, v = odom.stamp_ns[order], odom.distance_m[order], odom.speed_mps[order]
+    if t.size < 2:
+        return t, x, v, np.zeros(0, np.int64), np.zeros(0)
+    dt_s = np.diff(t) / NS
+    gap = dt_s > config.odom_gap_s
+    src = config.distance_source
+    if src == "position_x":
+        steps = np.diff(x)
+        reset = steps < -ODOM_RESET_M
+    elif src == "path_length":
+        steps = np.linalg.norm(np.diff(odom.position[order], axis=0), axis=1)
+        reach = 2.0 * np.maximum(np.abs(v[:-1]), np.abs(v[1:])) * dt_s
+        reset = steps > ODOM_RESET_M + reach
+    else:
+        steps = 0.5 * (v[:-1] + v[1:]) * dt_s
+        reset = np.zeros(steps.shape, bool)
+    steps = np.where(gap | reset, 0.0, steps)
+    return t, x, v, np.asarray(np.flatnonzero(reset) + 1, dtype=np.int64), np.asarray(steps, dtype=np.float64)
+
+
 def _drives(odom: OdomSeries, start_ns: int, config: SegmentConfig, retry: bool) -> list[_Drive]:
     """The drives a run starting at ``start_ns`` may be cut from, in order (see the module doc)."""
-    order = np.argsort(odom.stamp_ns, kind="stable")
-    t, d, v = odom.stamp_ns[order], odom.distance_m[order], odom.speed_mps[order]
-    starts = drive_starts(t, d, v, config)
+    t, x, v, resets, steps = odometry_steps(odom, config)
+    starts = drive_starts(t, x, v, config, resets)
     bounds = [*starts.tolist(), int(t.size)]
     out: list[_Drive] = []
     for k in range(len(bounds) - 1):
@@ -609,9 +696,12 @@ def _drives(odom: OdomSeries, start_ns: int, config: SegmentConfig, retry: bool)
         if rolling and retry:
             continue  # a retry is a new drive: not the one in progress when it was announced
         first = int(np.searchsorted(t[a:b], start_ns)) + a if rolling else a
-        dd = d[first:b]
-        if config.distance_origin == "run_start":
-            dd = dd - dd[0]
+        if config.distance_source == "position_x":
+            dd = x[first:b]
+            if config.distance_origin == "run_start":
+                dd = dd - dd[0]
+        else:  # summed from the drive's (or the run's) first sample: the same whatever was buffered before
+            dd = np.concatenate([[0.0], np.cumsum(steps[first : b - 1])])
         out.append(
             _Drive(
                 t=t[first:b].astype(np.float64),
@@ -675,6 +765,30 @@ def _coverage(g: _Grid, lo: float, hi: float) -> tuple[float, str]:
     return cov, (
         f"IMU data missing or invalid (gap, NaN/inf or saturation; see imu_ingest diagnostics) for "
         f"{missing.size / g.rate_hz:.3f} s of the window, between t = {t_first:.3f} s and {t_last:.3f} s"
+    )
+
+
+def _pre_roll(g: _Grid, pos: FloatArray) -> FloatArray:
+    """a_z at the positions ``pos`` (increasing, before a window) where the grid has data: the finite samples
+    after the last hole, cubic-spline re-sampled like the window."""
+    pos = pos[pos >= 0.0]
+    if pos.size < 2:
+        return np.zeros(0)
+    y = _resample(g.az, pos, fill=False)
+    bad = np.flatnonzero(~np.isfinite(y))
+    if bad.size:
+        y = y[int(bad[-1]) + 1 :]
+    return np.asarray(y, dtype=np.float64)
+
+
+def _gravity_reason(config: SegmentConfig, az: FloatArray) -> str:
+    m = float(np.nanmean(az)) if az.size and np.any(np.isfinite(az)) else 0.0
+    if abs(m) <= config.max_mean_accel_z:
+        return ""
+    return (
+        f"mean a_z {m:+.2f} m/s^2 over the window (limit {config.max_mean_accel_z:g}): gravity is in the vertical "
+        "acceleration, the IMU's mount is wrong (see imu_ingest's /diagnostics: give the mount or record a "
+        "standstill)"
     )
 
 
@@ -754,6 +868,8 @@ def _cut_event(g: _Grid, drive: _Drive, config: SegmentConfig, ref: Reference | 
     pos = start + np.arange(n, dtype=np.float64)
     az = _resample(g.az, pos, fill=cov >= config.min_coverage)
     q = _resample(g.q, pos, fill=cov >= config.min_coverage)
+    k_pre = start - np.arange(round(config.pre_roll_s * fs), 0, -1, dtype=np.float64)
+    pre_roll = _pre_roll(g, k_pre[k_pre >= p_begin])
     if ref is not None:
         score = _final_score(config, az, q, ref)
         if not (score >= config.min_alignment) and not any(r.startswith("alignment") for r in reasons):
@@ -761,6 +877,9 @@ def _cut_event(g: _Grid, drive: _Drive, config: SegmentConfig, ref: Reference | 
                 f"alignment correlation {score:.3f} below {config.min_alignment:.3f}: the run does not match "
                 "the reference (another event, or a very different response)"
             )
+    gravity = _gravity_reason(config, az)
+    if gravity:
+        reasons.append(gravity)
     t_start = g.t0_ns + start * g.step_ns
     t_end = t_start + n * g.step_ns
     d0, d1 = np.interp([t_start, t_end], ot, od)
@@ -785,6 +904,7 @@ def _cut_event(g: _Grid, drive: _Drive, config: SegmentConfig, ref: Reference | 
         pitch_rate=q,
         valid=not reasons,
         reason="; ".join(reasons),
+        pre_roll_accel_z=pre_roll,
     )
     return _Plan(segment=seg)
 
@@ -848,6 +968,9 @@ def _cut_distance(g: _Grid, drive: _Drive, config: SegmentConfig, ref: Reference
         reasons.insert(0, hole)
     az = _resample(g.az, pos, fill=cov >= config.min_coverage)
     q = _resample(g.q, pos, fill=cov >= config.min_coverage)
+    s_pre = s_fine[0] - np.arange(round(config.pre_roll_s * fs_eq), 0, -1, dtype=np.float64) * ds
+    s_pre = s_pre[s_pre >= od[0]]
+    pre_roll = _pre_roll(g, (_distance_to_time(ot, od, s_pre) - g.t0_ns) / g.step_ns) if s_pre.size else np.zeros(0)
     if ref is not None:
         score = _final_score(config, az, q, ref)
         if not (score >= config.min_alignment) and not any(r.startswith("alignment") for r in reasons):
@@ -856,6 +979,9 @@ def _cut_distance(g: _Grid, drive: _Drive, config: SegmentConfig, ref: Reference
                 f"the reference (wrong road section, or a start offset beyond the +-{config.max_shift_m:g} m "
                 "of max_shift_m)"
             )
+    gravity = _gravity_reason(config, az)
+    if gravity:
+        reasons.append(gravity)
     duration = (float(t_fine[-1]) - float(t_fine[0])) / NS
     mean_speed = (n - 1) * ds / duration if duration > 0 else math.nan
     speed = _speed_reason(config, mean_speed)
@@ -878,6 +1004,7 @@ def _cut_distance(g: _Grid, drive: _Drive, config: SegmentConfig, ref: Reference
         pitch_rate=q,
         valid=not reasons,
         reason="; ".join(reasons),
+        pre_roll_accel_z=pre_roll,
     )
     return _Plan(segment=seg)
 
@@ -996,9 +1123,13 @@ def window_segment(
     end_ns: int | None = None,
     imu_rate_hz: float = 0.0,
     run: RunId | None = None,
+    min_coverage: float = 1.0,
 ) -> Segment:
     """A plain time window of an IMU stream as a segment (no alignment, no speed check): for scoring
-    any recording, e.g. a bag that was not driven as a bac run."""
+    any recording, e.g. a bag that was not driven as a bac run.
+
+    ``min_coverage`` as in :class:`SegmentConfig`: below it the segment is invalid, naming where the data is
+    missing; at or above it the holes are bridged by linear interpolation (as :func:`cut_run` does)."""
     t = imu.stamp_ns
     keep = np.ones(t.shape, bool)
     if start_ns is not None:
@@ -1010,6 +1141,10 @@ def window_segment(
         raise SegmentationError("the window holds fewer than two IMU samples")
     g = _grid(sub, imu_rate(sub, imu_rate_hz))
     cov, hole = _coverage(g, 0, g.n - 1)
+    ok = cov >= min_coverage
+    az, q = (_fill_nan(g.az), _fill_nan(g.q)) if ok else (g.az, g.q)
+    if ok and hole:
+        hole = ""
     return Segment(
         run=run or RunId(),
         mode=MODE_EVENT,
@@ -1023,8 +1158,8 @@ def window_segment(
         mean_speed_mps=math.nan,
         target_speed_mps=math.nan,
         coverage=cov,
-        accel_z=g.az,
-        pitch_rate=g.q,
-        valid=cov >= 1.0,
-        reason=hole,
+        accel_z=az,
+        pitch_rate=q,
+        valid=ok,
+        reason="" if ok else f"{hole} (coverage {cov:.3f} below min_coverage {min_coverage:g})",
     )

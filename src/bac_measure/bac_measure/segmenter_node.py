@@ -2,10 +2,12 @@
 
 A run starts when ``bac/trial`` (latched) enters READY_TO_DRIVE for a new
 (campaign_id, trial_id, attempt); from its stamp on, ``imu/vehicle`` and
-``vehicle/odom`` are buffered (plus what arrived in the last ``pre_buffer_s``
-of wall time, for samples stamped after the trial's stamp that arrived before
-it, and the last odometry sample before that, so that a drive in progress is
-told from a new one); both are taken in batches from their DDS readers
+``vehicle/odom`` (any nav_msgs/Odometry: the distance is the pose's path length,
+the integral of the forward speed or pose.x, by ``distance_source``) are buffered
+(plus what arrived in the last ``pre_buffer_s`` of wall time, for samples
+stamped after the trial's stamp that arrived before it, and the last odometry
+sample before that, so that a drive in progress is told from a new one); both are
+taken in batches from their DDS readers
 (:mod:`bac_common.topic_drain`), so a simulator running many times faster than
 real time is followed. Every ``check_period_s`` the pure core
 (:func:`bac_measure.segmentation.run_status`) says whether the window is
@@ -81,6 +83,16 @@ SEGMENT_PARAMS = {
     ),
     "min_alignment": ParamSpec("minimum normalized cross-correlation with the reference", -1.0, 1.0),
     "min_coverage": ParamSpec("minimum fraction of the window with valid IMU samples (1 = all)", 1e-3, 1.0),
+    "max_mean_accel_z": ParamSpec(
+        "|mean a_z| over the window beyond this makes the run invalid: gravity is in it (a wrong mount), m/s^2",
+        1e-3,
+        100.0,
+    ),
+    "pre_roll_s": ParamSpec(
+        "a_z before the window handed to the scorer, so the ISO 2631-1 Wk filter does not start from rest, s",
+        0.0,
+        60.0,
+    ),
     "trigger_threshold_mps2": ParamSpec("event mode: |a_z| that marks the impact, m/s^2", 1e-3, 1000.0),
     "trigger_after_m": ParamSpec("event mode: ignore impacts before this odometry distance, m", 0.0, 1e6),
     "pre_trigger_s": ParamSpec("event mode: the window starts this long before the impact, s", 0.0, 600.0),
@@ -90,8 +102,14 @@ SEGMENT_PARAMS = {
     "distance_end_m": ParamSpec("distance mode: section end, odometry m", 0.0, 1e6),
     "distance_step_m": ParamSpec("distance mode: grid step, m; 0 = target speed / IMU rate", 0.0, 100.0),
     "max_shift_m": ParamSpec("distance mode: alignment search range, +- m (covers the start offset)", 0.0, 1000.0),
+    "distance_source": ParamSpec(
+        "the distance along the road from vehicle/odom: path_length (length of the pose's path, any odometry after "
+        "REP 105), speed_integral (integral of twist.linear.x), position_x (pose.position.x read as an odometer)",
+        choices=("position_x", "path_length", "speed_integral"),
+    ),
     "distance_origin": ParamSpec(
-        "odom: pose.x is the distance since the run started; run_start: subtract its value at the run start",
+        "position_x only: odom: pose.x is the distance since the run started; run_start: subtract its value at the "
+        "drive's start (path_length and speed_integral always count from the drive's start)",
         choices=("odom", "run_start"),
     ),
     "new_drive_speed_fraction": ParamSpec(
@@ -105,37 +123,35 @@ SEGMENT_PARAMS = {
 
 
 class _Stream:
-    """Samples of one topic: batches appended with their arrival (wall) time, consolidated into arrays on demand."""
+    """Samples of one topic (stamps and value columns): batches appended with their arrival (wall) time,
+    consolidated into arrays on demand."""
 
-    def __init__(self) -> None:
-        self.parts: list[tuple[np.ndarray, np.ndarray, np.ndarray]] = []
-        self.arr: tuple[np.ndarray, np.ndarray, np.ndarray] = (np.zeros(0, np.int64), np.zeros(0), np.zeros(0))
+    def __init__(self, columns: int = 2) -> None:
+        self.parts: list[tuple[np.ndarray, ...]] = []
+        self.arr: tuple[np.ndarray, ...] = (np.zeros(0, np.int64), *(np.zeros(0) for _ in range(columns)))
         self.arrival = np.zeros(0)  # wall time each sample was taken from the reader
 
-    def add(self, t: np.ndarray, a: np.ndarray, b: np.ndarray, wall: float) -> None:
+    def add(self, t: np.ndarray, *columns: np.ndarray, wall: float) -> None:
         if t.size:
-            self.parts.append((t, a, b))
+            self.parts.append((t, *columns))
             self.arrival = np.concatenate([self.arrival, np.full(t.size, wall)])
 
-    def arrays(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    def arrays(self) -> tuple[np.ndarray, ...]:
         if self.parts:
-            self.arr = (
-                np.concatenate([self.arr[0], *(p[0] for p in self.parts)]),
-                np.concatenate([self.arr[1], *(p[1] for p in self.parts)]),
-                np.concatenate([self.arr[2], *(p[2] for p in self.parts)]),
-            )
+            self.arr = tuple(np.concatenate([self.arr[k], *(p[k] for p in self.parts)]) for k in range(len(self.arr)))
             self.parts = []
         return self.arr
 
     def drop_arrived_before(self, wall: float, keep_last: int = 0) -> None:
         """Forget the samples taken before ``wall`` (monotonic), except the ``keep_last`` newest of them by stamp."""
-        t, a, b = self.arrays()
+        arr = self.arrays()
+        t = arr[0]
         keep = self.arrival >= wall
         if keep_last and not np.all(keep):
             old = np.flatnonzero(~keep)
             keep[old[np.argsort(t[old], kind="stable")[-keep_last:]]] = True
         if not np.all(keep):
-            self.arr = (t[keep], a[keep], b[keep])
+            self.arr = tuple(a[keep] for a in arr)
             self.arrival = self.arrival[keep]
 
 
@@ -197,8 +213,8 @@ class RunSegmenterNode(BacNode):
             ref_file = str(Path(campaign_dir) / "reference.npz")
         tmpl = Reference.load(template) if template else None
         self.references = ReferenceStore(ref_file, tmpl)
-        self.imu = _Stream()
-        self.odom = _Stream()
+        self.imu = _Stream(2)  # a_z, pitch rate
+        self.odom = _Stream(4)  # pose x, speed, pose y, pose z
         self.run: RunId | None = None
         self.run_start_ns = 0
         self.run_wall_start = 0.0
@@ -240,7 +256,7 @@ class RunSegmenterNode(BacNode):
                 q = np.array([m.angular_velocity.y for m in msgs])
             else:
                 t, az, q = d[0], d[1][:, 2].copy(), d[2][:, 1].copy()
-            self.imu.add(t, az, q, wall)
+            self.imu.add(t, az, q, wall=wall)
             self.last_imu_ros_ns = self.get_clock().now().nanoseconds
         raws = self.odom_drain.take()
         if raws:
@@ -249,10 +265,11 @@ class RunSegmenterNode(BacNode):
                 msgs = [deserialize_message(r, Odometry) for r in raws]
                 o = (
                     np.array([m.header.stamp.sec * 1_000_000_000 + m.header.stamp.nanosec for m in msgs], np.int64),
-                    np.array([m.pose.pose.position.x for m in msgs]),
+                    np.array([[p.x, p.y, p.z] for p in (m.pose.pose.position for m in msgs)]).reshape(-1, 3),
                     np.array([m.twist.twist.linear.x for m in msgs]),
                 )
-            self.odom.add(*o, wall)
+            t, pos, v = o
+            self.odom.add(t, pos[:, 0].copy(), v, pos[:, 1].copy(), pos[:, 2].copy(), wall=wall)
 
     def _on_trial(self, msg: Trial) -> None:
         key = (str(msg.campaign_id), int(msg.trial_id), int(msg.attempt))
@@ -345,8 +362,8 @@ class RunSegmenterNode(BacNode):
 
     def _diagnostics(self) -> None:
         """The segmenter's state: idle or buffering which run, what it waits for, what it holds."""
-        t_imu, _, _ = self.imu.arrays()
-        t_odom, _, _ = self.odom.arrays()
+        t_imu = self.imu.arrays()[0]
+        t_odom = self.odom.arrays()[0]
         st = DiagnosticStatus()
         st.name = f"{self.get_name()}: runs"
         st.hardware_id = ""

@@ -23,6 +23,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy import signal
 
+from bac_measure.bagio import ImuArrays
 from bac_measure.segmentation import ImuSeries, OdomSeries
 
 NS = 1_000_000_000
@@ -42,12 +43,17 @@ class SynthRun:
 
 
 def _mode(x: np.ndarray, f_hz: float, zeta: float, derivatives: int) -> np.ndarray:
-    """Displacement transmissibility of a damped mode, differentiated ``derivatives`` times."""
+    """Displacement transmissibility of a damped mode, differentiated ``derivatives`` times.
+
+    The transmissibility is proper (bilinear, at the fine rate); the derivatives are taken numerically after it:
+    the bilinear transform of the improper s^2 H(s) put a pole at Nyquist, whose ringing aliased into a constant
+    offset of tens of m/s^2 once sampled at the IMU's rate."""
     w = 2 * np.pi * f_hz
-    num = np.polymul([1.0] + [0.0] * derivatives, [2 * zeta * w, w * w])
-    den = [1.0, 2 * zeta * w, w * w]
-    b, a = signal.bilinear(num, den, fs=FINE_HZ)
-    return np.asarray(signal.lfilter(b, a, x), dtype=np.float64)
+    b, a = signal.bilinear([2 * zeta * w, w * w], [1.0, 2 * zeta * w, w * w], fs=FINE_HZ)
+    y = np.asarray(signal.lfilter(b, a, x), dtype=np.float64)
+    for _ in range(derivatives):
+        y = np.gradient(y, 1.0 / FINE_HZ)
+    return y
 
 
 def bump_profile(x: np.ndarray, at_m: float, height: float = 0.06, length: float = 2.0) -> np.ndarray:
@@ -169,3 +175,84 @@ def road_run(
         t0_ns,
     )
     return SynthRun(imu, odom, t0_ns, offset_m, speed_mps, 0)
+
+
+# --- raw IMU recordings shaped like real ones (issue 21) -------------------------------------------------------
+
+
+@dataclass
+class ImuRecording:
+    """A raw IMU recording (sensor frame, gravity in, the sensor's offsets and noise) and its truth."""
+
+    raw: ImuArrays
+    accel_z: np.ndarray  # truth at the raw stamps: vehicle-frame vertical acceleration without gravity, m/s^2
+    pitch_rate: np.ndarray  # truth: vehicle-frame pitch rate, rad/s
+    mount_rpy_deg: tuple[float, float, float]
+    lost: int  # samples dropped inside the stream (single losses and gaps)
+
+    @property
+    def j_true(self) -> float:
+        """J (paper eq. 1) of the truth over the recording: RMS(a_z) + RMS(pitch rate)."""
+        return float(np.sqrt(np.mean(self.accel_z**2)) + np.sqrt(np.mean(self.pitch_rate**2)))
+
+
+def imu_recording(
+    duration_s: float = 60.0,
+    fs: float = 250.0,
+    mount_rpy_deg: tuple[float, float, float] = (0.0, 0.0, 0.0),
+    standstill_s: float = 0.0,
+    accel_bias: tuple[float, float, float] = (0.05, -0.08, 0.3),
+    gyro_bias: tuple[float, float, float] = (0.004, -0.006, 0.002),
+    noise: float = 0.02,
+    seed: int = 0,
+    gaps: tuple[tuple[float, float], ...] = (),
+    single_losses: int = 0,
+    bumps_mps2: float = 0.0,
+    clip_mps2: float = 0.0,
+    jitter_s: float = 0.0,
+    t0_ns: int = T_START,
+) -> ImuRecording:
+    """A raw IMU recording of a car on a rough road: heave at 1.3 and 9 Hz, pitch at 1.6 Hz, longitudinal and
+    lateral accelerations that average out over the drive, after ``standstill_s`` at rest.
+
+    ``mount_rpy_deg``: the sensor's mount (sensor = R.T @ vehicle, R = rotation_matrix(roll, pitch, yaw)):
+    (90, 0, 0) has the sensor's y axis up, (180, 0, 0) is upside down. ``gaps``: (start_s, length_s) without
+    samples; ``single_losses``: isolated samples dropped at random; ``bumps_mps2``: the peak of a few impacts
+    (every 10 s); ``clip_mps2``: the accelerometer's full scale (values clipped there, e.g. 2 g = 19.6133).
+    """
+    from bac_imu.ingest import GRAVITY, rotation_matrix
+
+    rng = np.random.default_rng(seed)
+    n = round(duration_s * fs)
+    t = np.arange(n) / fs
+    moving = np.clip((t - standstill_s) / 2.0, 0.0, 1.0)  # rolls off smoothly after the standstill
+    az = moving * (0.6 * np.sin(2 * np.pi * 1.3 * t + 0.4) + 0.15 * np.sin(2 * np.pi * 9.0 * t + 1.1))
+    if bumps_mps2:
+        for c in np.arange(standstill_s + 5.0, duration_s - 1.0, 10.0):
+            az += bumps_mps2 * np.exp(-(((t - c) / 0.04) ** 2)) * np.cos(2 * np.pi * 7.0 * (t - c))
+    q = moving * 0.06 * np.sin(2 * np.pi * 1.6 * t + 0.9)
+    ax = moving * 0.8 * np.sin(2 * np.pi * t / 20.0)  # accelerate, brake: no net speed over 20 s
+    ay = moving * 0.5 * np.sin(2 * np.pi * t / 14.0 + 0.3)  # curves left and right
+    wz = moving * 0.1 * np.sin(2 * np.pi * t / 14.0 + 0.3)
+    vehicle_acc = np.column_stack([ax, ay, az + GRAVITY])
+    vehicle_gyr = np.column_stack([0.02 * moving * np.sin(2 * np.pi * 0.9 * t), q, wz])
+    R = rotation_matrix(*mount_rpy_deg)
+    acc = vehicle_acc @ R + np.asarray(accel_bias) + noise * rng.standard_normal((n, 3))
+    gyr = vehicle_gyr @ R + np.asarray(gyro_bias) + 0.1 * noise * rng.standard_normal((n, 3))
+    if clip_mps2:
+        acc = np.clip(acc, -clip_mps2, clip_mps2)
+    stamps = t0_ns + np.round(t * NS).astype(np.int64)
+    if jitter_s:
+        stamps += np.round(rng.normal(0.0, jitter_s, n) * NS).astype(np.int64)
+        stamps = np.maximum.accumulate(stamps)
+    keep = np.ones(n, bool)
+    for start, length in gaps:
+        keep &= ~((t >= start) & (t < start + length))
+    if single_losses:
+        inner = np.flatnonzero(keep[1:-1]) + 1
+        drop = rng.choice(inner, size=single_losses, replace=False)
+        drop = drop[keep[drop - 1] & keep[drop + 1]]  # isolated: both neighbours kept
+        keep[drop] = False
+    recv = stamps + 200_000 + rng.integers(0, 2_000_000, n)  # the bag's receive times: 0.2-2.2 ms later
+    raw = ImuArrays("imu/data_raw", "imu_link", stamps[keep], recv[keep], acc[keep], gyr[keep])
+    return ImuRecording(raw, az[keep], q[keep], mount_rpy_deg, int(n - np.count_nonzero(keep)))

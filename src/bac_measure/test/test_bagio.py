@@ -36,7 +36,14 @@ def arrays(n: int = 300, seed: int = 0) -> tuple[ImuArrays, OdomArrays]:
     )
     to = T0 + np.arange(n // 10, dtype=np.int64) * 20_000_000
     odom = OdomArrays(
-        "vehicle/odom", "odom", to, to + 1, np.cumsum(rng.uniform(0, 0.3, to.size)), rng.uniform(8, 9, to.size)
+        "vehicle/odom",
+        "odom",
+        to,
+        to + 1,
+        np.cumsum(rng.uniform(0, 0.3, to.size)),
+        rng.uniform(8, 9, to.size),
+        -40.0 + 0.01 * rng.standard_normal(to.size),  # a pose's y and z (REP 105 odom frame)
+        3.0 + np.cumsum(rng.uniform(0, 0.01, to.size)),
     )
     return imu, odom
 
@@ -52,6 +59,9 @@ def test_rosbag2_round_trip_is_exact(tmp_path: Path, storage: str) -> None:
     o = read_odom(bag)
     assert np.array_equal(o.stamp_ns, odom.stamp_ns)
     assert np.array_equal(o.distance_m, odom.distance_m) and np.array_equal(o.speed_mps, odom.speed_mps)
+    assert np.array_equal(o.position_y_m, odom.position_y_m) and np.array_equal(o.position_z_m, odom.position_z_m)
+    # the odometry reaches the segmentation whole: each distance source sees the same pose and speed
+    np.testing.assert_array_equal(o.series().position, odom.series().position)
     topics = bag_topics(bag)
     assert topics["/imu/data_raw"] == ("sensor_msgs/msg/Imu", 300) and topics["/vehicle/odom"][1] == 30
 
@@ -101,7 +111,7 @@ def test_vectorized_cdr_matches_rosbags_with_mixed_frame_ids() -> None:
             child_frame_id=c,
             pose=T["geometry_msgs/msg/PoseWithCovariance"](
                 pose=T["geometry_msgs/msg/Pose"](
-                    position=T["geometry_msgs/msg/Point"](x=10.0 * i, y=1.0, z=2.0),
+                    position=T["geometry_msgs/msg/Point"](x=10.0 * i, y=1.0 - i, z=2.0 + 0.25 * i),
                     orientation=Q(x=0.0, y=0.0, z=0.0, w=1.0),
                 ),
                 covariance=np.zeros(36),
@@ -116,6 +126,15 @@ def test_vectorized_cdr_matches_rosbags_with_mixed_frame_ids() -> None:
     assert fast is not None
     assert fast[1][:, 0].tolist() == [10.0 * i for i in range(9)]
     assert fast[1][:, 43].tolist() == [0.5 * i for i in range(9)]
+    # the nodes' decoder (bac_common.cdr.odometry): the pose's position x, y, z and the forward speed
+    from bac_common import cdr
+
+    odo = cdr.odometry(raws)
+    assert odo is not None
+    t, pos, vx = odo
+    assert t.tolist() == [i * 1_000_000_000 for i in range(9)]
+    np.testing.assert_array_equal(pos, [[10.0 * i, 1.0 - i, 2.0 + 0.25 * i] for i in range(9)])
+    assert vx.tolist() == [0.5 * i for i in range(9)]
 
 
 def test_ros1_real_recording_is_read() -> None:
@@ -180,7 +199,7 @@ def test_broken_bags_give_clear_errors(tmp_path: Path) -> None:
         read_imu(ros1)
     junk = tmp_path / "junk.bag"
     junk.write_bytes(np.random.default_rng(0).bytes(4000))
-    with pytest.raises(BagError, match=r"cannot read bag .*junk\.bag"):
+    with pytest.raises(BagError, match=r"junk\.bag is not a bag: it is binary data of an unknown kind"):
         read_imu(junk)
     sq = write_bag(tmp_path / "sq", imu, storage="sqlite3")
     db = next(sq.glob("*.db3"))
@@ -201,3 +220,34 @@ def test_topic_choice_errors_name_what_is_there(tmp_path: Path) -> None:
     only_odom = write_bag(tmp_path / "o", None, odom)
     with pytest.raises(BagError, match="holds no sensor_msgs/msg/Imu"):
         read_imu(only_odom)
+
+
+def test_each_kind_of_bad_input_gets_its_own_message(tmp_path: Path) -> None:
+    """Not a bag (a folder, an image, a text file), empty, a bag without an IMU topic: what was found, what to do."""
+    folder = tmp_path / "photos"
+    folder.mkdir()
+    (folder / "a.jpg").write_bytes(b"\xff\xd8\xff\xe0" + bytes(100))
+    with pytest.raises(BagError, match=r"a folder but not a rosbag2 \(no metadata.yaml.*it holds a\.jpg\)"):
+        read_imu(folder)
+    with pytest.raises(BagError, match="is not a bag: it is a JPEG image"):
+        read_imu(folder / "a.jpg")
+    png = tmp_path / "plot.bag"
+    png.write_bytes(b"\x89PNG\r\n\x1a\n" + bytes(100))
+    with pytest.raises(BagError, match="is not a bag: it is a PNG image"):
+        read_imu(png)
+    text = tmp_path / "notes.bag"
+    text.write_text("imu recorded at 400 Hz\n")
+    with pytest.raises(BagError, match="is not a bag: it is a text file \\(it begins 'imu recorded at 400 Hz'\\)"):
+        read_imu(text)
+    empty = tmp_path / "empty.bag"
+    empty.write_bytes(b"")
+    with pytest.raises(BagError, match=r"is empty \(0 bytes\): the recording was never written"):
+        read_imu(empty)
+    _, odom = arrays(20)
+    no_imu = write_bag(tmp_path / "odom_only", None, odom)
+    with pytest.raises(
+        BagError,
+        match=r"holds no sensor_msgs/msg/Imu messages; its topics: /vehicle/odom \(nav_msgs/msg/Odometry, 2\); "
+        "record the IMU driver's sensor_msgs/Imu topic",
+    ):
+        read_imu(no_imu)

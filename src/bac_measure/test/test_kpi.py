@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -45,6 +46,73 @@ def test_wk_gain_matches_iso2631_table_within_1_percent(freq: float, expected: f
     gain = rms(y[steady]) / rms(x[steady])
     assert gain == pytest.approx(expected, rel=0.01)
     assert abs(wk_response(freq)) == pytest.approx(expected, rel=0.01)
+
+
+@pytest.mark.parametrize("freq,expected", [(1.0, 0.482), (6.3, 1.054), (12.5, 0.902)])
+@pytest.mark.parametrize("fs", [200.0, 500.0])
+def test_wk_gain_on_a_2_5_s_window_with_the_pre_roll(freq: float, expected: float, fs: float) -> None:
+    """The paper's 2.5 s window of a longer run: the Wk filter runs through the 5 s before it (the segment's
+    pre-roll) and the window's weighted RMS gives the table's factor within 1 % at every phase; from rest the
+    0.4 Hz band limit has not settled (1 Hz: up to -4 %, the review's 0.4627 instead of 0.4825)."""
+    n, pre = round(2.5 * fs), round(5.0 * fs)
+    from_rest, with_pre = [], []
+    for phase in np.linspace(0, 2 * np.pi, 12, endpoint=False):
+        x = sine(freq, 1.0, fs, 7.5, phase=float(phase))
+        window = x[pre:]
+        assert window.size == n
+        s0 = score_signals(window, np.zeros(n), fs, KpiConfig(kpi="iso_wk_rms"))
+        s1 = score_signals(window, np.zeros(n), fs, KpiConfig(kpi="iso_wk_rms"), pre_roll_accel_z=x[:pre])
+        from_rest.append(s0.weighted_rms_accel_z * math.sqrt(2))
+        with_pre.append(s1.weighted_rms_accel_z * math.sqrt(2))
+        assert s1.j == s1.weighted_rms_accel_z and s1.rms_accel_z == s0.rms_accel_z  # RMS: the window alone
+    assert max(abs(g / expected - 1) for g in with_pre) < 0.01, with_pre
+    if freq == 1.0:
+        assert max(abs(g / expected - 1) for g in from_rest) > 0.03, from_rest  # what the pre-roll fixes
+
+
+def test_the_segmenter_hands_the_pre_roll_to_the_scorer() -> None:
+    """Through cut_run (distance mode, a 2.5 s section driven at constant speed): the segment carries the 5 s
+    of a_z before the window, and the Wk RMS of a 1 Hz sine on the window is the table's 0.482 within 1 %."""
+    from bac_measure.segmentation import ImuSeries, OdomSeries, SegmentConfig, cut_run
+
+    fs, v = 200.0, 10.0
+    cfg = SegmentConfig(
+        mode="distance", target_speed_mps=v, imu_rate_hz=fs, distance_start_m=100.0, distance_end_m=125.0
+    )
+    t = np.arange(round(20 * fs)) / fs
+    stamps = 1_000_000_000_000 + np.round(t * 1e9).astype(np.int64)
+    imu = ImuSeries(stamps, np.sin(2 * np.pi * 1.0 * t + 2.2), np.zeros(t.size))
+    odom = OdomSeries(stamps[::4], v * t[::4], np.full(t[::4].size, v))
+    seg = cut_run(imu, odom, cfg, int(stamps[0]))
+    assert seg.valid, seg.reason
+    assert len(seg) == 500 and seg.pre_roll_accel_z.size == 1000
+    np.testing.assert_allclose(seg.pre_roll_accel_z, np.sin(2 * np.pi * (t[1000:2000]) + 2.2), atol=1e-6)
+    sc = score(seg, KpiConfig(kpi="iso_wk_rms"))
+    assert sc.weighted_rms_accel_z * math.sqrt(2) == pytest.approx(0.482, rel=0.01)
+    # the message round trip keeps it (a bag recorded before the field existed gives an empty one)
+    bare = score(replace(seg, pre_roll_accel_z=np.zeros(0)), KpiConfig(kpi="iso_wk_rms"))
+    assert abs(bare.weighted_rms_accel_z * math.sqrt(2) / 0.4825 - 1) > 0.01
+    no_pre = cut_run(imu, odom, replace(cfg, pre_roll_s=0.0), int(stamps[0]))
+    assert no_pre.pre_roll_accel_z.size == 0 and np.array_equal(no_pre.accel_z, seg.accel_z)
+
+
+def test_an_event_cut_carries_the_a_z_before_its_window() -> None:
+    """Event mode: the pre-roll is the run's a_z just before the window (from the run start on), on its grid."""
+    from bac_measure.segmentation import SegmentConfig, cut_run
+    from bac_measure.synthetic import bump_run
+
+    run = bump_run(lead_s=0.5, bump_at_m=40.0, duration_s=10.0)  # the impact ~4.8 s after the run start
+    cfg = SegmentConfig(imu_rate_hz=200.0)
+    seg = cut_run(run.imu, run.odom, cfg, run.start_ns)
+    assert seg.valid, seg.reason
+    available = (seg.window_start_ns - run.start_ns) / 1e9  # the run starts at the trial: no data before it
+    assert seg.pre_roll_accel_z.size == pytest.approx(min(5.0, available) * 200, abs=2)
+    t_pre = seg.window_start_ns - np.arange(seg.pre_roll_accel_z.size, 0, -1) * 5_000_000
+    want = np.interp(t_pre, run.imu.stamp_ns, run.imu.accel_z)
+    np.testing.assert_allclose(seg.pre_roll_accel_z, want, atol=0.05)
+    short = cut_run(run.imu, run.odom, replace(cfg, pre_roll_s=1.0), run.start_ns)
+    assert short.pre_roll_accel_z.size == 200
+    np.testing.assert_allclose(short.pre_roll_accel_z, seg.pre_roll_accel_z[-200:], atol=1e-6)
 
 
 def test_wk_response_follows_the_whole_table() -> None:

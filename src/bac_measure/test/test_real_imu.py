@@ -47,7 +47,9 @@ def test_real_recording_chunked_equals_one_shot_and_upsampling_is_flagged() -> N
     whole = IngestOutput.concatenate([one.push(raw.stamp_ns, raw.accel, raw.gyro), one.flush()])
     assert np.array_equal(chunked.accel, whole.accel) and np.array_equal(chunked.stamp_ns, whole.stamp_ns)
     h = ing.health()
-    assert h.mount_source == "config (no standstill found)"  # the robot moves from its first second
+    # the robot moves through its first 30 s: roll and pitch from the mean accelerometer over them
+    assert h.mount_source == "mean accelerometer over 30.0 s (no standstill found)"
+    assert abs(h.mount_rpy_deg[0]) < 5 and abs(h.mount_rpy_deg[1]) < 5 and h.gravity_problem() == ""
     assert h.upsampling and diagnose(h).level == 1 and "above the IMU's 50.0 Hz" in diagnose(h).message
 
 

@@ -8,7 +8,7 @@
   with the IMU's lever arm from the centre of gravity, its small mounting rotation, constant biases,
   white noise, saturation and quantization (:class:`ImuSpec`);
 * ``odom_t``, ``distance``, ``speed``: odometry at ``odom_rate_hz``: distance travelled since the run
-  started (m) and speed (m/s);
+  started (m) and speed (m/s); ``start_m``: where on the road the run started (m);
 * ``truth``: the ground truth at the IMU rate: seat-rail vertical acceleration with gravity removed
   in the vehicle frame (``accel_z``), ``pitch_rate``, ``roll_rate``, heave/pitch/roll, the position
   of the front axle on the road, the damping commands;
@@ -114,6 +114,7 @@ class RunRecording:
     target_speed: float = math.nan
     bad_run: bool = False
     imu: ImuSpec = field(default_factory=ImuSpec)
+    start_m: float = 0.0  # road position of the front axle at the run's start, m (where the odometry's distance is 0)
 
     @property
     def duration(self) -> float:
@@ -248,6 +249,7 @@ def simulate_run(
         target_speed=sc.speed,
         bad_run=bool(bad[0]),
         imu=imu,
+        start_m=float(s_odom[0]),
     )
 
 

@@ -7,10 +7,14 @@
   active calibration (a calibration accepted later applies from the next run on), tells the ECU the
   car is moving (commits are refused as busy), simulates the run and publishes it paced in sim time:
   ``imu/data_raw`` (sensor_msgs/Imu, frame ``imu_link``, sensor-data QoS), ``vehicle/odom``
-  (nav_msgs/Odometry: ``pose.position.x`` = distance since the run started, ``twist.linear.x`` =
-  speed) and ``/clock``. Every run is a new drive from its start: the distance starts at 0 again. A
-  run announced while another is being driven waits until that drive is over (a car cannot jump back
-  to the start), then it is driven, if the trial still waits for it.
+  (nav_msgs/Odometry as a standard odometry source publishes it, REP 105: the pose of the car in
+  the ``odom`` frame, continuous from run to run, the road along +x from where the first run
+  started; the forward speed in ``base_link``, :mod:`bac_sim.odometry`) and ``/clock``. Between
+  two runs the car comes back to the start (not simulated: nothing is published) in the time that
+  takes at ``way_back_speed_kmh``; the next run starts where the car then is. A run announced
+  while another is being driven waits until that drive is over, then it is driven, if the trial
+  still waits for it. Before a run's first message (the driver's start delay, the way back) sim
+  time runs at ``approach_realtime_factor``: nothing is published then.
 * Runs are computed in a worker process (``sim_process``), away from the publishing thread and the
   executor.
 * Publishes ``/clock``, which follows the simulation as a simulator's clock does: between runs it
@@ -49,6 +53,7 @@ from bac_common.paramspace import CalibrationDefinition
 from bac_common.rosnode import QOS_LATCHED, QOS_STREAM, BacNode, run_node
 from bac_msgs.msg import Trial
 from bac_sim.driver import DriverModel
+from bac_sim.odometry import OdomTrack
 from bac_sim.run import ImuSpec, RunRecording, simulate_scenario_run
 from bac_sim.scenarios import get_scenario
 
@@ -73,6 +78,7 @@ class _Playback:
     rec: RunRecording
     t0: float  # sim time of the run's first sample
     wall0: float
+    x: np.ndarray  # pose.position.x of each odometry sample (odom frame), m
     i_imu: int = 0
     i_odom: int = 0
     wall_first: float = math.nan  # wall time of the first message and of the last
@@ -83,6 +89,9 @@ class _Playback:
     def __post_init__(self) -> None:
         self.t_imu = self.t0 + self.rec.t
         self.t_odom = self.t0 + self.rec.odom_t
+        self.t_first = min(
+            self.t_imu[0] if self.t_imu.size else math.inf, self.t_odom[0] if self.t_odom.size else math.inf
+        )
         # the last message of the run, IMU or odometry: the next drive starts after it
         self.t_end = max(
             self.t_imu[-1] if self.t_imu.size else self.t0, self.t_odom[-1] if self.t_odom.size else self.t0
@@ -175,7 +184,32 @@ class VehicleSimNode(BacNode):
             choices=("best_effort", "reliable"),
             read_only=True,
         )
-        self.odom_frame = self.declare_str("odom_frame_id", "odom", "frame of vehicle/odom", read_only=True)
+        self.odom_frame = self.declare_str(
+            "odom_frame_id", "odom", "frame of vehicle/odom's pose (REP 105: odom)", read_only=True
+        )
+        self.base_frame = self.declare_str(
+            "base_frame_id", "base_link", "child frame of vehicle/odom: its twist (REP 105: base_link)", read_only=True
+        )
+        self.track = OdomTrack(
+            self.declare_float(
+                "way_back_speed_kmh",
+                60.0,
+                "between runs the car comes back to the start at this speed (not simulated: it sets when the next "
+                "run can start, and so the sim time that passes), km/h",
+                1.0,
+                300.0,
+                read_only=True,
+            )
+            / 3.6
+        )
+        self.approach_rtf = self.declare_float(
+            "approach_realtime_factor",
+            50.0,
+            "before a run's first message (driver's start delay, the way back: nothing is published) sim time runs at "
+            "up to this many times real time (at least realtime_factor)",
+            0.05,
+            1000.0,
+        )
         self.sim_process = self.declare_bool(
             "sim_process",
             True,
@@ -322,6 +356,7 @@ class VehicleSimNode(BacNode):
         self.idle_rtf = float(values.get("idle_realtime_factor", self.idle_rtf))
         self.clock_period = float(values.get("clock_period_s", self.clock_period))
         self.applying_pause_s = float(values.get("applying_pause_s", self.applying_pause_s))
+        self.approach_rtf = float(values.get("approach_realtime_factor", self.approach_rtf))
         self.seed = int(values.get("seed", self.seed))
         self.compute_delay_s = float(values.get("compute_delay_s", self.compute_delay_s))
         if "driver.start_delay_s" in values:
@@ -423,9 +458,10 @@ class VehicleSimNode(BacNode):
                         self.get_logger().error(f"run {job.key} could not be simulated: {exc}")
                     else:
                         delay = start_delay(self.start_delays, job.key[2])
-                        # the first message one odometry period after now: a drive that follows another at once
-                        # never shares a stamp with it
-                        play = _Playback(job, rec, sim_t + delay + 1.0 / self.odom_rate, now)
+                        # the first message one odometry period after now at the earliest (a drive that follows
+                        # another at once never shares a stamp with it), and once the car is back at the start
+                        placed = self.track.place(rec, sim_t + delay + 1.0 / self.odom_rate)
+                        play = _Playback(job, rec, placed.t0, now, placed.x)
                         cal = ", ".join(f"{k}={v:g}" for k, v in job.calibration.items())
                         self.get_logger().info(
                             f"driving trial {job.key[1]} attempt {job.key[2]}: {rec.duration:.1f} s, "
@@ -433,18 +469,29 @@ class VehicleSimNode(BacNode):
                             f"{' (a bad run: too slow)' if rec.bad_run else ''}, true J {rec.j_true:.4f}; "
                             f"calibration {cal}; computed in {now - wall_submitted:.1f} s (sim time stood still)"
                             + (f"; the driver starts in {delay:g} s" if delay > 0 else "")
+                            + (
+                                f"; the car comes back {placed.way_back_m:.0f} m ({placed.way_back_s:.1f} s)"
+                                if placed.way_back_m > 0
+                                else ""
+                            )
                         )
                 if play is not None:
                     # advance by the wall time elapsed, but never by more than two loop periods: after a
                     # stall (a loaded machine) the run goes on at the same pace instead of in a burst
-                    step = min(now - last_wall, 2 * self.clock_period) * self.rtf
+                    approaching = play.i_imu == 0 and play.i_odom == 0  # nothing published yet: the clock may hurry
+                    rate = max(self.rtf, self.approach_rtf) if approaching else self.rtf
+                    step = min(now - last_wall, 2 * self.clock_period) * rate
                     target = sim_t + step
+                    if approaching and sim_t < play.t_first:
+                        target = min(target, play.t_first)  # the run itself at realtime_factor
                     t_pub = time.monotonic()
                     done = self._publish_until(play, target)
                     play.publish_s += time.monotonic() - t_pub
                     play.loops += 1
                     sim_t = min(target, play.t_end)
                     if done:
+                        if play.x.size:
+                            self.track.driven(float(play.t_odom[-1]), float(play.x[-1]))
                         self.ecu.set_driving(False)
                         self.runs_published += 1
                         self._report_rate(play)
@@ -530,10 +577,10 @@ class VehicleSimNode(BacNode):
                 o = Odometry()
                 _stamp(o.header.stamp, no)
                 o.header.frame_id = self.odom_frame
-                o.child_frame_id = "base_link"
-                o.pose.pose.position.x = float(rec.distance[i])
+                o.child_frame_id = self.base_frame
+                o.pose.pose.position.x = float(play.x[i])  # the road along +x: y = z = 0, heading 0
                 o.pose.pose.orientation.w = 1.0
-                o.twist.twist.linear.x = float(rec.speed[i])
+                o.twist.twist.linear.x = float(rec.speed[i])  # forward, in base_link
                 self.pub_odom.publish(o)
                 play.i_odom += 1
 

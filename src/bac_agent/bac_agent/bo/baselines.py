@@ -78,6 +78,14 @@ class _Baseline:
         self._drop_pending(params)
         self.failures.append(Failure(self.space.to_params(self.space.to_array(params)), str(reason)))
 
+    def ask_state(self) -> dict[str, Any]:
+        """Nothing: point k depends only on the seed and k."""
+        return {}
+
+    def restore_ask(self, params: Mapping[str, float], state: Mapping[str, Any] | None) -> None:
+        """Replay an ask from a journal: ``params`` become pending as :meth:`ask` left them."""
+        self.pending.append(self.space.to_params(self.space.to_array(params)))
+
     def best_observed(self) -> Observation | None:
         return min(self.observations, key=lambda o: o.value) if self.observations else None
 

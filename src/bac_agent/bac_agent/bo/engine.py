@@ -556,16 +556,60 @@ class Engine:
         self.observations.append(Observation(p, v, out))
 
     def tell_failed(self, params: Mapping[str, float], reason: str) -> None:
-        """Record that ``params`` could not be evaluated (never re-proposed exactly)."""
+        """Record that ``params`` could not be evaluated (never re-proposed exactly).
+
+        The next ask fits the model again, as after a :meth:`tell` (the failure does not change the model's
+        data, but a fit cached from before it would make the engine's state depend on more than what was
+        told, the random generator and the last hyperparameters: see :meth:`ask_state`)."""
         x = self.space.to_array(params)
         self._drop_pending(x)
         self.failures.append(Failure(self.space.to_params(x), str(reason)))
+        self._gp_key = None
+        self._outcome_key = None  # the outcome limits' models too
 
     def _drop_pending(self, x: FloatArray) -> None:
         for i, p in enumerate(self.pending):
             if np.allclose(self.space.to_array(p), x, rtol=0.0, atol=1e-12):
                 del self.pending[i]
                 return
+
+    def ask_state(self) -> dict[str, Any]:
+        """What the next asks depend on besides the tells, as JSON: the random generator and the last fitted
+        hyperparameters (the start of the next fit). A campaign journals it with each proposal; replaying the
+        tells and :meth:`restore_ask` then asks what the uninterrupted engine would have (every fit after a
+        tell or a failure starts again from these, so no other cached state matters)."""
+        state: dict[str, Any] = {"rng": self.rng.bit_generator.state, "hyper": _hyper_state(self._gp.hyper)}
+        if self._limits:
+            # each outcome limit's model starts its next fit from its last hyperparameters too (issue 23)
+            state["outcomes"] = [_hyper_state(m.gp.hyper) for m in self._outcomes.models]
+        return state
+
+    def restore_ask(self, params: Mapping[str, float], state: Mapping[str, Any] | None) -> None:
+        """Replay an ask from a journal: ``params`` become pending as :meth:`ask` left them, and the random
+        generator and the last hyperparameters are those :meth:`ask_state` gave right after it (``None``: a
+        journal without them; the engine then goes on from its own state, and later asks differ from the
+        uninterrupted run's)."""
+        x = self.space.to_array(params)
+        self.pending.append(self.space.to_params(x))
+        if not state:
+            return
+        try:
+            self.rng.bit_generator.state = dict(state["rng"])
+            hyper = _hyper_of_state(state.get("hyper"))
+            outcomes = [_hyper_of_state(h) for h in state.get("outcomes") or []]
+        except (KeyError, TypeError, ValueError) as exc:
+            raise EngineError(f"malformed journaled optimizer state: {exc}") from exc
+        if outcomes and len(outcomes) != len(self._outcomes.models):
+            raise EngineError(
+                f"the journaled optimizer state holds {len(outcomes)} outcome models, this engine has "
+                f"{len(self._outcomes.models)} outcome limits"
+            )
+        self._gp = GP(self._gp.config, hyper=hyper)
+        self._gp_key = None
+        for m, h in zip(self._outcomes.models, outcomes, strict=False):
+            m.gp = GP(m.gp.config, hyper=h)
+            m.n = 0
+        self._outcome_key = None
 
     def forget_pending(self) -> None:
         """Drop every ask that was never told (e.g. abandoned trials)."""
@@ -734,3 +778,21 @@ class Engine:
         except json.JSONDecodeError as exc:
             raise EngineError(f"engine state is not valid JSON: {exc}") from exc
         return cls.from_state_dict(data)
+
+
+def _hyper_state(h: Hyper | None) -> dict[str, Any] | None:
+    """The part of fitted hyperparameters the next fit starts from (Engine.ask_state), as JSON."""
+    if h is None:
+        return None
+    return {"lengthscales": h.lengthscales.tolist(), "outputscale": h.outputscale, "noise": h.noise, "mean": h.mean}
+
+
+def _hyper_of_state(h: Mapping[str, Any] | None) -> Hyper | None:
+    if not h:
+        return None
+    return Hyper(
+        np.asarray(h["lengthscales"], dtype=float),
+        float(h["outputscale"]),
+        float(h["noise"]),
+        float(h.get("mean", 0.0)),
+    )
