@@ -29,7 +29,7 @@ import numpy as np
 from numpy.typing import NDArray
 from scipy.stats import qmc
 
-from bac_agent.bo.engine import EngineConfig
+from bac_agent.bo.engine import EngineConfig, _one_blas_thread
 from bac_agent.bo.gp import GP, Hyper
 from bac_agent.bo.prior import SourceSurface
 from bac_agent.bo.space import SearchSpace
@@ -49,14 +49,17 @@ class TransferError(BacError, ValueError):
 def load_source(path: str | Path, definition: CalibrationDefinition, points: int = 0, seed: int = 0) -> SourceSurface:
     """The source surface of a ``bac reduce`` output or a campaign folder, over ``definition``'s tuned space.
 
-    ``points``: Sobol samples of a reduce surrogate (0: 64 per dimension, 128 to 512).
+    ``points``: Sobol samples of a reduce surrogate (0: 64 per dimension, 128 to 512). Fitted with one BLAS thread,
+    as the engine fits: the same files give the same surface bit for bit in every process, so that a resumed agent
+    rebuilds the surface its journal holds (a resume compares them: ``Campaign.check_resume``).
     """
     p = Path(path).expanduser()
-    if p.is_dir() and (p / JOURNAL_NAME).is_file():
-        return from_campaign(p, definition)
-    result = p / REDUCE_RESULT if p.is_dir() else p
-    if result.is_file() and result.suffix == ".json":
-        return from_reduce_result(result, definition, points, seed)
+    with _one_blas_thread():
+        if p.is_dir() and (p / JOURNAL_NAME).is_file():
+            return from_campaign(p, definition)
+        result = p / REDUCE_RESULT if p.is_dir() else p
+        if result.is_file() and result.suffix == ".json":
+            return from_reduce_result(result, definition, points, seed)
     raise TransferError(
         f"prior_source {str(path)!r} is neither a bac reduce output (a folder with {REDUCE_RESULT}, or that file) "
         f"nor a campaign folder (with {JOURNAL_NAME})"
