@@ -292,7 +292,7 @@ def test_outcome_limits_are_modelled_and_a_broken_one_is_booked_and_shown(tmp_pa
     assert sum("broke an outcome limit" in t for t in logs) == len(broken) == len(camp.violated_trials)
     rec = json.loads((tmp_path / RECOMMENDATION_NAME).read_text())
     assert travel(rec["params"]) <= 60.0 and rec["violated_trials"] == camp.violated_trials
-    assert rec["predicted_outcomes"]["max_travel_mm <= 60"]["p_violation"] <= 0.05
+    assert rec["predicted_outcomes"]["max_travel_mm <= 60"]["p_violation_true"] <= 0.05
     # a resumed agent tells the optimizer the outcomes again
     camp.journal.close()
     eng2 = Engine(SPACE, EngineConfig(budget=6, constraints=limits))

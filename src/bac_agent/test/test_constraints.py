@@ -53,17 +53,23 @@ def _campaign(limit: float | None, budget: int = 15, seed: int = 0) -> tuple[Eng
 def test_the_engine_keeps_to_a_limit_its_optimum_would_break() -> None:
     assert travel_of(OPT) > 60.0  # the unconstrained optimum breaks the limit
     broken = []
+    margins = []
     for seed in range(3):
         eng, asked = _campaign(60.0, seed=seed)
         broken += [travel_of(u) > 60.0 for u in asked]
         rec = eng.recommend()
         u = np.array([rec.params["a"], rec.params["b"]])
         assert travel_of(u) <= 60.0  # the recommendation keeps the limit
+        margins.append(60.0 - travel_of(u))
         # and is near the constrained optimum (u0 = 0.5 on the limit's line, u1 as close to 0.3 as allowed)
         assert abs(u[0] - 0.5) < 0.12 and abs(u[1] - 0.3) < 0.2
         p = rec.predicted_outcomes["max_travel_mm <= 60"]
-        assert p["p_violation"] <= 0.05 and p["mean"] <= 60.0
+        # judged on its true travel (the latent variance): a run there may measure above the limit
+        assert p["p_violation_true"] <= 0.05 and p["mean"] <= 60.0
     assert np.mean(broken) < 0.1  # fewer than 10 % of the runs broke it
+    # the recommendation goes up to the limit, not a run's measurement noise away from it (its true travel is
+    # what the car keeps): 0.79 mm on average; judged like a run's measurement (before 2026-11-24) 1.22 mm
+    assert np.mean(margins) < 1.0
     # without the limit, the engine goes where the limit would be broken: the test is real
     eng, _ = _campaign(None, seed=0)
     rec = eng.recommend()

@@ -149,19 +149,21 @@ class OutcomeModel:
         h = self.gp.hyper
         return float(h.noise) if h is not None else 0.0
 
-    def prob_violation(self, U: FloatArray) -> FloatArray:
-        """The probability that a run here *measures* the outcome beyond the limit (latent and noise variance)."""
+    def prob_violation(self, U: FloatArray, measured: bool = True) -> FloatArray:
+        """The probability that a run here *measures* the outcome beyond the limit (latent and noise variance);
+        ``measured`` False: that the calibration's true outcome is beyond it (the latent variance alone)."""
         if not self.fitted:
             return np.zeros(np.atleast_2d(U).shape[0])
         mu, var = self.gp.predict_std_units(U)
-        return np.asarray(1.0 - ndtr(self._t(mu, np.sqrt(var + self._noise()))), dtype=float)
+        noise = self._noise() if measured else 0.0
+        return np.asarray(1.0 - ndtr(self._t(mu, np.sqrt(np.maximum(var + noise, 1e-18)))), dtype=float)
 
-    def log_feasible_and_grad(self, U: FloatArray) -> tuple[FloatArray, FloatArray]:
+    def log_feasible_and_grad(self, U: FloatArray, measured: bool = True) -> tuple[FloatArray, FloatArray]:
         U = np.atleast_2d(U)
         if not self.fitted:
             return np.zeros(U.shape[0]), np.zeros_like(U)
         mu, sd_f, dmu, dsd_f = self.gp.predict_with_grad(U)
-        sd = np.sqrt(sd_f**2 + self._noise())
+        sd = np.sqrt(np.maximum(sd_f**2 + (self._noise() if measured else 0.0), 1e-18))
         dsd = dsd_f * (sd_f / sd)[:, None]
         t = self._t(mu, sd)
         sign = 1.0 if self.limit.upper else -1.0
@@ -200,24 +202,25 @@ class OutcomeModels:
             except GPError:
                 m.n = 0
 
-    def prob_violation(self, U: FloatArray) -> FloatArray:
-        """(m, c): the probability that each limit is broken at each point."""
+    def prob_violation(self, U: FloatArray, measured: bool = True) -> FloatArray:
+        """(m, c): the probability that each limit is broken at each point (by a run's measurement; ``measured``
+        False: by the calibration's true outcome)."""
         U = np.atleast_2d(U)
         if not self.models:
             return np.zeros((U.shape[0], 0))
-        return np.column_stack([m.prob_violation(U) for m in self.models])
+        return np.column_stack([m.prob_violation(U, measured) for m in self.models])
 
-    def allowed(self, U: FloatArray) -> NDArray[np.bool_]:
+    def allowed(self, U: FloatArray, measured: bool = True) -> NDArray[np.bool_]:
         """Points whose probability of breaking any limit is at most the level."""
-        p = self.prob_violation(U)
+        p = self.prob_violation(U, measured)
         return np.asarray(np.all(p <= self.level, axis=1)) if p.size else np.ones(np.atleast_2d(U).shape[0], bool)
 
-    def log_feasible_and_grad(self, U: FloatArray) -> tuple[FloatArray, FloatArray]:
+    def log_feasible_and_grad(self, U: FloatArray, measured: bool = True) -> tuple[FloatArray, FloatArray]:
         """log P(every limit holds) (independent outcomes) and its gradient."""
         U = np.atleast_2d(U)
         v, g = np.zeros(U.shape[0]), np.zeros_like(U)
         for m in self.models:
-            vm, gm = m.log_feasible_and_grad(U)
+            vm, gm = m.log_feasible_and_grad(U, measured)
             v, g = v + vm, g + gm
         return v, g
 
@@ -237,7 +240,8 @@ class OutcomeModels:
             out[str(m.limit)] = {
                 "mean": float(mu[0]),
                 "std": float(sd[0]),
-                "p_violation": float(m.prob_violation(U)[0]),
+                "p_violation": float(m.prob_violation(U)[0]),  # a run here measures beyond the limit
+                "p_violation_true": float(m.prob_violation(U, measured=False)[0]),  # its true outcome is beyond
             }
         return out
 

@@ -644,7 +644,9 @@ class Engine:
         outc = self._outcome_models() if self._limits else None
         log_ok = math.log(1.0 - self.config.constraint_level)
         if outc is not None:
-            score = np.where(outc.allowed(cand), score, np.inf)
+            # the recommendation is judged on the calibration's true outcomes (latent variance): a run's
+            # measurement noise is not the calibration's (proposals are judged on what a run measures)
+            score = np.where(outc.allowed(cand, measured=False), score, np.inf)
             if not np.any(np.isfinite(score)):
                 return None
         starts = cand[np.argsort(score)[: max(1, min(self.config.acq_restarts, int(np.sum(np.isfinite(score)))))]]
@@ -655,7 +657,7 @@ class Engine:
             m, s, dm, ds = gp.predict_with_grad(U)
             val, grad = m + beta * s, dm + beta * ds
             if outc is not None:  # a penalty outside the level keeps the search where it may recommend
-                lf, glf = outc.log_feasible_and_grad(U)
+                lf, glf = outc.log_feasible_and_grad(U, measured=False)
                 short = np.maximum(log_ok - lf, 0.0)
                 val = val + 100.0 * short**2
                 grad = grad - (200.0 * short)[:, None] * glf
@@ -667,7 +669,7 @@ class Engine:
         m, v = gp.predict_std_units(U)
         sc = m + beta * np.sqrt(v)
         if outc is not None:
-            sc = np.where(outc.allowed(U), sc, np.inf)
+            sc = np.where(outc.allowed(U, measured=False), sc, np.inf)
             if not np.any(np.isfinite(sc)):
                 return None
         return np.asarray(U[int(np.argmin(sc))], dtype=float)
