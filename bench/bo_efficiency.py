@@ -394,7 +394,7 @@ def main(argv: list[str] | None = None) -> int:
     if a.from_json:
         results: list[dict[str, Any]] = []
         seen = set()
-        for f in a.from_json.split(","):
+        for f in [x for x in a.from_json.split(",") if x]:
             for r in json.loads(Path(f).read_text())["results"]:
                 key = (r["family"], r["instance"], r["seed"], r["optimizer"])
                 if key not in seen:

@@ -120,6 +120,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--workers", type=int, default=os.cpu_count() or 1)
     ap.add_argument("--grid-truth", type=int, default=0, help="tuning split only: the cars' J interpolated (quick)")
     ap.add_argument("--out", default="")
+    ap.add_argument("--from-json", default="", help="comma list of earlier --out files: summarize them together")
     a = ap.parse_args(argv)
     split = pf.SPLITS[a.split]
     insts = split["instances"][: a.instances or None]
@@ -132,8 +133,13 @@ def main(argv: list[str] | None = None) -> int:
         (f, i, s, arm, a.budget, a.bac_config, a.grid_truth) for f in fams for i in insts for s in seeds for arm in arms
     ]
     t0 = time.perf_counter()
-    with ProcessPoolExecutor(max_workers=a.workers) as ex:
-        results = list(ex.map(_task, tasks))
+    if a.from_json:  # e.g. one run per family: summarized together (the pooled line over all of them)
+        results = [r for f in a.from_json.split(",") if f for r in json.loads(Path(f).read_text())["results"]]
+        fams = list(dict.fromkeys(r["family"] for r in results))
+        print(f"# summarized {a.from_json}")
+    else:
+        with ProcessPoolExecutor(max_workers=a.workers) as ex:
+            results = list(ex.map(_task, tasks))
     wall = time.perf_counter() - t0
     print(
         f"# transfer, split {a.split}: instances {insts[0]}..{insts[-1]}, seeds {seeds}, budget {a.budget}, "
@@ -165,10 +171,11 @@ def main(argv: list[str] | None = None) -> int:
                 f"   {arm:<11} {shown:>5} {f'{lo:g}-{hi:g}':>9} {by[0]:>5.0%} {by[1]:>5.0%} {by[2]:>5.0%} "
                 f"{gend:>8.3f} {wtxt:>10} {stxt:>15} {len(rs):>4}"
             )
-    out = Path(a.out or f"bench/out/transfer_{a.split}.json")
-    out.parent.mkdir(parents=True, exist_ok=True)
-    out.write_text(json.dumps({"results": results}))
-    print(f"\n# raw results {out}")
+    if not a.from_json:
+        out = Path(a.out or f"bench/out/transfer_{a.split}.json")
+        out.parent.mkdir(parents=True, exist_ok=True)
+        out.write_text(json.dumps({"results": results}))
+        print(f"\n# raw results {out}")
     pooled = "all car families"
     if (pooled, "sim") in medians:
         print(f"transfer_sim_median_runs {medians[(pooled, 'sim')]:g}")
