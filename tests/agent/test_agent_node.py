@@ -249,7 +249,7 @@ def test_a_transfer_prior_and_an_outcome_limit_through_the_node_and_the_report(p
         assert bool(e["violations"]) == (peak > 6.0)
     rec = json.loads((cdir / "recommendation.json").read_text())
     assert known_peak(list(rec["params"].values())) <= 6.0
-    assert rec["predicted_outcomes"]["peak_accel_z <= 6"]["p_violation"] <= 0.05
+    assert rec["predicted_outcomes"]["peak_accel_z <= 6"]["p_violation_true"] <= 0.05
     assert "transfer_weight" in rec["transfer"]
     assert "outcome limits: peak_accel_z<=6.0" in procs.log("agent")
     out = make_report(cdir)

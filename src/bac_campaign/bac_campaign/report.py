@@ -759,7 +759,8 @@ def write_html(
                 [
                     f"recommendation: {html.escape(lim)}",
                     f"predicted {p.get('mean', math.nan):.4g} ± {p.get('std', math.nan):.2g}, "
-                    f"P(broken) {p.get('p_violation', math.nan):.3f}",
+                    f"P(broken) {p.get('p_violation_true', p.get('p_violation', math.nan)):.3f}"
+                    + (f" (a run there measures beyond it: {p['p_violation']:.3f})" if "p_violation_true" in p else ""),
                 ]
             )
         tr = rec.get("transfer") or {}
