@@ -8,7 +8,12 @@ data by scikit-learn's GaussianProcessRegressor (Matérn-5/2 ARD + noise, 2
 restarts), for scale. With ``--botorch`` (needs ``scripts/setup.sh --bench``) it
 also times BoTorch's SingleTaskGP fit + qLogNEI optimize_acqf on the same data.
 
-LAST line: ``ask_s_n100_d20 <median seconds>``. Goal: <= 0.2 s on this machine.
+The same ask is also timed with a transfer prior (a source surface fitted to 256 Sobol points of a shifted
+copy of the test function, bo/prior.py) and two outcome limits (each of the 100 runs carries two outcomes):
+``ask_s_n100_d20_prior_2limits``, goal <= 0.3 s (issue 23).
+
+LAST lines: ``ask_s_n100_d20 <median seconds>`` (goal <= 0.2 s on this machine), then
+``ask_s_n100_d20_prior_2limits <median seconds>``.
 
     .venv/bin/python bench/agent_latency.py [--reps 7] [--botorch]
 """
@@ -33,14 +38,40 @@ def data(seed: int) -> tuple[np.ndarray, np.ndarray]:
     return X, y
 
 
-def time_bac(seed: int) -> float:
-    from bac_agent.bo import Engine
+_SOURCE: dict[int, object] = {}
+
+
+def source_dict() -> object:
+    """The transfer prior of the latency test (fitted once per process, as the agent fits it once at its start)."""
+    if 0 not in _SOURCE:
+        from scipy.stats import qmc
+
+        from bac_agent.bo.prior import SourceSurface
+
+        U = qmc.Sobol(D, scramble=True, seed=0).random(256)
+        y = np.sum((U - 0.35) ** 2 * np.linspace(0.2, 2.0, D), axis=1) + np.sin(5 * U[:, 0])
+        _SOURCE[0] = SourceSurface.fit(U, y, "latency test").to_dict()
+    return _SOURCE[0]
+
+
+def time_bac(seed: int, prior_and_limits: bool = False) -> float:
+    from bac_agent.bo import Engine, EngineConfig
 
     X, y = data(seed)
-    eng = Engine([(f"p{i:02d}", 0.0, 1.0) for i in range(D)], budget=200, n_initial=10, seed=seed)
+    cfg = EngineConfig(budget=200, n_initial=10, seed=seed)
+    if prior_and_limits:
+        cfg = EngineConfig(
+            budget=200,
+            n_initial=10,
+            seed=seed,
+            prior=source_dict(),  # type: ignore[arg-type]
+            constraints=("peak_accel_z<=1.5", "max_travel_mm<=60"),
+        )
+    eng = Engine([(f"p{i:02d}", 0.0, 1.0) for i in range(D)], cfg)
     names = eng.names
     for x, v in zip(X, y, strict=True):
-        eng.tell(dict(zip(names, x.tolist(), strict=True)), float(v))
+        outcomes = {"peak_accel_z": 1.0 + x[0] - 0.5 * x[1], "max_travel_mm": 50.0 + 20.0 * x[2]}
+        eng.tell(dict(zip(names, x.tolist(), strict=True)), float(v), outcomes if prior_and_limits else None)
     t0 = time.perf_counter()
     p = eng.ask()
     dt = time.perf_counter() - t0
@@ -92,6 +123,8 @@ def main(argv: list[str] | None = None) -> int:
     a = ap.parse_args(argv)
     time_bac(100)  # warm-up: imports, BLAS threads
     ours = [time_bac(s) for s in range(a.reps)]
+    time_bac(100, True)
+    with_prior = [time_bac(s, True) for s in range(a.reps)]
     base = [time_sklearn(s) for s in range(a.reps)]
     m_ours, m_base = statistics.median(ours), statistics.median(base)
     print(f"# {a.reps} repetitions, n={N} observations, d={D} dimensions, medians")
@@ -107,7 +140,13 @@ def main(argv: list[str] | None = None) -> int:
         print(
             f"botorch fit + qLogNEI optimize_acqf:             {m_bt:.3f} s  (ratio bac / botorch {m_ours / m_bt:.2f})"
         )
+    m_prior = statistics.median(with_prior)
+    print(
+        f"bac ask with a transfer prior and two outcome limits: {m_prior:.3f} s  (min {min(with_prior):.3f}, "
+        f"max {max(with_prior):.3f})"
+    )
     print(f"ask_s_n100_d20 {m_ours:.4f}")
+    print(f"ask_s_n100_d20_prior_2limits {m_prior:.4f}")
     return 0
 
 

@@ -37,6 +37,11 @@ def known_j(values: list[float]) -> float:
     return 1.0 + (values[0] - 0.3) ** 2 + (values[1] - 0.6) ** 2
 
 
+def known_peak(values: list[float]) -> float:
+    """The stand-in's outcome besides J: soft front dampers shake more (8 at 0, 2 at 1)."""
+    return 2.0 + 6.0 * (1.0 - values[0])
+
+
 def _log(path: str, rec: dict[str, Any]) -> None:
     if path:
         with Path(path).open("a") as f:
@@ -118,6 +123,9 @@ class FakeChain(BacNode):
             msg.j = known_j(values) if valid else float("nan")
             msg.reason = "" if valid else "speed off target (stand-in)"
             msg.kpi = "rms"
+            if valid:
+                msg.outcome_names = ["peak_accel_z"]
+                msg.outcome_values = [known_peak(values)]
             self.pub.publish(msg)
             _log(self.log_file, {"trial_id": key[1], "attempt": key[2], "valid": valid, "j": msg.j, "values": values})
 

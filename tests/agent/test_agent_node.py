@@ -236,5 +236,68 @@ def test_a_link_lost_mid_campaign_pauses_it_and_fails_no_trial(procs: Any, tmp_p
     assert len([e for e in ev if e["event"] == "trial_scored"]) == 3
 
 
+def test_a_transfer_prior_and_an_outcome_limit_through_the_node_and_the_report(procs: Any, tmp_path: Path) -> None:
+    """issue 23: prior_source (an earlier campaign's folder) and constraints, journaled, modelled, reported."""
+    from standins import known_j, known_peak
+
+    from bac_agent.journal import Journal
+    from bac_campaign.report import make_report
+
+    source = tmp_path / "earlier"
+    j = Journal(source)
+    j.append("campaign_started", campaign_id="earlier", names=["damping_front", "damping_rear"], stamp=0.0)
+    k = 0
+    for a in (0.1, 0.3, 0.5, 0.7, 0.9):
+        for b in (0.2, 0.5, 0.8):
+            k += 1
+            j.append(
+                "trial_scored",
+                campaign_id="earlier",
+                trial_id=k,
+                params={"damping_front": a, "damping_rear": b},
+                j=2.0 + 1.5 * known_j([a, b]),
+                stamp=float(k),
+            )
+    j.close()
+    cdir = tmp_path / "camp"
+    start_standins(procs, tmp_path)
+    agent = start_agent(
+        procs,
+        "agent",
+        cdir,
+        "budget:=6",
+        "seed:=1",
+        f"prior_source:={source}",
+        "constraints:=['peak_accel_z<=6.0']",
+    )
+    assert wait_exit(agent, 120, "bo_agent to finish") == 0, procs.log("agent")
+    ev = jsonl(cdir / "journal.jsonl")
+    start = next(e for e in ev if e["event"] == "campaign_started")
+    assert start["config"]["constraints"] == ["peak_accel_z<=6.0"]
+    assert start["config"]["prior_summary"]["label"].startswith("campaign earlier (15 runs")
+    assert start["config"]["prior"]["X"]  # the surface itself, so that a refit models as the agent did
+    proposed = [e for e in ev if e["event"] == "trial_proposed"]
+    assert proposed[0]["reason"] == "prior"  # trial 1: the prior's optimum, near (0.3, 0.6)
+    assert abs(proposed[0]["params"]["damping_front"] - 0.3) < 0.1
+    assert any("transfer" in e.get("model", {}) for e in proposed[1:])
+    scored = [e for e in ev if e["event"] == "trial_scored"]
+    for e in scored:  # outcomes are booked with every run; a run that broke the limit says so
+        peak = known_peak(list(e["params"].values()))
+        assert e["outcomes"] == pytest.approx({"peak_accel_z": peak})
+        assert bool(e["violations"]) == (peak > 6.0)
+    rec = json.loads((cdir / "recommendation.json").read_text())
+    assert known_peak(list(rec["params"].values())) <= 6.0
+    assert rec["predicted_outcomes"]["peak_accel_z <= 6"]["p_violation_true"] <= 0.05
+    assert "transfer_weight" in rec["transfer"]
+    assert "outcome limits: peak_accel_z<=6.0" in procs.log("agent")
+    out = make_report(cdir)
+    figures = [Path(f).name for f in out["figures"]]
+    assert "prior_posterior.png" in figures
+    page = Path(out["html"]).read_text()
+    assert "peak_accel_z" in page and "transfer prior at the end" in page
+    broken = [e["trial_id"] for e in scored if e["violations"]]
+    assert out["summary"]["limit_breaking_trials"] == broken
+
+
 if __name__ == "__main__":
     sys.exit(pytest.main([__file__, "-q"]))

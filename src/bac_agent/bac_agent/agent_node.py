@@ -33,6 +33,7 @@ from rclpy.clock_type import ClockType
 from bac_agent.bo.baselines import GridStrategy, RandomStrategy
 from bac_agent.bo.engine import ACQUISITIONS, Engine, EngineConfig
 from bac_agent.bo.gp import MEANS, GPConfig
+from bac_agent.bo.space import SearchSpace
 from bac_agent.bo.warp import WARPS
 from bac_agent.campaign import (
     Action,
@@ -49,6 +50,8 @@ from bac_agent.campaign import (
     TrialStatus,
 )
 from bac_agent.journal import Journal
+from bac_agent.transfer import load_source
+from bac_agent.transfer import summary as source_summary
 from bac_common.contracts import SRV_APPLY_CALIBRATION, SRV_READ_CALIBRATION, TOPIC_RUN_SCORE, TOPIC_TRIAL
 from bac_common.errors import BacError
 from bac_common.paramspace import CalibrationDefinition
@@ -135,7 +138,7 @@ class BoAgentNode(BacNode):
         )
         design_margin = self.declare_float(
             "design_margin",
-            0.25,
+            0.1,
             "bo: the initial design spans [m, 1 - m] of every parameter's range (0: the whole range)",
             0.0,
             0.49,
@@ -148,6 +151,37 @@ class BoAgentNode(BacNode):
             "optimum, written by bac reduce; the paper's best-guess initialization), then the initial design; "
             "design = the initial design alone",
             choices=("guess", "design"),
+            read_only=True,
+        )
+        prior_source = self.declare_str(
+            "prior_source",
+            "",
+            "bo: a transfer prior: a bac reduce output (its folder or result.json: the simulation phase's surrogate "
+            "through this definition) or an earlier campaign's folder (its runs); its optimum is the first trial and "
+            "its shape the model's prior mean while the runs support it ('' = none)",
+            read_only=True,
+        )
+        prior_weight = self.declare_float(
+            "prior_weight", 0.5, "bo: prior probability that the transfer prior describes this car", 0.01, 0.99, True
+        )
+        constraints = [
+            c
+            for c in self.declare_str_list(
+                "constraints",
+                [],
+                "limits on what a run measures besides J, e.g. peak_accel_z<=6.5 (RunScore outcomes): bo never "
+                "proposes a calibration likely to break one (constraint_level) and recommends within them; a run "
+                "that breaks one is booked and shown",
+                read_only=True,
+            )
+            if c.strip()
+        ]
+        constraint_level = self.declare_float(
+            "constraint_level",
+            0.05,
+            "bo: the largest probability of breaking an outcome limit a proposal or the recommendation may have",
+            0.001,
+            0.5,
             read_only=True,
         )
         grid_size = self.declare_int("grid_size", 4, "levels per dimension of the grid strategy", 1, 100, True)
@@ -217,8 +251,13 @@ class BoAgentNode(BacNode):
         if len(journal) and not resume:
             journal.close()
             raise BacError(f"{cdir} already holds a campaign journal and resume is false: choose a new campaign_dir")
+        source = load_source(prior_source, self.definition) if prior_source and self.strategy == "bo" else None
+        prior_info = source_summary(source, SearchSpace.from_definition(self.definition)) if source else {}
+        # with a transfer prior the first trial is the prior's optimum (the model's, not the file's best guess)
         initial_points = (
-            (dict(self.definition.best_guess),) if start_from == "guess" and self.definition.best_guess else ()
+            (dict(self.definition.best_guess),)
+            if start_from == "guess" and self.definition.best_guess and source is None
+            else ()
         )
         optimizer: Optimizer
         if self.strategy == "grid":
@@ -240,6 +279,10 @@ class BoAgentNode(BacNode):
                     design_margin=design_margin,
                     initial_points=initial_points,
                     gp=GPConfig(mean=gp_mean),
+                    prior=source.to_dict() if source is not None else None,
+                    prior_weight=prior_weight,
+                    constraints=tuple(constraints),
+                    constraint_level=constraint_level,
                 ),
             )
         cfg = CampaignConfig(
@@ -269,7 +312,14 @@ class BoAgentNode(BacNode):
                 "design_margin": design_margin,
                 "start_from": start_from,
                 "initial_points": [dict(p) for p in initial_points],
+                "prior_source": prior_source,
+                "prior_summary": prior_info,
+                "prior": source.to_dict() if source is not None else None,
+                "prior_weight": prior_weight,
+                "constraints": constraints,
+                "constraint_level": constraint_level,
             },
+            outcome_limits=tuple(constraints),
         )
         self.campaign = Campaign(
             optimizer,
@@ -313,6 +363,13 @@ class BoAgentNode(BacNode):
             f"bo_agent: definition '{self.definition.name}' ({', '.join(optimizer.names)}), strategy {self.strategy}, "
             f"budget {budget}, campaign '{cid}' in {cdir}"
         )
+        if prior_info:
+            self.get_logger().info(
+                f"transfer prior: {prior_info['label']}; its optimum {prior_info['optimum']} "
+                f"(J {prior_info['optimum_j']:.4g}) is trial 1"
+            )
+        if constraints:
+            self.get_logger().info(f"outcome limits: {', '.join(constraints)} (level {constraint_level:g})")
 
     # --- actions ----------------------------------------------------------------------------------
     def _do(self, actions: list[Action]) -> None:
@@ -558,6 +615,7 @@ class BoAgentNode(BacNode):
                 "vdv_accel_z": float(msg.vdv_accel_z),
                 "kpi": str(msg.kpi),
             }
+            outcomes = {str(n): float(v) for n, v in zip(msg.outcome_names, msg.outcome_values, strict=False)}
             self._do(
                 self.campaign.on_score(
                     str(msg.campaign_id),
@@ -567,6 +625,7 @@ class BoAgentNode(BacNode):
                     float(msg.j),
                     str(msg.reason),
                     details,
+                    outcomes,
                 )
             )
 

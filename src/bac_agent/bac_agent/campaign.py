@@ -46,7 +46,16 @@ from enum import IntEnum
 from pathlib import Path
 from typing import Any, Protocol
 
-from bac_agent.bo.engine import KIND_GRID, KIND_GUESS, KIND_INITIAL, KIND_OPTIMIZED, Recommendation, Suggestion
+from bac_agent.bo.constraints import OutcomeLimit, parse_limits, violations
+from bac_agent.bo.engine import (
+    KIND_GRID,
+    KIND_GUESS,
+    KIND_INITIAL,
+    KIND_OPTIMIZED,
+    KIND_PRIOR,
+    Recommendation,
+    Suggestion,
+)
 from bac_agent.journal import SCHEMA_VERSION, Journal, JournalError, strict_json, write_json_atomic
 from bac_common.errors import BacError
 
@@ -90,6 +99,7 @@ class Kind(IntEnum):
 _KIND_OF_SUGGESTION = {
     KIND_INITIAL: Kind.INITIAL,
     KIND_GUESS: Kind.INITIAL,
+    KIND_PRIOR: Kind.INITIAL,
     KIND_OPTIMIZED: Kind.OPTIMIZED,
     KIND_GRID: Kind.GRID,
 }
@@ -103,7 +113,7 @@ class Optimizer(Protocol):
     @property
     def n_trials(self) -> int: ...
     def ask_with_info(self) -> Suggestion: ...
-    def tell(self, params: Mapping[str, float], value: float) -> None: ...
+    def tell(self, params: Mapping[str, float], value: float, outcomes: Mapping[str, float] | None = None) -> None: ...
     def tell_failed(self, params: Mapping[str, float], reason: str) -> None: ...
     def recommend(self) -> Recommendation: ...
     def predict(self, params: Mapping[str, float]) -> tuple[float, float]: ...
@@ -128,12 +138,20 @@ class CampaignConfig:
     link_retry_s: float = 2.0  # the CAN link is down (ERROR_BUS): the campaign pauses and asks again after this long
     link_timeout_s: float = 600.0  # ... until it has been down this long (ROS time): then the campaign stops, resumable
     extra: Mapping[str, Any] = field(default_factory=dict)  # journaled with the start (n_initial, grid_size, ...)
+    # limits on a run's outcomes besides J ("max_travel_mm<=60"): a run that breaks one is booked and shown (the
+    # optimizer models them when it can: EngineConfig.constraints)
+    outcome_limits: tuple[str, ...] = ()
 
     def __post_init__(self) -> None:
         if not self.campaign_id:
             raise CampaignError("campaign_id must not be empty")
         if self.budget < 1 or self.max_attempts < 1 or self.apply_retries < 0:
             raise CampaignError("budget and max_attempts must be >= 1, apply_retries >= 0")
+        parse_limits(self.outcome_limits)  # a malformed limit is refused before anything is journaled
+
+    @property
+    def limits(self) -> tuple[OutcomeLimit, ...]:
+        return parse_limits(self.outcome_limits)
 
 
 @dataclass(frozen=True)
@@ -256,6 +274,7 @@ class Campaign:
         self.exit_code: int | None = None  # 0 done, 1 ended without a recommendation, 2 paused (ECU link down)
         self.paused = False  # stopped by campaign_paused (the ECU link stayed down): a resume goes on
         self.resumed = False
+        self.violated_trials: list[int] = []  # trials whose run broke an outcome limit (booked, shown)
         self.resumes = 0  # campaign_resumed events so far
 
     # --- helpers -----------------------------------------------------------------------------
@@ -384,7 +403,10 @@ class Campaign:
                 self.confirmation_j = j
                 self.confirmation_closed = True
             else:
-                self.opt.tell(t.params, j)
+                outcomes = {str(k): float(v) for k, v in (ev.get("outcomes") or {}).items() if v is not None}
+                self.opt.tell(t.params, j, outcomes)
+                if ev.get("violations"):
+                    self.violated_trials.append(t.trial_id)
                 self.trials_done += 1
                 self.consecutive_failures = 0
                 self.last_j = j
@@ -410,6 +432,9 @@ class Campaign:
                 int(ev.get("n_observations") or 0),
                 {str(k): float(v) for k, v in best.items()} if isinstance(best, Mapping) else None,
                 _f(ev.get("best_observed_j")),
+                dict(ev.get("predicted_outcomes") or {}),
+                {str(k): float(v) for k, v in (ev.get("transfer") or {}).items()},
+                str(ev.get("rule") or "mean"),
             )
         elif kind == "campaign_done":
             self.finished = True
@@ -474,6 +499,8 @@ class Campaign:
                 "link_retry_s": self.cfg.link_retry_s,
                 "link_timeout_s": self.cfg.link_timeout_s,
                 **dict(self.cfg.extra),
+                # the limits runs are booked against (issue 23); absent without limits, as before them
+                **({"outcome_limits": list(self.cfg.outcome_limits)} if self.cfg.outcome_limits else {}),
             },
             "definition": self.definition,
         }
@@ -594,6 +621,7 @@ class Campaign:
             ]
         s = self.opt.ask_with_info()
         tid = self.next_trial_id
+        extra: dict[str, Any] = {"model": dict(s.info)} if s.info else {}
         self._record(
             "trial_proposed",
             trial_id=tid,
@@ -603,9 +631,14 @@ class Campaign:
             predicted_std=s.predicted_std,
             reason=s.kind,
             optimizer_state=self.opt.ask_state(),
+            **extra,
         )
         t = self.trials[tid]
+        acts: list[Action] = []
+        if "no_safe_candidate" in s.info:
+            acts.append(Log("warn", f"trial {tid}: {s.info['no_safe_candidate']}"))
         return [
+            *acts,
             self._status(State.PROPOSED, f"Wait: trial {tid} calibration chosen ({s.kind})."),
             *self._apply(t),
         ]
@@ -748,8 +781,10 @@ class Campaign:
         j: float,
         reason: str = "",
         details: Mapping[str, Any] | None = None,
+        outcomes: Mapping[str, float] | None = None,
     ) -> list[Action]:
-        """A RunScore arrived; booked only if it is the run the agent is waiting for."""
+        """A RunScore arrived; booked only if it is the run the agent is waiting for. ``outcomes``: what the run
+        measured besides J (RunScore.outcome_names / outcome_values), checked against the outcome limits."""
         t = self.current
         why = ""
         if campaign_id != self.cfg.campaign_id:
@@ -768,6 +803,8 @@ class Campaign:
             valid, reason = False, f"J is not finite ({j!r})"
         if not valid:
             return self._reject(t, reason or "invalid run (no reason given)")
+        measured = {str(k): float(v) for k, v in (outcomes or {}).items()}
+        broken = violations(self.cfg.limits, measured)
         self._record(
             "trial_scored",
             trial_id=t.trial_id,
@@ -778,20 +815,32 @@ class Campaign:
             predicted_j=t.predicted_j,
             predicted_std=t.predicted_std,
             details=dict(details or {}),
+            outcomes=measured,
+            violations=broken,
         )
+        note: list[Action] = []
+        if broken:
+            note.append(Log("warn", f"trial {t.trial_id} broke an outcome limit: {'; '.join(broken)}"))
         if t.kind == Kind.CONFIRMATION:
             return [
+                *note,
                 Log("info", f"confirmation run of the recommendation: J={j:.4g}"),
-                self._status(State.SCORED, f"Confirmation run scored J={j:.4g}.", t=t),
+                self._status(State.SCORED, f"Confirmation run scored J={j:.4g}.", "; ".join(broken), t=t),
                 *self._done(),
             ]
         line = (
             f"trial {self.trials_done}/{self.cfg.budget} {fmt_params(t.params)} J={j:.4g} "
             f"best={self.best_j:.4g} (trial {self.best_trial_id})"
         )
+        text = f"Run scored J={j:.4g}; wait for the next calibration."
+        if broken:
+            text = (
+                f"Run scored J={j:.4g} but broke an outcome limit ({'; '.join(broken)}); wait for the next calibration."
+            )
         return [
+            *note,
             Log("info", line),
-            self._status(State.SCORED, f"Run scored J={j:.4g}; wait for the next calibration.", t=t),
+            self._status(State.SCORED, text, "; ".join(broken), t=t),
             *self._next_trial(),
         ]
 
@@ -837,6 +886,11 @@ class Campaign:
                     Log("error", f"campaign ended without any scored run: {exc}"),
                     Finish(1, None),
                 ]
+            extra: dict[str, Any] = {}
+            if made.predicted_outcomes:
+                extra["predicted_outcomes"] = dict(made.predicted_outcomes)
+            if made.transfer:
+                extra["transfer"] = dict(made.transfer)
             self._record(
                 "recommendation",
                 params=made.params,
@@ -845,6 +899,8 @@ class Campaign:
                 n_observations=made.n_observations,
                 best_observed_params=made.best_observed_params,
                 best_observed_j=made.best_observed_j,
+                rule=made.rule,
+                **extra,
             )
         rec = self.recommendation
         assert rec is not None
@@ -898,6 +954,9 @@ class Campaign:
             "best_observed_j": rec.best_observed_j,
             "best_trial_id": self.best_trial_id,
             "confirmation_j": self.confirmation_j,
+            "predicted_outcomes": dict(rec.predicted_outcomes),
+            "transfer": dict(rec.transfer),
+            "violated_trials": list(self.violated_trials),
         }
 
     def _done(self) -> list[Action]:

@@ -183,16 +183,25 @@ class Journal:
 def journaled_engine_options(started: Mapping[str, Any]) -> dict[str, Any]:
     """The EngineConfig fields an offline refit (``bac report``, ``bac rescore --refit``) needs to model and
     recommend the way the live campaign did, from its ``campaign_started`` record: ``recommend_beta``
-    (0: the paper's argmin of the posterior mean), the GP's prior mean, ``bowl_runs`` and the output warp.
+    (0: the paper's argmin of the posterior mean), the GP's prior mean, ``bowl_runs``, the output warp, and a
+    transfer prior and outcome limits when the campaign had them.
     Journals written before these were configurable get what the agent used then: beta 0, a constant mean,
     no warp."""
     cfg = started.get("config") or {}
-    return {
+    options: dict[str, Any] = {
         "recommend_beta": float(cfg.get("recommend_beta", 0.0) or 0.0),
         "gp": {"mean": str(cfg.get("gp_mean", "constant") or "constant")},
         "bowl_runs": int(cfg.get("bowl_runs", 0) or 0),
         "output_warp": str(cfg.get("output_warp", "none") or "none"),
     }
+    # issue 23: the transfer prior (its source surface, as the engine used it) and the outcome limits
+    if cfg.get("prior"):
+        options["prior"] = dict(cfg["prior"])
+        options["prior_weight"] = float(cfg.get("prior_weight", 0.5) or 0.5)
+    if cfg.get("constraints"):
+        options["constraints"] = [str(c) for c in cfg["constraints"]]
+        options["constraint_level"] = float(cfg.get("constraint_level", 0.05) or 0.05)
+    return options
 
 
 def write_json_atomic(path: str | Path, data: Mapping[str, Any]) -> None:

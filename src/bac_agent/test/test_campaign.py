@@ -7,7 +7,9 @@ import math
 from pathlib import Path
 from typing import Any
 
-from bac_agent.bo import Engine
+import pytest
+
+from bac_agent.bo import Engine, EngineConfig
 from bac_agent.bo.baselines import GridStrategy
 from bac_agent.campaign import (
     RECOMMENDATION_NAME,
@@ -17,6 +19,7 @@ from bac_agent.campaign import (
     CampaignConfig,
     Finish,
     Kind,
+    Log,
     Publish,
     State,
 )
@@ -258,3 +261,48 @@ def test_grid_strategy_through_the_campaign(tmp_path: Path) -> None:
         d.score()
     assert d.finish is not None and d.finish.recommendation is not None
     assert d.finish.recommendation.params == {"damping_front": 0.5, "damping_rear": 0.5}
+
+
+def test_outcome_limits_are_modelled_and_a_broken_one_is_booked_and_shown(tmp_path: Path) -> None:
+    """issue 23: a run's outcomes reach the optimizer and the journal; a run that broke a limit is not hidden."""
+
+    def travel(p: dict[str, float]) -> float:
+        return 80.0 - 40.0 * p["damping_front"]  # soft front dampers travel far
+
+    limits = ("max_travel_mm<=60",)
+    eng = Engine(SPACE, EngineConfig(budget=6, constraints=limits))
+    camp = Campaign(eng, Journal(tmp_path), CampaignConfig("c1", budget=6, outcome_limits=limits), lambda: 1.0)
+    d = Driver(camp)
+    d.feed(camp.start())
+    logs: list[str] = []
+    for _ in range(6):
+        d.ok_apply()
+        r = d.runs[-1]
+        p = d.confirmed[r.trial_id]
+        acts = camp.on_score("c1", r.trial_id, r.attempt, True, j_of(p), "", None, {"max_travel_mm": travel(p)})
+        logs += [a.text for a in acts if isinstance(a, Log)]
+        d.feed(acts)
+    assert d.finish is not None and d.finish.code == 0
+    assert all(o.outcomes["max_travel_mm"] == travel(o.params) for o in eng.observations)
+    scored = [e for e in events(tmp_path) if e["event"] == "trial_scored"]
+    broken = [e for e in scored if travel(e["params"]) > 60.0]
+    assert all(e["outcomes"] == {"max_travel_mm": travel(e["params"])} for e in scored)
+    assert all(e["violations"] == [f"max_travel_mm <= 60 (measured {travel(e['params']):.4g})"] for e in broken)
+    assert all(e["violations"] == [] for e in scored if e not in broken)
+    assert sum("broke an outcome limit" in t for t in logs) == len(broken) == len(camp.violated_trials)
+    rec = json.loads((tmp_path / RECOMMENDATION_NAME).read_text())
+    assert travel(rec["params"]) <= 60.0 and rec["violated_trials"] == camp.violated_trials
+    assert rec["predicted_outcomes"]["max_travel_mm <= 60"]["p_violation_true"] <= 0.05
+    # a resumed agent tells the optimizer the outcomes again
+    camp.journal.close()
+    eng2 = Engine(SPACE, EngineConfig(budget=6, constraints=limits))
+    camp2 = Campaign(eng2, Journal(tmp_path), CampaignConfig("c1", budget=6, outcome_limits=limits), lambda: 1.0)
+    camp2.start()
+    assert [o.outcomes for o in eng2.observations] == [o.outcomes for o in eng.observations]
+    assert camp2.violated_trials == camp.violated_trials
+
+
+def test_a_malformed_outcome_limit_is_refused_before_anything_is_journaled(tmp_path: Path) -> None:
+    with pytest.raises(ValueError, match="NAME<=VALUE"):
+        CampaignConfig("c1", outcome_limits=("travel < 60",))
+    assert not (tmp_path / "journal.jsonl").exists()

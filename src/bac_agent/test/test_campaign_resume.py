@@ -22,6 +22,7 @@ import pytest
 
 from bac_agent.bo import Engine, EngineConfig, GPConfig
 from bac_agent.bo.baselines import GridStrategy
+from bac_agent.bo.prior import SourceSurface
 from bac_agent.campaign import (
     ERROR_BUS,
     ERROR_ECU_BUSY,
@@ -134,9 +135,12 @@ class Clock:
 class Chain:
     """Plays the ECU bridge and the measurement chain for a Campaign, following the scripts."""
 
-    def __init__(self, camp: Campaign, clock: Clock) -> None:
+    def __init__(
+        self, camp: Campaign, clock: Clock, outcomes: Callable[[dict[str, float]], dict[str, float]] | None = None
+    ) -> None:
         self.c = camp
         self.clock = clock
+        self.outcomes = outcomes
         self.pending: Apply | AwaitRun | None = None
         self.finish: Finish | None = None
         self.published: list[Any] = []
@@ -182,7 +186,8 @@ class Chain:
         params = self.c.trials[a.trial_id].params
         if what == "valid":
             j = j_of(params) + (0.01 if a.trial_id == 9 else 0.0)
-            self.feed(self.c.on_score(CID, a.trial_id, a.attempt, True, j, details={"kpi": "rms"}))
+            measured = self.outcomes(params) if self.outcomes is not None else None
+            self.feed(self.c.on_score(CID, a.trial_id, a.attempt, True, j, details={"kpi": "rms"}, outcomes=measured))
         elif what == "invalid":
             self.feed(self.c.on_score(CID, a.trial_id, a.attempt, False, math.nan, "too slow"))
         elif what == "nan":
@@ -198,7 +203,13 @@ class Chain:
         raise AssertionError("the campaign did not finish")
 
 
-def start(campaign_dir: Path, clock: Clock, cfg: CampaignConfig | None = None, eng: Any = None) -> Chain:
+def start(
+    campaign_dir: Path,
+    clock: Clock,
+    cfg: CampaignConfig | None = None,
+    eng: Any = None,
+    outcomes: Callable[[dict[str, float]], dict[str, float]] | None = None,
+) -> Chain:
     camp = Campaign(
         eng if eng is not None else engine(),
         Journal(campaign_dir),
@@ -206,7 +217,7 @@ def start(campaign_dir: Path, clock: Clock, cfg: CampaignConfig | None = None, e
         clock,
         definition=DEFINITION,
     )
-    chain = Chain(camp, clock)
+    chain = Chain(camp, clock, outcomes)
     chain.feed(camp.start())
     return chain
 
@@ -234,7 +245,8 @@ def outcome(campaign_dir: Path, chain: Chain) -> dict[str, Any]:
         "recommendation_event": rec_event,
         "recommendation_json": json.loads((campaign_dir / RECOMMENDATION_NAME).read_text()),
         "finish": (chain.finish.code, chain.finish.recommendation),
-        "told": [(o.params, o.value) for o in eng.observations],
+        "told": [(o.params, o.value, dict(o.outcomes)) for o in eng.observations],
+        "violated": list(camp.violated_trials),
         "failures": [(f.params, f.reason) for f in eng.failures],
         "state": (camp.trials_done, camp.best_j, camp.best_trial_id, camp.last_j, camp.confirmation_j),
         "done": [e["event"] for e in events].count("campaign_done"),
@@ -265,7 +277,7 @@ def test_the_scripted_campaign_goes_through_every_rule(live: tuple[Path, dict[st
     assert kinds.count("score_ignored") >= 4 and kinds.count("run_rejected") == 7 and kinds.count("campaign_done") == 1
     assert [t["reason"] for t in out["trials"].values()][:4] == ["initial", "initial", "initial", "optimized"]
     rec = out["recommendation_json"]
-    assert rec["best_observed_params"] is not None and rec["best_observed_j"] == min(v for _, v in out["told"])
+    assert rec["best_observed_params"] is not None and rec["best_observed_j"] == min(t[1] for t in out["told"])
     assert rec["confirmation_j"] == out["trials"][9]["j"]
     assert "j" in out["trials"][5] and kinds.count("link_lost") == 1  # the outage paused trial 5, failed nothing
 
@@ -347,6 +359,145 @@ def test_the_resumed_engine_asks_what_the_uninterrupted_one_would(tmp_path: Path
             eng.tell(e["params"], e["j"])
         elif e["event"] == "trial_failed" and e["kind"] != 2:
             eng.tell_failed(by_id[e["trial_id"]]["params"], e["reason"])
+
+
+# --- with outcome limits and a transfer prior (issue 23) --------------------------------------------------------
+
+LIMIT = "max_travel_mm <= 60"
+# the simulator's J: its optimum near the car's
+SOURCE = SourceSurface.from_function(
+    lambda U: 1.0 + (U[:, 0] - 0.35) ** 2 + 0.5 * (U[:, 1] - 0.55) ** 2, 2, 32, label="sim", seed=0
+).to_dict()
+
+
+def travel(p: dict[str, float]) -> dict[str, float]:
+    """The travel breaks the limit at the unconstrained optimum (front 0.3: 68 mm); kept from front 0.5 on."""
+    return {"max_travel_mm": 40.0 + 40.0 * (1.0 - p["damping_front"]) + 2.0 * p["damping_rear"]}
+
+
+def config_limits(**over: Any) -> CampaignConfig:
+    extra = {**config().extra, "prior": SOURCE, "prior_weight": 0.5, "constraints": [LIMIT], "constraint_level": 0.05}
+    kw: dict[str, Any] = {"outcome_limits": (LIMIT,), "extra": extra}
+    kw.update(over)
+    return config(**kw)
+
+
+def _engine_limits() -> Engine:
+    cfg = EngineConfig(
+        budget=BUDGET,
+        n_initial=3,
+        seed=3,
+        n_candidates=64,
+        n_local=16,
+        acq_restarts=2,
+        nei_samples=8,
+        gp=GPConfig(bowl_centres=32, draws=2),
+        prior=SOURCE,
+        constraints=(LIMIT,),
+    )
+    return Engine(SPACE, cfg)
+
+
+_PRISTINE_LIMITS: list[Engine] = []
+
+
+def engine_limits() -> Engine:
+    if not _PRISTINE_LIMITS:
+        _PRISTINE_LIMITS.append(_engine_limits())
+    return copy.deepcopy(_PRISTINE_LIMITS[0])
+
+
+def start_limits(campaign_dir: Path, clock: Clock) -> Chain:
+    return start(campaign_dir, clock, config_limits(), engine_limits(), travel)
+
+
+@pytest.fixture(scope="module")
+def live_limits(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, dict[str, Any]]:
+    d = tmp_path_factory.mktemp("live_limits")
+    chain = start_limits(d, Clock())
+    chain.run()
+    chain.c.journal.close()
+    return d, outcome(d, chain)
+
+
+def test_the_campaign_with_limits_and_a_prior_uses_both(live_limits: tuple[Path, dict[str, Any]]) -> None:
+    d, out = live_limits
+    events = [json.loads(x) for x in (d / JOURNAL_NAME).read_text().splitlines()]
+    assert events[0]["config"]["outcome_limits"] == [LIMIT] and events[0]["config"]["prior"] == SOURCE
+    reasons = [t["reason"] for t in out["trials"].values()]
+    assert reasons[0] == "prior"  # the simulator's optimum first
+    states = [t["optimizer_state"] for t in out["trials"].values() if t["optimizer_state"]]
+    # the outcome model's last fit is journaled with each proposal once it has been fitted
+    assert any(st.get("outcomes") and st["outcomes"][0] is not None for st in states)
+    assert out["violated"] and all(
+        travel(t[0])["max_travel_mm"] > 60 for t in out["told"] if t[2]["max_travel_mm"] > 60
+    )
+    rec = out["recommendation_event"]
+    assert travel(rec["params"])["max_travel_mm"] <= 60.0
+    assert LIMIT in rec["predicted_outcomes"] and "transfer_weight" in rec["transfer"]
+    assert out["recommendation_json"]["violated_trials"] == out["violated"]
+
+
+def test_every_cut_of_a_journal_with_limits_and_a_prior_resumes_to_the_same_campaign(
+    live_limits: tuple[Path, dict[str, Any]], tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """The outcome models' last fits are restored with the asks (and a failure drops their cached fit, as the
+    objective's): cut anywhere, the resumed campaign proposes, books (violations included) and recommends
+    (predicted outcomes, transfer weight) what the uninterrupted one did."""
+    monkeypatch.setattr(os, "fsync", lambda fd: None)
+    src, expected = live_limits
+    raw = (src / JOURNAL_NAME).read_bytes()
+    lines = raw.splitlines(keepends=True)
+    for k in range(1, len(lines) + 1):
+        d = tmp_path / f"line_{k}"
+        d.mkdir()
+        (d / JOURNAL_NAME).write_bytes(b"".join(lines[:k]))
+        if k == len(lines):
+            shutil.copy(src / RECOMMENDATION_NAME, d / RECOMMENDATION_NAME)
+        last = json.loads(lines[k - 1])
+        chain = start_limits(d, Clock(100.0 + last["stamp"]))
+        chain.run()
+        got = outcome(d, chain)
+        for key, value in expected.items():
+            assert got[key] == value, f"cut after line {k}: {key} differs"
+
+
+LIMITS_REFUSED: dict[str, tuple[str, Callable[[], CampaignConfig]]] = {
+    "limit": (
+        'config.outcome_limits[0]: journaled "max_travel_mm <= 60", this agent "max_travel_mm <= 55"',
+        lambda: config_limits(outcome_limits=("max_travel_mm <= 55",)),
+    ),
+    "no limit": (
+        "config.outcome_limits: journaled [",
+        lambda: config_limits(outcome_limits=()),
+    ),
+    "level": (
+        "config.constraint_level: journaled 0.05, this agent 0.1",
+        lambda: config_limits(extra={**config_limits().extra, "constraint_level": 0.1}),
+    ),
+    "prior": (
+        "config.prior: journaled {",
+        lambda: config_limits(extra={**config_limits().extra, "prior": None}),
+    ),
+    "prior weight": (
+        "config.prior_weight: journaled 0.5, this agent 0.9",
+        lambda: config_limits(extra={**config_limits().extra, "prior_weight": 0.9}),
+    ),
+}
+
+
+@pytest.mark.parametrize("what", list(LIMITS_REFUSED))
+def test_a_resume_with_other_limits_or_another_prior_is_refused(what: str, tmp_path: Path) -> None:
+    message, make = LIMITS_REFUSED[what]
+    chain = start_limits(tmp_path, Clock())
+    for _ in range(4):
+        chain.step()
+    chain.c.journal.close()
+    camp = Campaign(engine_limits(), Journal(tmp_path), make(), Clock(), definition=DEFINITION)
+    with pytest.raises(CampaignError) as err:
+        camp.start()
+    assert message in str(err.value)
+    assert "cannot resume" in str(err.value)
 
 
 # --- refused configurations ---------------------------------------------------------------------------------------

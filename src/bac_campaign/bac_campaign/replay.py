@@ -29,6 +29,7 @@ from rclpy.serialization import deserialize_message
 from bac_campaign.bagplay import BagMessage, expand_bag_paths, iter_bag_messages, parse_topic_map
 from bac_common.contracts import TOPIC_CLOCK, TOPIC_RUN_SCORE, TOPIC_TRIAL
 from bac_common.rosnode import QOS_EVENTS, QOS_LATCHED, BacNode, run_node
+from bac_measure.recording import OLD_MESSAGE_PAD
 from bac_msgs.msg import RunScore, Trial
 
 PLAY_TOPICS = ("imu/data_raw", "vehicle/odom", "bac/trial")
@@ -49,6 +50,14 @@ def _types() -> dict[str, Any]:
         "vehicle/odom": (Odometry, QOS_PLAY),
         "bac/trial": (Trial, QOS_LATCHED),
     }
+
+
+def _run_score(cdr: bytes) -> RunScore:
+    """A recorded RunScore; one recorded before outcome_names / outcome_values (2026-11-24) with them empty."""
+    try:
+        return deserialize_message(cdr, RunScore)
+    except Exception:  # rclpy raises a bare RuntimeError-like error for a message that ends early
+        return deserialize_message(cdr + OLD_MESSAGE_PAD, RunScore)
 
 
 class BagPlayerNode(BacNode):
@@ -145,7 +154,7 @@ class BagPlayerNode(BacNode):
             play = [m for m in msgs if m.topic in PLAY_TOPICS]
             for m in msgs:
                 if m.topic == TOPIC_RUN_SCORE:
-                    s = deserialize_message(m.cdr, RunScore)
+                    s = _run_score(m.cdr)
                     recorded[(s.campaign_id, s.trial_id, s.attempt)] = s.j if s.valid else math.nan
             trials = [deserialize_message(m.cdr, Trial) for m in play if m.topic == TOPIC_TRIAL]
             for t in trials:

@@ -18,6 +18,11 @@ From a campaign folder (journal, bags, config) it draws:
 * a grid-search baseline (``--baseline GRID_CAMPAIGN``, a campaign run with
   ``strategy: grid``) beside the BO campaign: runs used, best J, recommended
   calibration and, when the truth is known, its true J and gap;
+* ``prior_posterior.png`` (a campaign with a transfer prior, issue 23): the prior (the simulator's or an earlier
+  campaign's J over the first two tuned dimensions) beside the posterior after the campaign's runs, with the
+  runs and the prior's and the recommendation's optima; the transfer weight, scale and offset at the end;
+* outcome limits: each run's measured outcomes, and the runs that broke a limit marked in the table and in
+  ``j_per_trial.png`` (never hidden);
 * ``report.html``: all of it with the table of trials.
 
     bac report CAMPAIGN_DIR [--truth bump_c1|road_c1] [--baseline GRID_CAMPAIGN_DIR] [--out DIR]
@@ -60,6 +65,8 @@ class TrialRow:
     status: str = "proposed"  # scored / failed / proposed
     reason: str = ""
     rejected: list[tuple[int, str]] = field(default_factory=list)
+    outcomes: dict[str, float] = field(default_factory=dict)  # measured besides J (RunScore outcomes)
+    violations: list[str] = field(default_factory=list)  # outcome limits the run broke
 
 
 @dataclass
@@ -120,6 +127,8 @@ def load_campaign(path: str | Path) -> Campaign:
         elif kind == "trial_scored" and tid in rows:
             rows[tid].j = _num(e.get("j"))
             rows[tid].status = "scored"
+            rows[tid].outcomes = {str(k): _num(v) for k, v in (e.get("outcomes") or {}).items()}
+            rows[tid].violations = [str(v) for v in e.get("violations") or []]
         elif kind == "run_rejected" and tid in rows:
             rows[tid].rejected.append((int(e.get("attempt", 0)), str(e.get("reason", ""))))
         elif kind == "trial_failed" and tid in rows:
@@ -130,6 +139,8 @@ def load_campaign(path: str | Path) -> Campaign:
                 "params": {k: float(v) for k, v in (e.get("params") or {}).items()},
                 "predicted_j": _num(e.get("predicted_j")),
                 "predicted_std": _num(e.get("predicted_std")),
+                "predicted_outcomes": dict(e.get("predicted_outcomes") or {}),
+                "transfer": dict(e.get("transfer") or {}),
             }
     if rec is None and (p / "recommendation.json").exists():
         data = json.loads((p / "recommendation.json").read_text())
@@ -286,7 +297,7 @@ def refit_engine(campaign: Campaign) -> Any:
         ),
     )
     for t in campaign.scored(include_confirmation=True):
-        eng.tell(t.params, t.j)
+        eng.tell(t.params, t.j, t.outcomes)
     return eng
 
 
@@ -450,6 +461,17 @@ def plot_j_per_trial(campaign: Campaign, out: Path, truth: Any | None) -> Path:
             ax.axvline(t.trial_id, color="orange", alpha=0.3, lw=3)
         if t.status == "failed":
             ax.axvline(t.trial_id, color="red", alpha=0.4, lw=3)
+    broke = [t for t in scored if t.violations]
+    if broke:
+        ax.plot(
+            [t.trial_id for t in broke],
+            [t.j for t in broke],
+            "x",
+            ms=11,
+            mew=2.5,
+            color="red",
+            label="broke an outcome limit",
+        )
     conf = [t for t in campaign.trials if t.kind == 2 and t.status == "scored"]
     if conf:
         ax.plot([conf[0].trial_id], [conf[0].j], "P", ms=12, color="lime", mec="black", label="confirmation run")
@@ -516,6 +538,77 @@ def plot_signals(signals: Sequence[Signals], out: Path) -> tuple[Path | None, Pa
 # --- summary, HTML --------------------------------------------------------------------------------------------
 
 
+def plot_prior_posterior(campaign: Campaign, out: Path) -> Path | None:
+    """The transfer prior's J beside the posterior after the runs (first two tuned dimensions, others at the
+    recommendation), with the runs, the prior's optimum and the recommendation (issue 23)."""
+    prior = campaign.engine_options.get("prior")
+    names = list(campaign.names)
+    if not prior or len(names) < 2 or not campaign.scored(include_confirmation=True):
+        return None
+    from bac_agent.bo.prior import SourceSurface
+
+    source = SourceSurface.from_dict(dict(prior))
+    eng = refit_engine(campaign)
+    rec = eng.recommend()
+    space = eng.space
+    u_rec = space.to_unit(space.to_array(rec.params))
+    n = 61
+    g = np.linspace(0.0, 1.0, n)
+    A, B = np.meshgrid(g, g, indexing="ij")
+    U = np.repeat(u_rec[None, :], n * n, axis=0)
+    U[:, 0], U[:, 1] = A.ravel(), B.ravel()
+    prior_j = source.predict_j(U).reshape(n, n)
+    post_j = eng.predict_unit(U)[0].reshape(n, n)
+    lo, hi = space.lower, space.upper
+    xa, xb = lo[0] + g * (hi[0] - lo[0]), lo[1] + g * (hi[1] - lo[1])
+    u_src = source.argmin()
+    plt = _plt()
+    fig, axes = plt.subplots(1, 2, figsize=(11, 4.6))
+    runs = campaign.scored(include_confirmation=True)
+    for ax, Z, title in (
+        (axes[0], prior_j, f"prior: {source.label[:60]}"),
+        (axes[1], post_j, f"posterior after {len(runs)} runs"),
+    ):
+        cs = ax.contourf(xa, xb, Z.T, levels=20, cmap="viridis")
+        fig.colorbar(cs, ax=ax, label="J")
+        ax.plot([t.params[names[0]] for t in runs], [t.params[names[1]] for t in runs], "w.", ms=8, label="runs")
+        broke = [t for t in runs if t.violations]
+        if broke:
+            ax.plot(
+                [t.params[names[0]] for t in broke],
+                [t.params[names[1]] for t in broke],
+                "rx",
+                ms=9,
+                mew=2,
+                label="broke a limit",
+            )
+        ax.plot(
+            lo[0] + u_src[0] * (hi[0] - lo[0]),
+            lo[1] + u_src[1] * (hi[1] - lo[1]),
+            "m^",
+            ms=11,
+            mec="k",
+            label="prior's optimum",
+        )
+        ax.plot(rec.params[names[0]], rec.params[names[1]], "r*", ms=15, mec="k", label="recommendation")
+        ax.set_xlabel(names[0])
+        ax.set_ylabel(names[1])
+        ax.set_title(title, fontsize=9)
+    axes[1].legend(fontsize=7, loc="best")
+    tr = eng.transfer
+    if tr is not None:
+        fig.suptitle(
+            f"transfer weight {tr.weight:.2f} (the prior is {'used' if tr.used else 'set aside'}), "
+            f"scale {tr.b:.2f} ± {tr.b_sd:.2f}, offset {tr.a:.3g} (source units)",
+            fontsize=10,
+        )
+    fig.tight_layout()
+    path = out / "prior_posterior.png"
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return path
+
+
 def campaign_status(campaign: Campaign) -> str:
     """One sentence on how the campaign ended, for the top of the page."""
     scored = campaign.scored()
@@ -530,6 +623,9 @@ def campaign_status(campaign: Campaign) -> str:
     text = f"{len(scored)} of {len(trials)} trials scored"
     if failed:
         text += f", {len(failed)} failed"
+    broke = [t for t in scored if t.violations]
+    if broke:
+        text += f", {len(broke)} broke an outcome limit (trials {', '.join(str(t.trial_id) for t in broke)})"
     if len(scored) == 1:
         text += ". One valid run: the model is flat, no optimum can be located from it"
     if campaign.recommendation is None:
@@ -553,7 +649,7 @@ def progress_by_run(campaign: Campaign, truth: Any) -> list[float]:
     )
     recs = []
     for t in scored:
-        eng.tell(t.params, t.j)
+        eng.tell(t.params, t.j, t.outcomes)
         recs.append([eng.recommend().params[n] for n in names])
     return [float(g) for g in truth.gap(truth.true_j(np.array(recs, dtype=float)))]
 
@@ -568,6 +664,7 @@ def summary(campaign: Campaign, truth: Any | None) -> dict[str, Any]:
         "scored_trials": len(scored),
         "runs_driven": sum(max(t.attempts, 1 if t.status == "scored" else 0) for t in campaign.trials),
         "failed_trials": sum(t.status == "failed" for t in campaign.trials),
+        "limit_breaking_trials": [t.trial_id for t in scored if t.violations],
         "best_observed_j": min((t.j for t in scored), default=math.nan),
         "recommendation": campaign.recommendation,
     }
@@ -608,9 +705,11 @@ def write_html(
     base_summ: dict[str, Any] | None,
 ) -> Path:
     names = list(campaign.names)
+    outcome_names = sorted({k for t in campaign.trials for k in t.outcomes})
     rows = []
     for t in campaign.trials:
         rej = "; ".join(f"run {a}: {html.escape(r)}" for a, r in t.rejected)
+        broke = "; ".join(html.escape(v) for v in t.violations)
         rows.append(
             [
                 str(t.trial_id),
@@ -618,12 +717,14 @@ def write_html(
                 *[f"{t.params.get(n, math.nan):.4g}" for n in names],
                 f"{t.j:.5f}" if math.isfinite(t.j) else "-",
                 f"{t.predicted_j:.5f}" if math.isfinite(t.predicted_j) else "-",
+                *[f"{t.outcomes[k]:.4g}" if k in t.outcomes else "-" for k in outcome_names],
                 str(t.attempts),
                 html.escape(t.status + (f": {t.reason}" if t.reason else ""))
+                + (f"<br><b style='color:#c00'>broke {broke}</b>" if broke else "")
                 + (f"<br><small>{rej}</small>" if rej else ""),
             ]
         )
-    trials_table = _table(rows, ["trial", "kind", *names, "J", "predicted J", "runs", "status"])
+    trials_table = _table(rows, ["trial", "kind", *names, "J", "predicted J", *outcome_names, "runs", "status"])
 
     def summary_rows(s: dict[str, Any]) -> list[list[str]]:
         rec = s.get("recommendation") or {}
@@ -640,6 +741,35 @@ def write_html(
                 [
                     "predicted J",
                     f"{rec.get('predicted_j', math.nan):.5f} ± {rec.get('predicted_std', math.nan):.5f}",
+                ]
+            )
+        limits = campaign.engine_options.get("constraints") or []
+        if limits:
+            broke = s.get("limit_breaking_trials") or []
+            out_rows.append(
+                [
+                    "outcome limits",
+                    html.escape(", ".join(limits))
+                    + f" (level {campaign.engine_options.get('constraint_level', 0.05):g}); "
+                    + (f"broken by trials {', '.join(map(str, broke))}" if broke else "no run broke one"),
+                ]
+            )
+        for lim, p in (rec.get("predicted_outcomes") or {}).items():
+            out_rows.append(
+                [
+                    f"recommendation: {html.escape(lim)}",
+                    f"predicted {p.get('mean', math.nan):.4g} ± {p.get('std', math.nan):.2g}, "
+                    f"P(broken) {p.get('p_violation_true', p.get('p_violation', math.nan)):.3f}"
+                    + (f" (a run there measures beyond it: {p['p_violation']:.3f})" if "p_violation_true" in p else ""),
+                ]
+            )
+        tr = rec.get("transfer") or {}
+        if tr:
+            out_rows.append(
+                [
+                    "transfer prior at the end",
+                    f"weight {tr.get('transfer_weight', math.nan):.2f}, scale {tr.get('prior_scale', math.nan):.2f}"
+                    f" ± {tr.get('prior_scale_sd', math.nan):.2f}, offset {tr.get('prior_offset', math.nan):.3g}",
                 ]
             )
         if "true_j_of_recommendation" in s:
@@ -718,6 +848,9 @@ def make_report(
     if c is not None:
         figures.append(c)
     figures.append(plot_j_per_trial(campaign, out_dir, truth))
+    pp = plot_prior_posterior(campaign, out_dir)
+    if pp is not None:
+        figures.append(pp)
     sig, spec = plot_signals(comparison_signals(campaign), out_dir)
     figures += [p for p in (sig, spec) if p is not None]
     summ = summary(campaign, truth)

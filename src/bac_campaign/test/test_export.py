@@ -108,6 +108,8 @@ def make_campaign(root: Path) -> Path:
                 psd_pitch_rate=sc.psd_pitch_rate,
                 valid=True,
                 reason="",
+                outcome_names=["peak_accel_z"],
+                outcome_values=np.array([2.5]),
             )
             with TrialBagWriter(camp / "bags" / f"trial_{tid:04d}") as w:
                 w.write_many(("imu/data_raw", ts, b) for ts, b in imu_to_cdr(raw))

@@ -7,7 +7,9 @@
 * ``kpi = "vdv"``: A = the vibration dose value of Wk-weighted a_z (m/s^1.75);
 
 and Q = RMS(pitch rate) in every case. Every part is computed whatever the
-KPI (the report shows them all), with Welch spectra of both signals.
+KPI (the report shows them all), with Welch spectra of both signals, and the
+outcomes a calibration engineer sets limits on (:data:`OUTCOMES`: the peak
+vertical acceleration and pitch rate of the window).
 
 :func:`score` is a pure function of the segment and the configuration: the
 live node and an offline rescoring of the same segment give the same J, bit
@@ -91,6 +93,15 @@ class Score:
     psd_pitch_rate: FloatArray = field(repr=False)
     valid: bool
     reason: str
+    # measured besides J, for outcome limits (RunScore.outcome_names / outcome_values): see OUTCOMES
+    outcomes: Mapping[str, float] = field(default_factory=dict)
+
+
+# what score_signals measures besides J, from the same window of the same IMU signals (before any detrending)
+OUTCOMES = {
+    "peak_accel_z": "largest |vertical acceleration| in the window, m/s^2",
+    "peak_pitch_rate": "largest |pitch rate| in the window, rad/s",
+}
 
 
 def rms(x: npt.ArrayLike) -> float:
@@ -156,6 +167,7 @@ def score_signals(
     bad = int(np.count_nonzero(~np.isfinite(az)) + np.count_nonzero(~np.isfinite(q)))
     if bad:
         return invalid(f"{bad} non-finite sample(s) in the window")
+    outcomes = {"peak_accel_z": float(np.max(np.abs(az))), "peak_pitch_rate": float(np.max(np.abs(q)))}
     pre = np.zeros(0) if pre_roll_accel_z is None else np.asarray(pre_roll_accel_z, dtype=np.float64).reshape(-1)
     pre = pre[int(np.flatnonzero(~np.isfinite(pre))[-1]) + 1 :] if pre.size and not np.all(np.isfinite(pre)) else pre
     if c.detrend:
@@ -188,6 +200,7 @@ def score_signals(
         psd_pitch_rate=p_q,
         valid=True,
         reason="",
+        outcomes=outcomes,
     )
 
 

@@ -81,6 +81,8 @@ def score_to_msg(s: Score) -> RunScore:
     m.psd_frequency_hz = np.asarray(s.psd_frequency_hz, dtype=np.float64)
     m.psd_accel_z = np.asarray(s.psd_accel_z, dtype=np.float64)
     m.psd_pitch_rate = np.asarray(s.psd_pitch_rate, dtype=np.float64)
+    m.outcome_names = [str(k) for k in s.outcomes]
+    m.outcome_values = [float(v) for v in s.outcomes.values()]
     m.valid = bool(s.valid)
     m.reason = s.reason
     return m

@@ -47,6 +47,10 @@ RECORDED_TOPICS: dict[str, str] = {
     "bac/calibration": "bac_msgs/msg/Calibration",
 }
 BAC_MSG_NAMES = ("Calibration", "Trial", "RunSegment", "RunScore")
+# appended to a bac_msgs message recorded before fields were added at its end (RunScore.outcome_names and
+# outcome_values, 2026-11-24): zero bytes read as the empty sequences (and the alignment before them), so an
+# older message decodes as the current one with those fields empty
+OLD_MESSAGE_PAD = bytes(16)
 ROS_DISTRO = "jazzy"
 
 # RMW_DURATION_INFINITE as rosbag2 writes a duration a publisher left at its default (sec, nsec)

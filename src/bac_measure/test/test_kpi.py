@@ -204,3 +204,24 @@ def test_bad_kpi_configuration_is_refused() -> None:
     with pytest.raises(KpiError, match="at least one weight"):
         KpiConfig(weight_accel_z=0.0, weight_pitch_rate=0.0)
     assert KpiConfig.from_params({"kpi": "vdv", "weight_accel_z": 2, "unrelated": 1}).weight_accel_z == 2.0
+
+
+def test_outcomes_are_the_peaks_of_the_window_before_detrending() -> None:
+    fs = 200.0
+    az = sine(2.0, 1.5, fs, 5.0) + 0.4  # an offset: the peak counts it, the detrended RMS does not
+    q = sine(1.0, 0.2, fs, 5.0, phase=1.0)
+    az[300] = -4.0  # one jolt
+    for cfg in (KpiConfig(), KpiConfig(detrend=True)):
+        s = score_signals(az, q, fs, cfg)
+        assert s.outcomes["peak_accel_z"] == pytest.approx(4.0)
+        assert s.outcomes["peak_pitch_rate"] == pytest.approx(0.2, rel=1e-3)
+    assert score(_segment(np.ones(10), np.ones(10), valid=False)).outcomes == {}
+
+
+def test_outcomes_travel_in_the_run_score_message() -> None:
+    from bac_measure.messages import score_to_msg
+
+    s = score_signals(sine(2.0, 1.5, 200.0, 5.0), sine(1.0, 0.2, 200.0, 5.0), 200.0)
+    m = score_to_msg(s)
+    got = dict(zip(m.outcome_names, m.outcome_values, strict=True))
+    assert got == pytest.approx(dict(s.outcomes))

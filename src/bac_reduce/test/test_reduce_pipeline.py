@@ -190,3 +190,28 @@ def test_the_simulated_car_through_a_meta_parameter_file_is_the_same_car() -> No
     np.testing.assert_allclose(j_red, j_full, rtol=1e-12)
     assert 0.5 < float(j_red[0]) < 2.0
     yaml.safe_dump(red.to_dict())  # serializable as the meta-parameter file
+
+
+def test_the_phase_output_is_a_transfer_prior_for_the_agent(tmp_path: Path) -> None:
+    """issue 23: bo_agent's prior_source reads a bac reduce output: J_mu through the meta-parameter file."""
+    from bac_agent.bo import SearchSpace
+    from bac_agent.transfer import TransferError, load_source
+    from bac_reduce.pipeline import PosteriorMean
+
+    res = run_reduction(tiny(verify_points=0, validate_repeats=0))
+    files = write_outputs(res, tmp_path / "out", plots=False)
+    d = CalibrationDefinition.load(files["definition"])
+    src = load_source(tmp_path / "out", d, points=64)
+    assert src.dim == len(d.dimensions) and "J_mu of 2 campaigns" in src.label
+    # the surface is the phase's own J_mu (bac_reduce.pipeline.PosteriorMean) through the definition
+    space = SearchSpace.from_definition(d)
+    j_mu = PosteriorMean.from_campaigns(res.campaigns)
+    U = np.random.default_rng(0).random((10, space.dim))
+    names = list(res.campaigns[0].names)
+    R = np.array([[d.expand(space.to_params(space.from_unit(u)))[n] for n in names] for u in U])
+    want = j_mu(R)
+    assert np.max(np.abs(src.predict_j(U) - want)) < 0.02 * (np.max(want) - np.min(want) + 1e-9) + 1e-3
+    # the same file as a result.json path; a folder that is neither output is refused with a clear message
+    assert load_source(files["result"], d, points=64).X.shape == src.X.shape
+    with pytest.raises(TransferError, match="neither a bac reduce output"):
+        load_source(tmp_path, d)

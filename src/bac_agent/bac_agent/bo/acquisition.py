@@ -90,7 +90,11 @@ class NoisyEI:
     they may be than the incumbent *jointly*, which makes local refinement under noise much cheaper.
     """
 
-    def __init__(self, gp: GP, n_samples: int, rng: np.random.Generator) -> None:
+    def __init__(
+        self, gp: GP, n_samples: int, rng: np.random.Generator, incumbents: NDArray[np.bool_] | None = None
+    ) -> None:
+        """``incumbents``: which observed points may be the incumbent (e.g. the runs that kept every outcome
+        limit); all of them by default."""
         h = gp.hyper
         if h is None or gp.X.shape[0] == 0:
             raise ValueError("NoisyEI needs a fitted GP")
@@ -110,7 +114,10 @@ class NoisyEI:
         S = max(1, int(n_samples))
         Z = _normal_qmc(n, S, rng)
         F = mu_b[:, None] + root @ Z  # (n, S)
-        self.best = F.min(axis=0)  # each draw's incumbent
+        if incumbents is not None and np.any(incumbents):
+            self.best = F[np.asarray(incumbents, dtype=bool)].min(axis=0)  # each draw's incumbent
+        else:
+            self.best = F.min(axis=0)
         jitter = 1e-8 * self.os
         for _ in range(8):
             try:

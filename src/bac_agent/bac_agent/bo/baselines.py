@@ -67,11 +67,12 @@ class _Baseline:
                 del self.pending[i]
                 return
 
-    def tell(self, params: Mapping[str, float], value: float) -> None:
+    def tell(self, params: Mapping[str, float], value: float, outcomes: Mapping[str, float] | None = None) -> None:
         if not math.isfinite(float(value)):
             raise EngineError(f"value must be finite, got {value!r}")
         self._drop_pending(params)
-        self.observations.append(Observation(self.space.to_params(self.space.to_array(params)), float(value)))
+        out = {str(k): float(v) for k, v in (outcomes or {}).items()}
+        self.observations.append(Observation(self.space.to_params(self.space.to_array(params)), float(value), out))
 
     def tell_failed(self, params: Mapping[str, float], reason: str) -> None:
         self._drop_pending(params)

@@ -39,8 +39,10 @@ from numpy.typing import NDArray
 from scipy.optimize import minimize
 
 from bac_agent.bo.acquisition import NoisyEI, log_ei, log_ei_with_grad
+from bac_agent.bo.constraints import OutcomeLimit, OutcomeModels, parse_limits
 from bac_agent.bo.design import candidates, default_n_initial, initial_design
 from bac_agent.bo.gp import GP, GPConfig, Hyper
+from bac_agent.bo.prior import SourceSurface, TransferFit, TransferSettings, fit_with_source
 from bac_agent.bo.space import SearchSpace
 from bac_agent.bo.warp import WARPS, OutputWarp
 from bac_common.errors import BacError
@@ -48,12 +50,15 @@ from bac_common.errors import BacError
 FloatArray = NDArray[np.float64]
 
 STATE_VERSION = 1
+PRIOR_N_INITIAL = 3  # initial design with a transfer prior: its argmin and two spread points (then the model)
 KIND_INITIAL = "initial"
 KIND_GUESS = "guess"  # a best guess given with the configuration (initial_points), asked first
+KIND_PRIOR = "prior"  # the argmin of a transfer prior's source (the simulator's optimum), asked first
 KIND_OPTIMIZED = "optimized"
 KIND_RANDOM = "random"
 KIND_GRID = "grid"
 ACQUISITIONS = ("ei", "nei")
+RULES = ("mean", "observed", "best_run")  # Engine.recommend(rule)
 
 
 def _make_blas_limiter() -> Callable[[], Any]:
@@ -94,8 +99,10 @@ class EngineConfig:
     budget: int = 15  # trials of the campaign (told + failed)
     n_initial: int = 0  # initial design size; 0 = automatic (see design.default_n_initial)
     # the initial design spans [design_margin, 1 - design_margin] of every parameter's range: runs at the faces,
-    # where J is steep, tell a few-run model little about where the minimum lies (measured: docs/agent.md)
-    design_margin: float = 0.25
+    # where J is steep, tell a few-run model little about where the minimum lies; 0.25 (2026-11-23, chosen on the
+    # Controller I bump) kept it from optima at a face or a corner; 0.1 on the tuning split of the problem
+    # families (issue 23, docs/agent.md)
+    design_margin: float = 0.1
     seed: int = 0
     n_candidates: int = 1024  # space-filling candidates for the acquisition maximizer
     n_local: int = 256  # candidates around the best points
@@ -113,6 +120,19 @@ class EngineConfig:
     # paper's "best guess policy"): e.g. the simulation phase's optimum of a meta-parameter file
     initial_points: tuple[Mapping[str, float], ...] = ()
     gp: GPConfig = field(default_factory=GPConfig)
+    # --- transfer (bo/prior.py): a model of J learned elsewhere (the simulator's surrogate, an earlier campaign),
+    # SourceSurface.to_dict() over this space's unit cube; its argmin is the first run (unless initial_points are
+    # given) and its shape the GP's prior mean while the car's runs support it
+    prior: Mapping[str, Any] | None = None
+    prior_weight: float = 0.5  # prior probability that the source describes this car
+    prior_scale_sd: float = 0.5  # prior sd of the learned scale around 1
+    prior_residual_os: float = 0.25  # prior median of the residual's variance (source-standardized units)
+    prior_n_initial: int = 0  # initial design size with a prior (the source's argmin included); 0 = automatic
+    # --- outcome constraints (bo/constraints.py): limits on measured outcomes besides J, e.g.
+    # {"name": "max_travel_mm", "bound": 60.0, "upper": True}; a proposal's probability of breaking any is at
+    # most constraint_level, and so is the recommendation's
+    constraints: tuple[Any, ...] = ()  # OutcomeLimit, its dict, or text such as "max_travel_mm<=60"
+    constraint_level: float = 0.05
 
     def __post_init__(self) -> None:
         if self.budget < 1:
@@ -127,11 +147,22 @@ class EngineConfig:
             raise EngineError(f"output_warp must be one of {', '.join(WARPS)}, got {self.output_warp!r}")
         if self.acquisition not in ACQUISITIONS:
             raise EngineError(f"acquisition must be one of {', '.join(ACQUISITIONS)}, got {self.acquisition!r}")
+        if not 0.0 < self.prior_weight < 1.0:
+            raise EngineError(f"prior_weight must be in (0, 1), got {self.prior_weight}")
+        if not (self.prior_scale_sd > 0 and self.prior_residual_os > 0):
+            raise EngineError("prior_scale_sd and prior_residual_os must be > 0")
+        if self.prior_n_initial < 0:
+            raise EngineError(f"prior_n_initial must be >= 0 (0 = automatic), got {self.prior_n_initial}")
+        if not 0.0 < self.constraint_level < 1.0:
+            raise EngineError(f"constraint_level must be in (0, 1), got {self.constraint_level}")
+        parse_limits(self.constraints)
 
     def to_dict(self) -> dict[str, Any]:
         d = asdict(self)
         d["gp"] = asdict(self.gp)
         d["initial_points"] = [dict(p) for p in self.initial_points]
+        d["constraints"] = [OutcomeLimit.from_spec(c).to_dict() for c in self.constraints]
+        d["prior"] = dict(self.prior) if self.prior is not None else None
         return d
 
     @classmethod
@@ -140,6 +171,7 @@ class EngineConfig:
         data["initial_points"] = tuple(
             {str(k): float(v) for k, v in p.items()} for p in data.get("initial_points") or ()
         )
+        data["constraints"] = tuple(OutcomeLimit.from_spec(c).to_dict() for c in data.get("constraints") or ())
         gp = dict(data.pop("gp", {}) or {})
         for k in ("ls_bounds", "os_bounds"):
             if k in gp:
@@ -155,6 +187,9 @@ class Suggestion:
     kind: str  # KIND_*
     predicted_j: float = math.nan
     predicted_std: float = math.nan
+    # what the model knew when it chose: the transfer prior's weight, offset and scale; the outcomes' predicted
+    # means and probabilities of breaking their limits; why a safer point was taken
+    info: Mapping[str, Any] = field(default_factory=dict)
 
 
 @dataclass(frozen=True)
@@ -167,6 +202,11 @@ class Recommendation:
     n_observations: int
     best_observed_params: dict[str, float] | None = None
     best_observed_j: float = math.nan
+    # with outcome limits: each limit's predicted mean, std and probability of being broken here
+    predicted_outcomes: Mapping[str, Any] = field(default_factory=dict)
+    # with a transfer prior: its weight, offset and scale when the recommendation was made
+    transfer: Mapping[str, float] = field(default_factory=dict)
+    rule: str = "mean"  # how it was chosen: mean (argmin over the domain), observed, best_run
 
     def to_dict(self) -> dict[str, Any]:
         return asdict(self)
@@ -176,6 +216,7 @@ class Recommendation:
 class Observation:
     params: dict[str, float]
     value: float
+    outcomes: Mapping[str, float] = field(default_factory=dict)  # measured besides J (peak_accel_z, ...)
 
 
 @dataclass(frozen=True)
@@ -213,10 +254,26 @@ class Engine:
         self._gp = GP(self.config.gp)
         self._gp_key: tuple[int, int] | None = None
         self._warp = OutputWarp()  # refitted with the GP; a pure function of the observations
+        self._source = SourceSurface.from_dict(dict(self.config.prior)) if self.config.prior else None
+        if self._source is not None and self._source.dim != self.space.dim:
+            raise EngineError(
+                f"the transfer prior has {self._source.dim} dimensions, this space {self.space.dim} ({self.names})"
+            )
+        self.transfer: TransferFit | None = None
+        self._limits = parse_limits(self.config.constraints)
+        self._outcomes = OutcomeModels(self._limits, self.config.constraint_level)
+        self._outcome_key: tuple[int, int] | None = None
         self._design = initial_design(self.n_initial, self.space.dim, self.config.seed, self.config.design_margin)
         self._n_guess = 0
+        self._guess_kind = KIND_GUESS
+        guess_points: FloatArray | None = None
         if self.config.initial_points:
-            guesses = self.space.to_unit(np.array([self.space.to_array(p) for p in self.config.initial_points]))
+            guess_points = self.space.to_unit(np.array([self.space.to_array(p) for p in self.config.initial_points]))
+        elif self._source is not None:
+            guess_points = self.space.to_unit(self.space.from_unit(self._source.argmin(self.config.seed))[None, :])
+            self._guess_kind = KIND_PRIOR
+        if guess_points is not None:
+            guesses = guess_points
             n_g = min(guesses.shape[0], self._design.shape[0])
             # the guesses first; each takes the place of the design point nearest to it, the rest still spans
             remaining = list(range(self._design.shape[0]))
@@ -228,7 +285,19 @@ class Engine:
     # --- facts ------------------------------------------------------------------------
     @property
     def n_initial(self) -> int:
+        if self.config.prior is not None and not self.config.n_initial:
+            return self.config.prior_n_initial or max(2, min(PRIOR_N_INITIAL, self.config.budget // 2))
         return self.config.n_initial or default_n_initial(self.space.dim, self.config.budget)
+
+    @property
+    def limits(self) -> tuple[Any, ...]:
+        """The outcome limits (bo.constraints.OutcomeLimit) of this campaign."""
+        return self._limits
+
+    @property
+    def source(self) -> SourceSurface | None:
+        """The transfer prior's source, if any."""
+        return self._source
 
     @property
     def bowl_runs(self) -> int:
@@ -269,41 +338,94 @@ class Engine:
 
     def _ask_with_info(self) -> Suggestion:
         k = self.n_trials + len(self.pending)
+        self._acq_info: dict[str, Any] = {}
+        s: Suggestion | None = None
         if k < self.n_initial and k < self._design.shape[0]:
             u = self._design[k]
-            s = self._suggest(u, KIND_GUESS if k < self._n_guess else KIND_INITIAL)
-        elif len(self.observations) < 2 or float(np.ptp([o.value for o in self.observations])) == 0.0:
-            s = self._suggest(self.rng.random(self.space.dim), KIND_RANDOM)
-        else:
-            s = self._suggest(self._maximize_acquisition(), KIND_OPTIMIZED)
+            if self._limits and self.observations and not self._outcome_models().allowed(u[None, :])[0]:
+                # a design point the outcome models expect to break a limit: the model chooses instead
+                self._acq_info["design_point_skipped"] = "predicted to break an outcome limit"
+            else:
+                s = self._suggest(u, self._guess_kind if k < self._n_guess else KIND_INITIAL)
+        if s is None:
+            if not self._can_model():
+                s = self._suggest(self._random_allowed(), KIND_RANDOM)
+            else:
+                s = self._suggest(self._maximize_acquisition(), KIND_OPTIMIZED)
         self.pending.append(dict(s.params))
         return s
+
+    def _can_model(self) -> bool:
+        """A model of J can be fitted: two different runs, or one with a transfer prior (which gives the shape)."""
+        if self._source is not None:
+            return len(self.observations) >= 1
+        return len(self.observations) >= 2 and float(np.ptp([o.value for o in self.observations])) > 0.0
+
+    def _random_allowed(self) -> FloatArray:
+        """A random point, within the outcome limits' level when they are modelled."""
+        if self._limits and self.observations:
+            cand = self.rng.random((256, self.space.dim))
+            ok = self._outcome_models().allowed(cand)
+            if np.any(ok):
+                return np.asarray(cand[int(np.flatnonzero(ok)[0])], dtype=float)
+        return self.rng.random(self.space.dim)
 
     def _suggest(self, u: FloatArray, kind: str) -> Suggestion:
         x = self.space.from_unit(u)
         params = self.space.to_params(x)
         mean, std = (math.nan, math.nan)
-        if len(self.observations) >= 1 and kind == KIND_OPTIMIZED:
-            m, s = self._predict_j(self.space.to_unit(x)[None, :])
+        info: dict[str, Any] = dict(getattr(self, "_acq_info", {}))
+        U = self.space.to_unit(x)[None, :]
+        if kind == KIND_OPTIMIZED and self._can_model():
+            m, s = self._predict_j(U)
             mean, std = float(m[0]), float(s[0])
-        return Suggestion(params, kind, mean, std)
+            if self.transfer is not None:
+                info["transfer"] = self.transfer.to_dict()
+        if self._limits and self.observations:
+            info["outcomes"] = self._outcome_models().describe(U)
+        return Suggestion(params, kind, mean, std, info)
+
+    def _obs_unit(self) -> FloatArray:
+        return self.space.to_unit(np.array([self.space.to_array(o.params) for o in self.observations]))
 
     def _model(self) -> GP:
-        """The GP fitted to every observation (refitted only when they changed)."""
+        """The GP fitted to every observation (refitted only when they changed).
+
+        With a transfer prior: the model with the source's trend when the runs support it (bo/prior.py),
+        else the engine's own model (the bowl or a constant mean, the output warp)."""
         if not self.observations:
             raise EngineError("nothing has been told yet: tell() at least one result first")
         key = (len(self.observations), hash(tuple(o.value for o in self.observations)))
+        if self._gp_key == key:
+            return self._gp
+        X = self._obs_unit()
+        y = np.array([o.value for o in self.observations])
+        if self._source is not None:
+            settings = TransferSettings(
+                self.config.prior_weight,
+                self.config.prior_scale_sd,
+                self.config.prior_residual_os,
+            )
+            gp, fit = fit_with_source(self.config.gp, X, y, self._source, settings, self.rng, self._gp.hyper)
+            self.transfer = fit
+            if fit.used:
+                self._gp, self._warp, self._gp_key = gp, OutputWarp(), key
+                return self._gp
         cfg = self._gp_config()
         if self._gp.config != cfg:
             self._gp = GP(cfg, hyper=self._gp.hyper)  # the last fit stays a start of the next one
-            self._gp_key = None
-        if self._gp_key != key:
-            X = self.space.to_unit(np.array([self.space.to_array(o.params) for o in self.observations]))
-            y = np.array([o.value for o in self.observations])
-            self._warp = OutputWarp.for_runs(self.config.output_warp, y)
-            self._gp.fit(X, self._warp.forward(y), self.rng)
-            self._gp_key = key
+        self._warp = OutputWarp.for_runs(self.config.output_warp, y)
+        self._gp.fit(X, self._warp.forward(y), self.rng)
+        self._gp_key = key
         return self._gp
+
+    def _outcome_models(self) -> OutcomeModels:
+        """The constrained outcomes' GPs, fitted to every observation (refitted when they changed)."""
+        key = (len(self.observations), hash(tuple(tuple(sorted(o.outcomes.items())) for o in self.observations)))
+        if self._outcome_key != key and self.observations:
+            self._outcomes.fit(self._obs_unit(), [o.outcomes for o in self.observations], self.rng)
+            self._outcome_key = key
+        return self._outcomes
 
     def _predict_j(self, U: FloatArray) -> tuple[FloatArray, FloatArray]:
         """Posterior mean and std at unit-cube points, in J (through the output warp's inverse)."""
@@ -332,22 +454,72 @@ class Engine:
         idx = self.rng.integers(0, top.shape[0], self.config.n_local)
         local = np.clip(top[idx] + self.rng.standard_normal((self.config.n_local, d)) * scale, 0.0, 1.0)
         cand = np.vstack([cand, local])
-        if self.config.acquisition == "nei":
-            nei = NoisyEI(model, self.config.nei_samples, self.rng)
-            acq_values: Callable[[FloatArray], FloatArray] = nei
-            acq_grad: Callable[[FloatArray], tuple[FloatArray, FloatArray]] = nei.value_and_grad
+        outc = self._outcome_models() if self._limits else None
+        incumbents = None
+        if outc is not None:
+            ok_obs = outc.observed_ok([o.outcomes for o in self.observations])
+            incumbents = np.concatenate([ok_obs, np.zeros(len(self.pending), dtype=bool)])
+            if ok_obs.any():
+                best = float(np.min(model.predict_std_units(X_obs[ok_obs])[0]))
+        acq_values: Callable[[FloatArray], FloatArray]
+        acq_grad: Callable[[FloatArray], tuple[FloatArray, FloatArray]]
+        if outc is not None and incumbents is not None and not incumbents.any():
+            # no run has kept every limit yet: look for the calibration most likely to keep them
+
+            def feasible_values(U: FloatArray) -> FloatArray:
+                return outc.log_feasible_and_grad(U)[0]
+
+            acq_values, acq_grad = feasible_values, outc.log_feasible_and_grad
+            self._acq_info["acquisition"] = "feasibility (no run has kept every limit yet)"
         else:
+            if self.config.acquisition == "nei":
+                nei = NoisyEI(model, self.config.nei_samples, self.rng, incumbents)
+                j_values: Callable[[FloatArray], FloatArray] = nei
+                j_grad: Callable[[FloatArray], tuple[FloatArray, FloatArray]] = nei.value_and_grad
+            else:
 
-            def acq_values(U: FloatArray) -> FloatArray:
-                mu, var = model.predict_std_units(U)
-                return log_ei(mu, np.sqrt(var), best)
+                def j_values(U: FloatArray) -> FloatArray:
+                    mu, var = model.predict_std_units(U)
+                    return log_ei(mu, np.sqrt(var), best)
 
-            def acq_grad(U: FloatArray) -> tuple[FloatArray, FloatArray]:
-                return log_ei_with_grad(*model.predict_with_grad(U), best)
+                def j_grad(U: FloatArray) -> tuple[FloatArray, FloatArray]:
+                    return log_ei_with_grad(*model.predict_with_grad(U), best)
 
-        acq = np.where(self._near_failures(cand), -np.inf, acq_values(cand))
+            if outc is None:
+                acq_values, acq_grad = j_values, j_grad
+            else:  # weighted by the probability that every limit holds
+                oc = outc
+
+                def weighted_values(U: FloatArray) -> FloatArray:
+                    return j_values(U) + oc.log_feasible_and_grad(U)[0]
+
+                def weighted_grad(U: FloatArray) -> tuple[FloatArray, FloatArray]:
+                    v, g = j_grad(U)
+                    vf, gf = oc.log_feasible_and_grad(U)
+                    return v + vf, g + gf
+
+                acq_values, acq_grad = weighted_values, weighted_grad
+
+        def allowed(U: FloatArray) -> NDArray[np.bool_]:
+            ok = ~self._near_failures(U)
+            return ok & outc.allowed(U) if outc is not None else ok
+
+        ok = allowed(cand)
+        if not np.any(ok):
+            if outc is None:
+                return self.rng.random(d)
+            # nothing is within the level: the calibration least likely to break a limit
+            worst = outc.prob_violation(cand).max(axis=1)
+            worst = np.where(self._near_failures(cand), np.inf, worst)
+            i = int(np.argmin(worst))
+            self._acq_info["no_safe_candidate"] = (
+                f"no calibration is predicted to keep every limit with probability >= "
+                f"{1 - self.config.constraint_level:g}; the least risky one ({worst[i]:.2f})"
+            )
+            return np.asarray(cand[i], dtype=float)
+        acq = np.where(ok, acq_values(cand), -np.inf)
         order = np.argsort(-acq)
-        starts = cand[order[: self.config.acq_restarts]]
+        starts = cand[order[: min(self.config.acq_restarts, int(np.sum(ok)))]]
         k = starts.shape[0]
 
         def f(flat: FloatArray) -> tuple[float, FloatArray]:
@@ -357,11 +529,11 @@ class Engine:
         res = minimize(f, starts.ravel(), jac=True, method="L-BFGS-B", bounds=[(0.0, 1.0)] * (k * d))
         opt = np.clip(res.x.reshape(k, d), 0.0, 1.0)
         both = np.vstack([opt, starts])
-        acq2 = np.where(self._near_failures(both), -np.inf, acq_values(both))
+        acq2 = np.where(allowed(both), acq_values(both), -np.inf)
         acq2 = np.where(np.isfinite(acq2), acq2, -np.inf)
         i = int(np.argmax(acq2))
         if not np.isfinite(acq2[i]):
-            return self.rng.random(d)
+            return np.asarray(starts[0], dtype=float)
         return np.asarray(both[i], dtype=float)
 
     def _near_failures(self, U: FloatArray, radius: float = 0.01) -> NDArray[np.bool_]:
@@ -372,15 +544,16 @@ class Engine:
         return np.asarray(np.any(d2 < radius**2, axis=1))
 
     # --- tell ---------------------------------------------------------------------------------
-    def tell(self, params: Mapping[str, float], value: float) -> None:
-        """Record the (noisy) J measured with ``params``."""
+    def tell(self, params: Mapping[str, float], value: float, outcomes: Mapping[str, float] | None = None) -> None:
+        """Record the (noisy) J measured with ``params``, and the run's other outcomes (for outcome limits)."""
         v = float(value)
         if not math.isfinite(v):
             raise EngineError(f"value must be finite, got {value!r}; use tell_failed() for a run without a result")
         x = self.space.to_array(params)
         p = self.space.to_params(x)
+        out = {str(k): float(o) for k, o in (outcomes or {}).items() if o is not None}
         self._drop_pending(x)
-        self.observations.append(Observation(p, v))
+        self.observations.append(Observation(p, v, out))
 
     def tell_failed(self, params: Mapping[str, float], reason: str) -> None:
         """Record that ``params`` could not be evaluated (never re-proposed exactly).
@@ -392,6 +565,7 @@ class Engine:
         self._drop_pending(x)
         self.failures.append(Failure(self.space.to_params(x), str(reason)))
         self._gp_key = None
+        self._outcome_key = None  # the outcome limits' models too
 
     def _drop_pending(self, x: FloatArray) -> None:
         for i, p in enumerate(self.pending):
@@ -404,18 +578,11 @@ class Engine:
         hyperparameters (the start of the next fit). A campaign journals it with each proposal; replaying the
         tells and :meth:`restore_ask` then asks what the uninterrupted engine would have (every fit after a
         tell or a failure starts again from these, so no other cached state matters)."""
-        h = self._gp.hyper
-        return {
-            "rng": self.rng.bit_generator.state,
-            "hyper": None
-            if h is None
-            else {
-                "lengthscales": h.lengthscales.tolist(),
-                "outputscale": h.outputscale,
-                "noise": h.noise,
-                "mean": h.mean,
-            },
-        }
+        state: dict[str, Any] = {"rng": self.rng.bit_generator.state, "hyper": _hyper_state(self._gp.hyper)}
+        if self._limits:
+            # each outcome limit's model starts its next fit from its last hyperparameters too (issue 23)
+            state["outcomes"] = [_hyper_state(m.gp.hyper) for m in self._outcomes.models]
+        return state
 
     def restore_ask(self, params: Mapping[str, float], state: Mapping[str, Any] | None) -> None:
         """Replay an ask from a journal: ``params`` become pending as :meth:`ask` left them, and the random
@@ -428,21 +595,21 @@ class Engine:
             return
         try:
             self.rng.bit_generator.state = dict(state["rng"])
-            h = state.get("hyper")
-            hyper = (
-                None
-                if not h
-                else Hyper(
-                    np.asarray(h["lengthscales"], dtype=float),
-                    float(h["outputscale"]),
-                    float(h["noise"]),
-                    float(h.get("mean", 0.0)),
-                )
-            )
+            hyper = _hyper_of_state(state.get("hyper"))
+            outcomes = [_hyper_of_state(h) for h in state.get("outcomes") or []]
         except (KeyError, TypeError, ValueError) as exc:
             raise EngineError(f"malformed journaled optimizer state: {exc}") from exc
+        if outcomes and len(outcomes) != len(self._outcomes.models):
+            raise EngineError(
+                f"the journaled optimizer state holds {len(outcomes)} outcome models, this engine has "
+                f"{len(self._outcomes.models)} outcome limits"
+            )
         self._gp = GP(self._gp.config, hyper=hyper)
         self._gp_key = None
+        for m, h in zip(self._outcomes.models, outcomes, strict=False):
+            m.gp = GP(m.gp.config, hyper=h)
+            m.n = 0
+        self._outcome_key = None
 
     def forget_pending(self) -> None:
         """Drop every ask that was never told (e.g. abandoned trials)."""
@@ -465,45 +632,104 @@ class Engine:
     def hyper(self) -> Hyper | None:
         return self._gp.hyper
 
-    def _minimize_bound(self, beta: float) -> FloatArray:
-        """Unit-cube argmin of posterior mean + beta * std (multi-start L-BFGS-B), quantized."""
+    def _minimize_bound(self, beta: float) -> FloatArray | None:
+        """Unit-cube argmin of posterior mean + beta * std (multi-start L-BFGS-B), quantized; with outcome limits
+        among the calibrations within the level (None when none is)."""
         gp = self._model()
         d = self.space.dim
         rng = np.random.default_rng(self.config.seed + 7919 * len(self.observations))
         cand = np.vstack([candidates(self.config.n_candidates, d, rng), gp.X])
         mu, var = gp.predict_std_units(cand)
         score = mu + beta * np.sqrt(var)
-        starts = cand[np.argsort(score)[: max(1, self.config.acq_restarts)]]
+        outc = self._outcome_models() if self._limits else None
+        log_ok = math.log(1.0 - self.config.constraint_level)
+        if outc is not None:
+            # the recommendation is judged on the calibration's true outcomes (latent variance): a run's
+            # measurement noise is not the calibration's (proposals are judged on what a run measures)
+            score = np.where(outc.allowed(cand, measured=False), score, np.inf)
+            if not np.any(np.isfinite(score)):
+                return None
+        starts = cand[np.argsort(score)[: max(1, min(self.config.acq_restarts, int(np.sum(np.isfinite(score)))))]]
         k = starts.shape[0]
 
         def f(flat: FloatArray) -> tuple[float, FloatArray]:
-            m, s, dm, ds = gp.predict_with_grad(flat.reshape(k, d))
-            return float(np.sum(m + beta * s)), (dm + beta * ds).ravel()
+            U = flat.reshape(k, d)
+            m, s, dm, ds = gp.predict_with_grad(U)
+            val, grad = m + beta * s, dm + beta * ds
+            if outc is not None:  # a penalty outside the level keeps the search where it may recommend
+                lf, glf = outc.log_feasible_and_grad(U, measured=False)
+                short = np.maximum(log_ok - lf, 0.0)
+                val = val + 100.0 * short**2
+                grad = grad - (200.0 * short)[:, None] * glf
+            return float(np.sum(val)), grad.ravel()
 
         res = minimize(f, starts.ravel(), jac=True, method="L-BFGS-B", bounds=[(0.0, 1.0)] * (k * d))
         pts = np.vstack([np.clip(res.x.reshape(k, d), 0.0, 1.0), starts])
         U = self.space.to_unit(self.space.from_unit(pts))
         m, v = gp.predict_std_units(U)
-        return np.asarray(U[int(np.argmin(m + beta * np.sqrt(v)))], dtype=float)
+        sc = m + beta * np.sqrt(v)
+        if outc is not None:
+            sc = np.where(outc.allowed(U, measured=False), sc, np.inf)
+            if not np.any(np.isfinite(sc)):
+                return None
+        return np.asarray(U[int(np.argmin(sc))], dtype=float)
 
-    def recommend(self) -> Recommendation:
-        """argmin over the domain of the posterior mean (+ recommend_beta · std), with its prediction."""
+    def recommend(self, rule: str = "mean") -> Recommendation:
+        """The campaign's answer, with its prediction. ``rule``:
+
+        * ``mean`` (the paper, the default): argmin over the domain of the posterior mean (+ recommend_beta · std);
+        * ``observed``: the driven calibration with the best posterior mean (what Ax recommends);
+        * ``best_run``: the driven calibration with the best measured J.
+
+        With outcome limits every rule keeps to calibrations within ``constraint_level`` (``observed`` and
+        ``best_run``: to runs that kept every limit); when none is, the run that kept them with the best posterior
+        mean, else the calibration least likely to break one.
+        """
+        if rule not in RULES:
+            raise EngineError(f"recommendation rule must be one of {', '.join(RULES)}, got {rule!r}")
         with _one_blas_thread():
-            return self._recommend()
+            return self._recommend(rule)
 
-    def _recommend(self) -> Recommendation:
-        u = self._minimize_bound(self.config.recommend_beta)
+    def _recommend(self, rule: str = "mean") -> Recommendation:
+        if not self.observations:
+            raise EngineError("nothing has been told yet: tell() at least one result first")
+        u: FloatArray | None = None
+        if rule == "mean":
+            u = self._minimize_bound(self.config.recommend_beta)
+        if u is None:
+            u = self._best_observed_unit(by_model=rule != "best_run")
         x = self.space.from_unit(u)
-        m, s = self._predict_j(self.space.to_unit(x)[None, :])
+        U = self.space.to_unit(x)[None, :]
+        m, s = self._predict_j(U)
+        mean, std = float(m[0]), float(s[0])
         best = self.best_observed()
         return Recommendation(
             params=self.space.to_params(x),
-            predicted_j=float(m[0]),
-            predicted_std=float(s[0]),
+            predicted_j=mean,
+            predicted_std=std,
             n_observations=len(self.observations),
             best_observed_params=dict(best.params) if best else None,
             best_observed_j=best.value if best else math.nan,
+            predicted_outcomes=self._outcome_models().describe(U) if self._limits else {},
+            transfer=self.transfer.to_dict() if self.transfer is not None and self._source is not None else {},
+            rule=rule,
         )
+
+    def _best_observed_unit(self, by_model: bool) -> FloatArray:
+        """The driven calibration with the best posterior mean (``by_model``) or measured J, among the runs that
+        kept every outcome limit (all runs when none did: then the least likely to break one)."""
+        U = self._obs_unit()
+        values = np.array([o.value for o in self.observations])
+        if by_model:
+            values = self._predict_j(U)[0]
+        if self._limits:
+            outc = self._outcome_models()
+            ok = outc.observed_ok([o.outcomes for o in self.observations])
+            if np.any(ok):
+                values = np.where(ok, values, np.inf)
+            else:
+                return np.asarray(U[int(np.argmin(outc.prob_violation(U).max(axis=1)))], dtype=float)
+        return np.asarray(U[int(np.argmin(values))], dtype=float)
 
     # --- state ------------------------------------------------------------------------------------
     def state_dict(self) -> dict[str, Any]:
@@ -511,7 +737,10 @@ class Engine:
             "version": STATE_VERSION,
             "space": self.space.to_dict(),
             "config": self.config.to_dict(),
-            "observations": [{"params": o.params, "value": o.value} for o in self.observations],
+            "observations": [
+                {"params": o.params, "value": o.value, **({"outcomes": dict(o.outcomes)} if o.outcomes else {})}
+                for o in self.observations
+            ],
             "failures": [{"params": f.params, "reason": f.reason} for f in self.failures],
             "pending": [dict(p) for p in self.pending],
             "rng": self.rng.bit_generator.state,
@@ -527,7 +756,14 @@ class Engine:
             raise EngineError(f"saved engine state has version {data.get('version')!r}, expected {STATE_VERSION}")
         try:
             eng = cls(SearchSpace.from_dict(data["space"]), EngineConfig.from_dict(data["config"]))
-            eng.observations = [Observation(dict(o["params"]), float(o["value"])) for o in data["observations"]]
+            eng.observations = [
+                Observation(
+                    dict(o["params"]),
+                    float(o["value"]),
+                    {str(k): float(v) for k, v in (o.get("outcomes") or {}).items() if v is not None},
+                )
+                for o in data["observations"]
+            ]
             eng.failures = [Failure(dict(f["params"]), str(f["reason"])) for f in data["failures"]]
             eng.pending = [dict(p) for p in data["pending"]]
             eng.rng.bit_generator.state = data["rng"]
@@ -544,3 +780,21 @@ class Engine:
         except json.JSONDecodeError as exc:
             raise EngineError(f"engine state is not valid JSON: {exc}") from exc
         return cls.from_state_dict(data)
+
+
+def _hyper_state(h: Hyper | None) -> dict[str, Any] | None:
+    """The part of fitted hyperparameters the next fit starts from (Engine.ask_state), as JSON."""
+    if h is None:
+        return None
+    return {"lengthscales": h.lengthscales.tolist(), "outputscale": h.outputscale, "noise": h.noise, "mean": h.mean}
+
+
+def _hyper_of_state(h: Mapping[str, Any] | None) -> Hyper | None:
+    if not h:
+        return None
+    return Hyper(
+        np.asarray(h["lengthscales"], dtype=float),
+        float(h["outputscale"]),
+        float(h["noise"]),
+        float(h.get("mean", 0.0)),
+    )

@@ -28,7 +28,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field, replace
-from typing import Any
+from typing import Any, Protocol
 
 import numpy as np
 import scipy.linalg as sla
@@ -75,6 +75,9 @@ class GPConfig:
     bowl_centres: int = 512  # candidate centres of the bowl (scrambled Sobol over the unit cube)
     bowl_tip: float = 0.05  # radius of the bowl's rounded tip (unit cube, after the anisotropy scaling)
     bowl_temper: float = 0.5  # power of the likelihood in the weights of the centres (1: the plain posterior)
+    # the centres are drawn over [-bowl_reach, 1 + bowl_reach] on every axis: a centre outside the box is a
+    # trend that falls towards a face or a corner, where many a calibration's optimum lies (issue 23)
+    bowl_reach: float = 0.0
     draws: int = 8  # draws from the prior, screened by their objective
     restarts: int = 1  # best draws optimized, besides the prior mode and the previous fit
     maxiter: int = 200
@@ -150,6 +153,13 @@ class Bowl:
         )
 
 
+class Trend(Protocol):
+    """A prior-mean trend over the unit cube (standardized units): e.g. bo.prior.PriorTrend, a source's shape."""
+
+    def value(self, Xq: FloatArray) -> FloatArray: ...
+    def value_and_grad(self, Xq: FloatArray) -> tuple[FloatArray, FloatArray]: ...
+
+
 @dataclass
 class Hyper:
     """Fitted hyperparameters (lengthscales on the unit cube, standardized units)."""
@@ -159,20 +169,29 @@ class Hyper:
     noise: float
     mean: float = 0.0  # constant prior mean (standardized units; 0 with GPConfig.mean == "zero")
     bowl: Bowl | None = None  # the bowl trend, added to ``mean`` (GPConfig.mean == "bowl"; None: none fitted)
+    # another trend added to the mean (a transfer prior's a + b s(x), bo/prior.py); set by the engine, not saved
+    prior: Trend | None = None
 
     def mean_at(self, Xq: FloatArray) -> FloatArray:
         """The prior mean at the rows of ``Xq`` (standardized units)."""
         Xq = np.atleast_2d(Xq)
-        if self.bowl is None:
-            return np.full(Xq.shape[0], self.mean)
-        return self.mean + self.bowl.value(Xq)
+        out = np.full(Xq.shape[0], self.mean)
+        if self.bowl is not None:
+            out = out + self.bowl.value(Xq)
+        if self.prior is not None:
+            out = out + self.prior.value(Xq)
+        return out
 
     def mean_and_grad(self, Xq: FloatArray) -> tuple[FloatArray, FloatArray]:
         Xq = np.atleast_2d(Xq)
-        if self.bowl is None:
-            return np.full(Xq.shape[0], self.mean), np.zeros_like(Xq)
-        v, g = self.bowl.value_and_grad(Xq)
-        return self.mean + v, g
+        v, g = np.full(Xq.shape[0], self.mean), np.zeros_like(Xq)
+        if self.bowl is not None:
+            vb, gb = self.bowl.value_and_grad(Xq)
+            v, g = v + vb, g + gb
+        if self.prior is not None:
+            vp, gp = self.prior.value_and_grad(Xq)
+            v, g = v + vp, g + gp
+        return v, g
 
     def to_vector(self) -> FloatArray:
         return np.concatenate([np.log(self.lengthscales), [math.log(self.outputscale), math.log(self.noise)]])
@@ -364,7 +383,7 @@ class GP:
             Kinv = sla.cho_solve((np.linalg.cholesky(K), True), np.eye(n), check_finite=False)
         except np.linalg.LinAlgError:
             return None
-        C = qmc.Sobol(d, scramble=True, seed=n).random(c.bowl_centres)
+        C = qmc.Sobol(d, scramble=True, seed=n).random(c.bowl_centres) * (1.0 + 2.0 * c.bowl_reach) - c.bowl_reach
         R = cone_radius(X, C, scale, c.bowl_tip)  # (n, m)
         k1 = Kinv.sum(axis=0)
         a11 = float(k1.sum())

@@ -1,0 +1,178 @@
+"""A safety limit the agent must respect: runs to the constrained optimum and how often a run breaks it (issue 23).
+
+The family: the bump cars of ``bench/problem_families.py`` (``bump_c1``, Controller I), each with a limit on the
+suspension travel at least 4 mm below the travel of its unconstrained optimum, so that the unconstrained optimum
+breaks it on every instance (soft dampers let the wheel travel towards the bump stop), and no higher than the
+median travel over the box (rounded down to a mm). An instance where fewer than 15 % of the box keep such a
+limit (a car that reaches its bump stops over this bump whatever the dampers do) is left out and listed. Each
+run measures J and the travel (noisy: 1.5 mm + 2 %). bac runs with ``constraints: max_travel_mm <= limit`` (its defaults
+otherwise, rule (a)), and without the limit for comparison, on the same seeds and noise streams.
+
+Printed per arm: the share of campaigns whose final recommendation keeps the limit (true travel), the share of
+all proposed runs whose true travel breaks it (goal < 10 %) and whose measured travel does, the median runs
+until the recommendation is within gap 0.05 of the **constrained** optimum while keeping the limit (budget + 1
+when never), with a 90 % bootstrap interval. The constrained optimum is the best point of a 41 × 41 grid of
+simulated runs that keeps the limit. LAST line: ``limit_violating_runs_pct <x>``.
+
+    nice -n 10 .venv/bin/python bench/outcome_limits.py --split held-out
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import sys
+import time
+from concurrent.futures import ProcessPoolExecutor
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+import problem_families as pf
+
+from bac_common.progress import runs_to_optimum
+
+FAMILY = "bump_c1"
+MARGIN_MM = 4.0
+MIN_FEASIBLE = 0.15
+
+
+def constrained_truth(index: int) -> dict[str, Any]:
+    inst = pf.instance(FAMILY, index)
+    truth = pf.truth_of(FAMILY, index)
+    b = inst.bounds
+    g = np.linspace(0.0, 1.0, 41)
+    U = np.array(np.meshgrid(g, g, indexing="ij")).reshape(2, -1).T
+    out = inst.evaluate(b[:, 0] + U * (b[:, 1] - b[:, 0]))
+    # below the unconstrained optimum's travel, and kept by at least half of the box's calibrations
+    limit = min(float(truth["travel_at_star_mm"]) - MARGIN_MM, float(np.median(out["max_travel_mm"])))
+    limit = float(np.floor(limit))
+    ok = out["max_travel_mm"] <= limit
+    k = int(np.argmin(np.where(ok, out["j"], np.inf)))
+    return {
+        "limit": limit,
+        "j_star_c": float(out["j"][k]) if ok.any() else float("nan"),
+        "u_star_c": U[k].tolist(),
+        "feasible_share": float(np.mean(ok)),
+        "j_med": truth["j_med"],
+    }
+
+
+def _task(args: tuple[int, int, str, int, str]) -> dict[str, Any]:
+    index, seed, arm, budget, config = args
+    from threadpoolctl import threadpool_limits
+
+    from bac_agent.bo import Engine, EngineConfig
+
+    with threadpool_limits(1):
+        inst = pf.instance(FAMILY, index)
+        ct = constrained_truth(index)
+        b = inst.bounds
+        names = ["damping_front", "damping_rear"]
+        cons = [f"max_travel_mm<={ct['limit']:.3f}"] if arm == "limit" else []
+        cfg = EngineConfig.from_dict(
+            {**json.loads(config or "{}"), "budget": budget, "seed": seed, "constraints": cons}
+        )
+        eng = Engine([(n, lo, hi) for n, (lo, hi) in zip(names, b, strict=True)], cfg)
+        noise_rng = np.random.default_rng([index, seed, 54321])
+        asked, measured, recs = [], [], []
+        t0 = time.perf_counter()
+        for _ in range(budget):
+            q = eng.ask()
+            x = np.array([[q[n] for n in names]])
+            out = inst.noisy(x, noise_rng)
+            asked.append(x[0])
+            measured.append(float(out["max_travel_mm"][0]))
+            eng.tell(q, float(out["j"][0]), {"max_travel_mm": measured[-1]})
+            r = eng.recommend()
+            recs.append([r.params[n] for n in names])
+        dt = time.perf_counter() - t0
+        ev_runs = inst.evaluate(np.array(asked))
+        ev_recs = inst.evaluate(np.array(recs))
+    keeps = ev_recs["max_travel_mm"] <= ct["limit"]
+    gap_c = (ev_recs["j"] - ct["j_star_c"]) / (ct["j_med"] - ct["j_star_c"])
+    gap_c = np.where(keeps, gap_c, np.inf)
+    return {
+        "instance": index,
+        "seed": seed,
+        "arm": arm,
+        "limit": ct["limit"],
+        "feasible_share": ct["feasible_share"],
+        "runs_broke_true": [bool(t > ct["limit"]) for t in ev_runs["max_travel_mm"]],
+        "runs_broke_measured": [bool(t > ct["limit"]) for t in measured],
+        "final_keeps": bool(keeps[-1]),
+        "final_travel_minus_limit": float(ev_recs["max_travel_mm"][-1] - ct["limit"]),
+        "gaps_c": [float(v) for v in gap_c],
+        "seconds": dt,
+    }
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--split", default="held-out", choices=sorted(pf.SPLITS))
+    ap.add_argument("--arms", default="limit,none")
+    ap.add_argument("--budget", type=int, default=20)
+    ap.add_argument("--instances", type=int, default=0, help="only the first N instances of the split (0: all)")
+    ap.add_argument("--seeds", type=int, default=0, help="only the first N seeds of the split (0: all)")
+    ap.add_argument("--bac-config", default="")
+    ap.add_argument("--workers", type=int, default=os.cpu_count() or 1)
+    ap.add_argument("--out", default="")
+    a = ap.parse_args(argv)
+    split = pf.SPLITS[a.split]
+    arms = [x for x in a.arms.split(",") if x]
+    insts = split["instances"][: a.instances or None]
+    seeds = split["seeds"][: a.seeds or None]
+    shares = {i: constrained_truth(i)["feasible_share"] for i in insts}
+    left_out = [i for i in insts if shares[i] < MIN_FEASIBLE]
+    insts = [i for i in insts if shares[i] >= MIN_FEASIBLE]
+    tasks = [(i, s, arm, a.budget, a.bac_config) for i in insts for s in seeds for arm in arms]
+    t0 = time.perf_counter()
+    with ProcessPoolExecutor(max_workers=a.workers) as ex:
+        results = list(ex.map(_task, tasks))
+    wall = time.perf_counter() - t0
+    print(
+        f"# left out (fewer than {MIN_FEASIBLE:.0%} of the box keep the limit): "
+        + (", ".join(f"{i} ({100 * shares[i]:.0f} %)" for i in left_out) or "none")
+    )
+    print(
+        f"# outcome limits on {FAMILY}, split {a.split}: travel limit min(the unconstrained optimum's travel - "
+        f"{MARGIN_MM:g} mm, the median travel over the box); budget {a.budget}; rule (a); "
+        f"bac config {a.bac_config or 'defaults'}; wall {wall:.0f} s, "
+        f"{a.workers} workers, load {os.getloadavg()[0]:.1f}"
+    )
+    limits = sorted({(r["instance"], round(r["limit"], 1), round(100 * r["feasible_share"])) for r in results})
+    print("# limits (instance, mm, feasible % of the box): " + ", ".join(f"{i}: {m} ({f} %)" for i, m, f in limits))
+    print(
+        f"\n{'arm':<6} {'final keeps':>11} {'runs broke (true)':>17} {'(measured)':>10} {'runs to c-opt':>13} "
+        f"{'90% CI':>9} {'n':>4}"
+    )
+    pct = float("nan")
+    for arm in arms:
+        rs = [r for r in results if r["arm"] == arm]
+        keeps = float(np.mean([r["final_keeps"] for r in rs]))
+        broke_t = float(np.mean([b for r in rs for b in r["runs_broke_true"]]))
+        broke_m = float(np.mean([b for r in rs for b in r["runs_broke_measured"]]))
+        runs = np.array([min(runs_to_optimum(r["gaps_c"]), a.budget + 1) for r in rs])
+        rng = np.random.default_rng(0)
+        meds = np.median(runs[rng.integers(0, runs.size, (4000, runs.size))], axis=1)
+        lo, hi = np.quantile(meds, [0.05, 0.95])
+        med = float(np.median(runs))
+        shown = f">{a.budget}" if med > a.budget else f"{med:g}"
+        print(
+            f"{arm:<6} {keeps:>11.0%} {broke_t:>17.1%} {broke_m:>10.1%} {shown:>13} {f'{lo:g}-{hi:g}':>9} {len(rs):>4}"
+        )
+        if arm == "limit":
+            pct = 100 * broke_t
+    out = Path(a.out or f"bench/out/outcome_limits_{a.split}.json")
+    out.parent.mkdir(parents=True, exist_ok=True)
+    out.write_text(json.dumps({"results": results}))
+    print(f"\n# raw results {out}")
+    print(f"limit_violating_runs_pct {pct:.1f}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,188 @@
+"""What the simulator knows, carried to the car: runs until the optimum with and without a transfer prior (issue 23).
+
+On the car families' instances of a split (``bench/problem_families.py``), bac's engine (its defaults, rule (a):
+the argmin of the posterior mean) runs three ways on the same seeds and noise streams:
+
+* ``none``: no prior (what bo_agent does without ``prior_source``);
+* ``sim``: the simulator's surrogate as the prior: the **nominal** car on the same test (the simulation phase
+  knows the test but not this car), 64 noise-free runs at Sobol points, fitted by ``SourceSurface.fit`` (what
+  ``bac_agent.transfer`` builds from a ``bac reduce`` output or a campaign folder);
+* ``misleading``: a deliberately wrong simulator: the same surrogate mirrored through the centre of the box, so
+  that its optimum lies in the opposite corner of wherever the nominal car's lies.
+
+Printed per family and pooled over the car families: median runs until the recommendation's true gap ≤ 0.05
+(budget + 1 when never), with a 90 % bootstrap interval, the share found after 1, 2 and 3 runs, and the gap of
+the simulator's own optimum on each car. LAST lines: ``transfer_sim_median_runs <x>`` (goal ≤ 2) and
+``transfer_misleading_extra_runs <x>`` (the misleading prior's median minus no prior's; goal ≤ 1).
+
+    nice -n 10 .venv/bin/python bench/transfer.py --split held-out
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import sys
+import time
+from concurrent.futures import ProcessPoolExecutor
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+import problem_families as pf
+
+from bac_common.progress import gap, runs_to_optimum
+
+ARMS = ("none", "sim", "misleading")
+SOURCE_POINTS = 64
+
+
+def source_for(family: str, index: int, arm: str) -> dict[str, Any] | None:
+    """The transfer prior (SourceSurface.to_dict()) of an arm, or None."""
+    if arm == "none":
+        return None
+    from bac_agent.bo.prior import SourceSurface
+    from bac_sim.families import get_family
+
+    fam = get_family(family)
+    nominal = fam.nominal(fam.instance(index))
+    b = nominal.bounds
+
+    def f(U: np.ndarray) -> np.ndarray:
+        V = U if arm == "sim" else 1.0 - U  # misleading: mirrored through the box centre
+        return nominal.evaluate(b[:, 0] + V * (b[:, 1] - b[:, 0]))["j"]
+
+    label = f"nominal car on {nominal.scenario.name}" + (" (mirrored: misleading)" if arm == "misleading" else "")
+    return SourceSurface.from_function(f, b.shape[0], SOURCE_POINTS, label=label, seed=index).to_dict()
+
+
+def _task(args: tuple[str, int, int, str, int, str, int]) -> dict[str, Any]:
+    family, index, seed, arm, budget, config, grid = args
+    from threadpoolctl import threadpool_limits
+
+    from bac_agent.bo import Engine, EngineConfig
+
+    with threadpool_limits(1):
+        inst = pf.instance(family, index, grid)
+        truth = pf.truth_of(family, index)
+        b = inst.bounds
+        names = [f"x{i}" for i in range(b.shape[0])]
+        src = source_for(family, index, arm)
+        cfg = EngineConfig.from_dict({**json.loads(config or "{}"), "budget": budget, "seed": seed, "prior": src})
+        eng = Engine([(n, lo, hi) for n, (lo, hi) in zip(names, b, strict=True)], cfg)
+        noise_rng = np.random.default_rng([index, seed, 12345])
+        recs, weights = [], []
+        t0 = time.perf_counter()
+        for _ in range(budget):
+            q = eng.ask()
+            x = np.array([[q[n] for n in names]])
+            eng.tell(q, float(inst.noisy(x, noise_rng)["j"][0]))
+            r = eng.recommend()
+            recs.append([r.params[n] for n in names])
+            weights.append(eng.transfer.weight if eng.transfer is not None else float("nan"))
+        dt = time.perf_counter() - t0
+        js = inst.true_j(np.array(recs))
+        sim_gap = float("nan")
+        if eng.source is not None:
+            u = eng.source.argmin(seed)
+            j_src = inst.true_j((b[:, 0] + u * (b[:, 1] - b[:, 0]))[None, :])
+            sim_gap = float(gap(j_src, truth["j_star"], truth["j_med"])[0])
+    return {
+        "family": family,
+        "instance": index,
+        "seed": seed,
+        "arm": arm,
+        "gaps": [float(g) for g in gap(js, truth["j_star"], truth["j_med"])],
+        "weights": weights,
+        "source_optimum_gap": sim_gap,
+        "seconds": dt,
+    }
+
+
+def _ci(runs: np.ndarray, draws: int = 4000) -> tuple[float, float]:
+    rng = np.random.default_rng(0)
+    m = np.median(runs[rng.integers(0, runs.size, (draws, runs.size))], axis=1)
+    return float(np.quantile(m, 0.05)), float(np.quantile(m, 0.95))
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--split", default="held-out", choices=sorted(pf.SPLITS))
+    ap.add_argument("--families", default=",".join(pf.CAR_FAMILIES))
+    ap.add_argument("--arms", default=",".join(ARMS))
+    ap.add_argument("--instances", type=int, default=0)
+    ap.add_argument("--seeds", type=int, default=0)
+    ap.add_argument("--budget", type=int, default=15)
+    ap.add_argument("--bac-config", default="")
+    ap.add_argument("--workers", type=int, default=os.cpu_count() or 1)
+    ap.add_argument("--grid-truth", type=int, default=0, help="tuning split only: the cars' J interpolated (quick)")
+    ap.add_argument("--out", default="")
+    ap.add_argument("--from-json", default="", help="comma list of earlier --out files: summarize them together")
+    a = ap.parse_args(argv)
+    split = pf.SPLITS[a.split]
+    insts = split["instances"][: a.instances or None]
+    seeds = split["seeds"][: a.seeds or None]
+    fams = [f for f in a.families.split(",") if f]
+    arms = [x for x in a.arms.split(",") if x]
+    if a.grid_truth and a.split != "tuning":
+        ap.error("--grid-truth is for exploring defaults on the tuning split only")
+    tasks = [
+        (f, i, s, arm, a.budget, a.bac_config, a.grid_truth) for f in fams for i in insts for s in seeds for arm in arms
+    ]
+    t0 = time.perf_counter()
+    if a.from_json:  # e.g. one run per family: summarized together (the pooled line over all of them)
+        results = [r for f in a.from_json.split(",") if f for r in json.loads(Path(f).read_text())["results"]]
+        fams = list(dict.fromkeys(r["family"] for r in results))
+        print(f"# summarized {a.from_json}")
+    else:
+        with ProcessPoolExecutor(max_workers=a.workers) as ex:
+            results = list(ex.map(_task, tasks))
+    wall = time.perf_counter() - t0
+    print(
+        f"# transfer, split {a.split}: instances {insts[0]}..{insts[-1]}, seeds {seeds}, budget {a.budget}, "
+        f"rule (a); bac config {a.bac_config or 'defaults'}; wall {wall:.0f} s, {a.workers} workers, "
+        f"load {os.getloadavg()[0]:.1f}"
+    )
+    medians: dict[tuple[str, str], float] = {}
+    for fam in [*fams, "all car families"]:
+        rows = [r for r in results if fam == "all car families" or r["family"] == fam]
+        print(f"\n## {fam}")
+        print(
+            f"   {'prior':<11} {'runs':>5} {'90% CI':>9} {'by 1':>5} {'by 2':>5} {'by 3':>5} {'gap@end':>8} "
+            f"{'weight@end':>10} {'source opt. gap':>15} {'n':>4}"
+        )
+        for arm in arms:
+            rs = [r for r in rows if r["arm"] == arm]
+            runs = np.array([min(runs_to_optimum(r["gaps"]), a.budget + 1) for r in rs])
+            med = float(np.median(runs))
+            medians[(fam, arm)] = med
+            lo, hi = _ci(runs)
+            by = [float(np.mean(runs <= k)) for k in (1, 2, 3)]
+            gend = float(np.median([r["gaps"][-1] for r in rs]))
+            w = np.array([r["weights"][-1] for r in rs])
+            sg = np.array([r["source_optimum_gap"] for r in rs])
+            wtxt = f"{np.nanmedian(w):.2f}" if np.any(np.isfinite(w)) else "-"
+            stxt = f"{np.nanmedian(sg):.3f}" if np.any(np.isfinite(sg)) else "-"
+            shown = f">{a.budget}" if med > a.budget else f"{med:g}"
+            print(
+                f"   {arm:<11} {shown:>5} {f'{lo:g}-{hi:g}':>9} {by[0]:>5.0%} {by[1]:>5.0%} {by[2]:>5.0%} "
+                f"{gend:>8.3f} {wtxt:>10} {stxt:>15} {len(rs):>4}"
+            )
+    if not a.from_json:
+        out = Path(a.out or f"bench/out/transfer_{a.split}.json")
+        out.parent.mkdir(parents=True, exist_ok=True)
+        out.write_text(json.dumps({"results": results}))
+        print(f"\n# raw results {out}")
+    pooled = "all car families"
+    if (pooled, "sim") in medians:
+        print(f"transfer_sim_median_runs {medians[(pooled, 'sim')]:g}")
+    if (pooled, "misleading") in medians and (pooled, "none") in medians:
+        print(f"transfer_misleading_extra_runs {medians[(pooled, 'misleading')] - medians[(pooled, 'none')]:g}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

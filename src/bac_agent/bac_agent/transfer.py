@@ -1,0 +1,177 @@
+"""Where a transfer prior comes from: a ``bac reduce`` output or an earlier campaign, as a :class:`SourceSurface`.
+
+``bo_agent``'s ``prior_source`` names one of
+
+* **a ``bac reduce`` output** (its folder or its ``result.json``): the simulation phase's surrogate J_mu, the
+  precision-weighted average of its M campaigns' posterior means (what the phase's sensitivity analysis used;
+  ``bac_reduce.pipeline.PosteriorMean``), evaluated through this campaign's calibration definition: each point
+  of the campaign's unit cube is expanded to the full raw calibration (meta-parameters, fixed values) and J_mu
+  is taken there. The definition may be the meta-parameter file the phase wrote, or any other over the same raw
+  parameters;
+* **a campaign folder** (its ``journal.jsonl``): the runs an earlier campaign scored (on the simulated car, on
+  another car, on this car last season), over the same tuned dimensions by name; runs outside this campaign's
+  bounds are left out.
+
+Either becomes a :class:`~bac_agent.bo.prior.SourceSurface` over this campaign's unit cube (a GP fitted to
+``points`` Sobol samples of J_mu, or to the runs themselves), which the engine uses as its transfer prior
+(``EngineConfig.prior``). bac_reduce depends on bac_agent, not the other way round: the few lines that rebuild
+a reduce campaign's posterior from its stored engine state are repeated here.
+"""
+
+from __future__ import annotations
+
+import json
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+from scipy.stats import qmc
+
+from bac_agent.bo.engine import EngineConfig, _one_blas_thread
+from bac_agent.bo.gp import GP, Hyper
+from bac_agent.bo.prior import SourceSurface
+from bac_agent.bo.space import SearchSpace
+from bac_agent.bo.warp import OutputWarp
+from bac_agent.journal import JOURNAL_NAME, read_journal
+from bac_common.errors import BacError
+from bac_common.paramspace import CalibrationDefinition
+
+FloatArray = NDArray[np.float64]
+REDUCE_RESULT = "result.json"
+
+
+class TransferError(BacError, ValueError):
+    """A transfer prior's source cannot be used (not found, other parameters, too few runs)."""
+
+
+def load_source(path: str | Path, definition: CalibrationDefinition, points: int = 0, seed: int = 0) -> SourceSurface:
+    """The source surface of a ``bac reduce`` output or a campaign folder, over ``definition``'s tuned space.
+
+    ``points``: Sobol samples of a reduce surrogate (0: 64 per dimension, 128 to 512). Fitted with one BLAS thread,
+    as the engine fits: the same files give the same surface bit for bit in every process, so that a resumed agent
+    rebuilds the surface its journal holds (a resume compares them: ``Campaign.check_resume``).
+    """
+    p = Path(path).expanduser()
+    with _one_blas_thread():
+        if p.is_dir() and (p / JOURNAL_NAME).is_file():
+            return from_campaign(p, definition)
+        result = p / REDUCE_RESULT if p.is_dir() else p
+        if result.is_file() and result.suffix == ".json":
+            return from_reduce_result(result, definition, points, seed)
+    raise TransferError(
+        f"prior_source {str(path)!r} is neither a bac reduce output (a folder with {REDUCE_RESULT}, or that file) "
+        f"nor a campaign folder (with {JOURNAL_NAME})"
+    )
+
+
+def from_campaign(folder: Path, definition: CalibrationDefinition) -> SourceSurface:
+    """The scored runs of an earlier campaign, fitted over ``definition``'s tuned space."""
+    events = read_journal(folder / JOURNAL_NAME).events
+    if not events or events[0].get("event") != "campaign_started":
+        raise TransferError(f"{folder / JOURNAL_NAME} does not start with campaign_started: not a campaign journal")
+    space = SearchSpace.from_definition(definition)
+    theirs = [str(n) for n in events[0].get("names", [])]
+    if sorted(theirs) != sorted(space.names):
+        raise TransferError(
+            f"the campaign in {folder} tuned {theirs}, this campaign tunes {list(space.names)}: "
+            "a campaign folder can be a prior only for the same tuned dimensions"
+        )
+    X, y, outside = [], [], 0
+    for e in events:
+        if e.get("event") != "trial_scored" or e.get("j") is None:
+            continue
+        x = np.array([float(e["params"][n]) for n in space.names])
+        u = space.to_unit(x)
+        if np.any(u < -1e-9) or np.any(u > 1 + 1e-9):
+            outside += 1
+            continue
+        X.append(np.clip(u, 0.0, 1.0))
+        y.append(float(e["j"]))
+    if len(y) < 3:
+        raise TransferError(
+            f"the campaign in {folder} has {len(y)} scored runs within this campaign's bounds: a prior needs at least 3"
+        )
+    label = f"campaign {events[0].get('campaign_id', folder.name)} ({len(y)} runs"
+    label += f", {outside} outside the bounds left out)" if outside else ")"
+    return SourceSurface.fit(np.array(X), np.array(y), label, noisy=True)
+
+
+def reduce_surrogate(data: dict[str, Any]) -> tuple[list[str], Callable[[FloatArray], FloatArray]]:
+    """The raw parameter names of a reduce output's campaigns and J_mu over raw calibrations (n, P) in that order."""
+    models = []
+    names: list[str] | None = None
+    for c in data.get("campaigns") or []:
+        state = json.loads(c["engine_state"]) if isinstance(c["engine_state"], str) else dict(c["engine_state"])
+        if not state.get("hyper"):
+            continue
+        space = SearchSpace.from_dict(state["space"])
+        cfg = EngineConfig.from_dict(state["config"])
+        X = np.asarray(c["X"], dtype=float)
+        y = np.asarray(c["y"], dtype=float)
+        warp = OutputWarp.for_runs(cfg.output_warp, y)
+        gp = GP(cfg.gp).condition(space.to_unit(X), warp.forward(y), Hyper.from_dict(state["hyper"]))
+        models.append((space, gp, warp))
+        names = list(space.names) if names is None else names
+        if list(space.names) != names:
+            raise TransferError("the campaigns of the reduce output tune different parameters")
+    if not models or names is None:
+        raise TransferError("the reduce output has no campaign with a fitted model")
+
+    def j_mu(R: FloatArray) -> FloatArray:
+        means, precisions = [], []
+        for space, gp, warp in models:
+            m, sd = warp.inverse_mean_std(*gp.predict(space.to_unit(R)))
+            means.append(m)
+            precisions.append(1.0 / np.maximum(np.asarray(sd), 1e-12) ** 2)
+        w = np.array(precisions)
+        return np.asarray(np.sum(w * np.array(means), axis=0) / np.sum(w, axis=0), dtype=float)
+
+    return names, j_mu
+
+
+def from_reduce_result(
+    result: Path, definition: CalibrationDefinition, points: int = 0, seed: int = 0
+) -> SourceSurface:
+    """The simulation phase's J_mu through ``definition``, sampled at Sobol points and fitted."""
+    try:
+        data = json.loads(result.read_text())
+    except (OSError, json.JSONDecodeError) as exc:
+        raise TransferError(f"cannot read {result}: {exc}") from exc
+    if not isinstance(data, dict) or "campaigns" not in data:
+        raise TransferError(f"{result} is not a bac reduce result.json (no campaigns)")
+    names, j_mu = reduce_surrogate(data)
+    space = SearchSpace.from_definition(definition)
+    probe = definition.expand(space.to_params(space.from_unit(np.full(space.dim, 0.5))))
+    missing = [n for n in names if n not in probe]
+    if missing:
+        raise TransferError(
+            f"the simulation phase in {result} calibrated {missing[:5]}..., which definition '{definition.name}' "
+            "does not have: the prior must come from the same controller"
+        )
+    n = points or int(min(512, max(128, 64 * space.dim)))
+    U = qmc.Sobol(space.dim, scramble=True, seed=seed).random(n)
+    R = np.array([[definition.expand(space.to_params(space.from_unit(u)))[k] for k in names] for u in U])
+    y = j_mu(R)
+    if not np.all(np.isfinite(y)):
+        raise TransferError(f"the surrogate of {result} is not finite everywhere in this campaign's space")
+    m = len(data["campaigns"])
+    return SourceSurface.fit(U, y, label=f"bac reduce {result} (J_mu of {m} campaigns, {n} points)")
+
+
+def summary(source: SourceSurface, space: SearchSpace) -> dict[str, Any]:
+    """What the journal and the report show of a source: where it came from, its optimum and its range."""
+    u = source.argmin()
+    lo_hi = source.predict_j(np.vstack([u[None, :], qmc.Sobol(space.dim, scramble=True, seed=1).random(256)]))
+    return {
+        "label": source.label,
+        "points": int(source.X.shape[0]),
+        "optimum": space.to_params(space.from_unit(u)),
+        "optimum_j": float(lo_hi[0]),
+        "j_range": [float(np.min(lo_hi)), float(np.max(lo_hi))],
+        "noisy": bool(source.noisy),
+    }
+
+
+__all__ = ["REDUCE_RESULT", "TransferError", "from_campaign", "from_reduce_result", "load_source", "summary"]

@@ -1,0 +1,99 @@
+"""The transfer prior (bo/prior.py): a source's surface, its weight against the car's runs, the engine with it."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from bac_agent.bo import Engine, EngineConfig
+from bac_agent.bo.engine import KIND_OPTIMIZED, KIND_PRIOR
+from bac_agent.bo.gp import GPError
+from bac_agent.bo.prior import SourceSurface
+
+OPT = np.array([0.7, 0.25])
+
+
+def sim(U: np.ndarray) -> np.ndarray:
+    """The 'simulator': a bowl with its optimum at OPT."""
+    return np.sqrt(0.02 + np.sum((np.atleast_2d(U) - OPT) ** 2 * [1.0, 2.0], axis=1))
+
+
+def car(U: np.ndarray) -> np.ndarray:
+    """The 'car': the simulator's shape at another level and scale."""
+    return 3.0 + 1.7 * sim(np.atleast_2d(U))
+
+
+def test_source_surface_fits_and_round_trips() -> None:
+    src = SourceSurface.from_function(sim, 2, 64, label="test")
+    assert np.allclose(src.argmin(), OPT, atol=0.03)
+    U = np.random.default_rng(0).random((20, 2))
+    assert np.max(np.abs(src.predict_j(U) - sim(U))) < 0.02
+    again = SourceSurface.from_dict(src.to_dict())
+    assert np.allclose(again.predict_j(U), src.predict_j(U))
+    assert again.label == "test"
+    with pytest.raises(GPError):
+        SourceSurface.from_dict({"X": [[0.1, 0.2]], "y": [1.0]})
+
+
+def _campaign(source: SourceSurface | None, budget: int, seed: int = 0) -> tuple[Engine, list[np.ndarray]]:
+    cfg = EngineConfig(budget=budget, seed=seed, prior=source.to_dict() if source else None)
+    eng = Engine({"a": (0.0, 1.0), "b": (0.0, 1.0)}, cfg)
+    rng = np.random.default_rng(seed)
+    recs = []
+    while not eng.done:
+        p = eng.ask()
+        u = np.array([p["a"], p["b"]])
+        eng.tell(p, float(car(u)[0] * (1 + 0.01 * rng.standard_normal())))
+        r = eng.recommend()
+        recs.append(np.array([r.params["a"], r.params["b"]]))
+    return eng, recs
+
+
+def test_a_right_source_is_believed_from_the_first_run() -> None:
+    src = SourceSurface.from_function(sim, 2, 64, label="right")
+    eng = Engine({"a": (0.0, 1.0), "b": (0.0, 1.0)}, EngineConfig(budget=6, prior=src.to_dict()))
+    s = eng.ask_with_info()
+    assert s.kind == KIND_PRIOR  # the first run is the source's optimum
+    assert np.allclose([s.params["a"], s.params["b"]], OPT, atol=0.03)
+    eng.tell(s.params, float(car(np.array([s.params["a"], s.params["b"]]))[0]))
+    rec = eng.recommend()
+    assert np.allclose([rec.params["a"], rec.params["b"]], OPT, atol=0.05)
+    assert rec.transfer["transfer_weight"] == pytest.approx(0.5)  # one run says nothing about the shape
+    eng2, recs = _campaign(src, 6)
+    assert eng2.transfer is not None and eng2.transfer.used
+    assert 1.0 < eng2.transfer.b < 2.5  # the car's scale (1.7 in source units) is learned
+    assert all(np.linalg.norm(r - OPT) < 0.08 for r in recs)
+
+
+def test_a_wrong_source_fades_and_the_engine_finds_the_optimum() -> None:
+    def wrong(U: np.ndarray) -> np.ndarray:
+        return sim(1.0 - np.atleast_2d(U))  # its optimum at (0.3, 0.75)
+
+    src = SourceSurface.from_function(wrong, 2, 64, label="wrong")
+    eng, recs = _campaign(src, 12)
+    assert eng.transfer is not None and eng.transfer.weight < 0.5
+    assert np.linalg.norm(recs[-1] - OPT) < 0.1
+    # without fading (the source forced in) the recommendation would sit near the wrong optimum: the test is real
+    assert np.linalg.norm(src.argmin() - OPT) > 0.5
+
+
+def test_state_with_a_prior_continues_identically() -> None:
+    src = SourceSurface.from_function(sim, 2, 32)
+    eng, _ = _campaign(src, 4)
+    eng.config = EngineConfig.from_dict({**eng.config.to_dict(), "budget": 8})
+    pending = eng.ask()
+    again = Engine.from_json(eng.to_json())
+    assert again.config.prior == eng.config.prior and again.pending == [pending]
+    v = float(car(np.array([pending["a"], pending["b"]]))[0])
+    eng.tell(pending, v)
+    again.tell(pending, v)
+    a, b = eng.ask_with_info(), again.ask_with_info()
+    assert a.kind == b.kind == KIND_OPTIMIZED
+    assert all(a.params[k] == pytest.approx(b.params[k], abs=1e-6) for k in a.params)
+    assert a.info["transfer"]["transfer_weight"] == pytest.approx(b.info["transfer"]["transfer_weight"], abs=1e-6)
+
+
+def test_a_source_of_other_dimensions_is_refused() -> None:
+    src = SourceSurface.from_function(lambda U: np.sum(U, axis=1), 3, 16)
+    with pytest.raises(ValueError, match="3 dimensions"):
+        Engine({"a": (0.0, 1.0), "b": (0.0, 1.0)}, EngineConfig(prior=src.to_dict()))
