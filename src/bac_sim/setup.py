@@ -10,7 +10,7 @@ setup(
         ("share/ament_index/resource_index/packages", ["resource/" + package_name]),
         ("share/" + package_name, ["package.xml"]),
     ],
-    package_data={package_name: ["py.typed", "data/*.json"]},
+    package_data={package_name: ["py.typed", "data/*.json", "data/*.yaml"]},
     install_requires=["setuptools"],
     extras_require={"test": ["pytest"]},  # colcon test runs pytest (tests_require is gone from setuptools)
     zip_safe=True,

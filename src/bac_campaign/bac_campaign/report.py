@@ -80,6 +80,8 @@ class Campaign:
     seed: int
     # the live campaign's optimizer settings that a refit needs (journal.journaled_engine_options)
     engine_options: dict[str, Any] = field(default_factory=lambda: journaled_engine_options({}))
+    # the campaign stopped resumable because the ECU link stayed down (campaign_paused, no resume since): why
+    paused: str = ""
 
     @property
     def names(self) -> tuple[str, ...]:
@@ -112,9 +114,14 @@ def load_campaign(path: str | Path) -> Campaign:
     definition = CalibrationDefinition.from_dict(start["definition"])
     rows: dict[int, TrialRow] = {}
     rec = None
+    paused = ""
     for e in jr.events:
         kind = e.get("event")
         tid = int(e.get("trial_id", 0) or 0)
+        if kind == "campaign_paused":
+            paused = str(e.get("message") or "the ECU link was down")
+        elif kind == "campaign_resumed":
+            paused = ""
         if kind == "trial_proposed":
             rows[tid] = TrialRow(
                 tid,
@@ -158,6 +165,7 @@ def load_campaign(path: str | Path) -> Campaign:
         recommendation=rec,
         seed=int(start.get("seed", 0) or 0),
         engine_options=journaled_engine_options(start),
+        paused=paused,
     )
 
 
@@ -629,7 +637,13 @@ def campaign_status(campaign: Campaign) -> str:
     if len(scored) == 1:
         text += ". One valid run: the model is flat, no optimum can be located from it"
     if campaign.recommendation is None:
-        text += "; no recommendation yet" + (" (a trial is in progress)" if open_ else "")
+        if campaign.paused:
+            text += (
+                f"; paused: the ECU link stayed down ({campaign.paused[:200]}); launch again with this campaign "
+                "folder to resume it"
+            )
+        else:
+            text += "; no recommendation yet" + (" (a trial is in progress)" if open_ else "")
     return text + "."
 
 

@@ -42,7 +42,7 @@ class FolderFacts:
     recommendation: dict[str, Any] | None
     last_apply: dict[str, Any] | None
     n_events: int
-    ended: str = ""  # "done", "failed" or "" (running)
+    ended: str = ""  # "done", "failed", "paused" (the ECU link stayed down; resumable) or "" (running)
 
 
 def journal_path(campaign_dir: str | Path) -> Path:
@@ -82,6 +82,10 @@ def read_folder(campaign_dir: str | Path) -> FolderFacts | None:
             ended = "done"
         elif kind == "campaign_failed":
             ended = "failed"
+        elif kind == "campaign_paused":  # the ECU link stayed down: stopped, resumable
+            ended = "paused"
+        elif kind == "campaign_resumed" and ended == "paused":
+            ended = ""
     rows = [
         TrialRow(
             trial_id=t.trial_id,

@@ -26,20 +26,21 @@ from bac_cockpit.state import finite_or_none
 
 GRID = 41
 # campaign folder -> (engine, the (params, J) it was told, the journal's engine options): the worker's engines
-_ENGINES: dict[str, tuple[Any, list[tuple[dict[str, float], float]], Any]] = {}
+_ENGINES: dict[str, tuple[Any, list[tuple[dict[str, float], float, dict[str, float]]], Any]] = {}
 
 
 def _engine(camp: Any, key: str) -> Any:
     """The campaign's engine told every scored run: the cached one told the new runs, or a new one."""
     from bac_campaign.report import refit_engine
 
-    runs = [(dict(t.params), float(t.j)) for t in camp.scored(include_confirmation=True)]
+    # each run with its outcomes: with outcome limits the model of each outcome is told as the agent's is
+    runs = [(dict(t.params), float(t.j), dict(t.outcomes)) for t in camp.scored(include_confirmation=True)]
     cached = _ENGINES.get(key)
     if cached is not None:
         eng, told, options = cached
         if options == camp.engine_options and len(told) <= len(runs) and told == runs[: len(told)]:
-            for params, j in runs[len(told) :]:
-                eng.tell(params, j)
+            for params, j, outcomes in runs[len(told) :]:
+                eng.tell(params, j, outcomes)  # as refit_engine tells them
             _ENGINES[key] = (eng, runs, options)
             return eng
     eng = refit_engine(camp)

@@ -156,3 +156,27 @@ def test_the_journal_replaces_what_the_topics_said(tmp_path: Path) -> None:
     last = st.part("ecu")["last_apply"]
     assert last["success"] is True and last["trial_id"] == 7 and last["attempts"] == 2 and last["latency_s"] == 0.012
     assert st.set_rows(facts.rows, facts.recommendation, facts.last_apply) == []  # nothing new: no patch
+
+
+def test_a_campaign_paused_for_a_lost_ecu_link_reads_as_paused_until_resumed(tmp_path: Path) -> None:
+    """The agent stopped resumable (campaign_paused, exit 2): the folder view, the page and the report say so; they
+    said 'a trial is in progress' (issue 18's pause and the cockpit met only on main)."""
+    from bac_agent.journal import Journal
+    from bac_campaign.report import campaign_status, load_campaign
+
+    folder = tmp_path / "camp"
+    make_campaign(folder, budget=6, stop_after=2)
+    j = Journal(folder)
+    j.append("link_lost", trial_id=3, message="cannot open CAN interface 'can0'", stamp=9.0)
+    j.append("campaign_paused", trial_id=3, down_s=600.0, message="cannot open CAN interface 'can0'", stamp=9.5)
+    j.close()
+    facts = read_folder(folder)
+    assert facts is not None and facts.ended == "paused"
+    text = campaign_status(load_campaign(folder))
+    assert "paused: the ECU link stayed down (cannot open CAN interface 'can0')" in text and "in progress" not in text
+    j = Journal(folder)
+    j.append("campaign_resumed", trials_done=2, in_flight=[3], torn_bytes=0, changed=[], stamp=0.0)
+    j.close()
+    facts = read_folder(folder)
+    assert facts is not None and facts.ended == ""
+    assert not load_campaign(folder).paused

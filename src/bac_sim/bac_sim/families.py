@@ -13,8 +13,9 @@ Families (:data:`CAR_FAMILIES`):
 * ``road_c1`` / ``road_c2``: a 250 m section of random road (ISO 8608 class A, B or C, its own seed) at
   40-80 km/h;
 * ``*_c1``: Controller I (constant damping front and rear, 2 parameters in [0, 1]);
-  ``*_c2``: Controller II through its meta-parameter file (the shipped ``controller_ii_reduced``: 2
-  meta-parameters in [0, 1000], the other parameters fixed as the simulation phase left them).
+  ``*_c2``: Controller II through its meta-parameter file (``data/family_controller_ii_2meta.yaml``: the
+  shipped ``controller_ii_reduced`` of 2026-11-23, 2 meta-parameters in [0, 1000], the other parameters fixed
+  as the simulation phase left them; kept fixed, apart from the file ``bac reduce`` ships).
 
 Each instance draws (uniformly, seeded by family and index) sprung and unsprung mass (±20 %), the centre of
 gravity (±8 % of the front-axle distance), pitch and roll inertia (±20 %), spring and tyre rates (±20 %), and
@@ -37,6 +38,7 @@ import math
 from collections.abc import Mapping
 from dataclasses import dataclass, field, replace
 from functools import lru_cache
+from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -69,14 +71,16 @@ def _seed(*parts: object) -> int:
     return int.from_bytes(h[:8], "little")
 
 
-def controller_ii_reduced_definition() -> CalibrationDefinition:
-    """The shipped Controller II meta-parameter file (``bac reduce``'s output for the test road)."""
-    from bac_common.paths import calibration_file
+FAMILY_C2_DEFINITION = Path(__file__).resolve().parent / "data" / "family_controller_ii_2meta.yaml"
 
-    path = calibration_file("controller_ii_reduced")
-    if path is None:
-        raise SimError("the shipped definition controller_ii_reduced is not installed (run scripts/setup.sh)")
-    return CalibrationDefinition.load(path)
+
+def controller_ii_reduced_definition() -> CalibrationDefinition:
+    """The *_c2 families' Controller II meta-parameter file: ``bac reduce``'s output for the test road as it was
+    when the families' truths were computed (2 meta-parameters), kept apart from the shipped
+    ``controller_ii_reduced`` (3 since 2026-11-24) so that a benchmark's problems do not move with it."""
+    if not FAMILY_C2_DEFINITION.exists():
+        raise SimError(f"the families' definition {FAMILY_C2_DEFINITION} is missing (reinstall bac_sim)")
+    return CalibrationDefinition.load(FAMILY_C2_DEFINITION)
 
 
 def draw_vehicle(rng: np.random.Generator, base: VehicleParams | None = None) -> VehicleParams:

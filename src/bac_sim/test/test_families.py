@@ -59,8 +59,8 @@ def test_j_and_outcomes_of_runs() -> None:
 
 def test_controller_ii_family_runs_through_the_meta_parameters() -> None:
     inst = get_family("road_c2").instance(0)
-    assert inst.names == ("m1", "m2", "m3")  # the shipped meta-parameter file (bac reduce, 3 tuned dimensions)
-    raw = inst.raw(np.array([[0.0, 1000.0, 181.99]]))
+    assert inst.names == ("m1", "m2")  # the families' own 2-meta-parameter file, not the shipped one (3 since 11-24)
+    raw = inst.raw(np.array([[0.0, 1000.0]]))
     assert raw.shape == (1, 20)
     with pytest.raises(SimError):
-        inst.raw(np.zeros((1, 2)))
+        inst.raw(np.zeros((1, 3)))
