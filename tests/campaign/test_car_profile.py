@@ -121,7 +121,7 @@ class RecordedCar:
         self.odom_pub = node.create_publisher(Odometry, "vehicle/odom", QOS_STREAM_INPUT)
         self.rng = np.random.default_rng(3)
         self.distance = 0.0
-        self.drives: list[tuple[int, float]] = []  # (stamp of a drive's first sample, its true J)
+        self.drives: list[tuple[int, int, float]] = []  # (a drive's first and last stamp, its true J)
 
     def _imu(self, t: int, acc: np.ndarray, gyr: np.ndarray) -> None:
         m = self.Imu()
@@ -165,14 +165,21 @@ class RecordedCar:
         m = round(seconds * 50)
         self._play(np.arange(n) / 200, acc, gyr, np.arange(m) / 50, np.full(m, self.distance), np.zeros(m))
 
-    def drive(self, damping: float, seed: int) -> None:
+    @staticmethod
+    def record(damping: float, seed: int) -> Any:
+        """A bump drive, simulated ahead of the timeline (the first simulation in a process compiles the
+        simulator's kernels: seconds the timeline must not lose)."""
         from bac_sim.run import ImuSpec, simulate_run
 
         imu = ImuSpec(rate_hz=200.0, mount_rpy_deg=(0.0, 0.0, 0.0), accel_bias=(0, 0, 0), gyro_bias=(0, 0, 0))
-        rec = simulate_run({"damping_front": damping, "damping_rear": damping}, "bump", seed=seed, imu=imu,
-                           run_in_s=2.0, run_out_s=1.0, odom_rate_hz=50.0)  # fmt: skip
+        return simulate_run({"damping_front": damping, "damping_rear": damping}, "bump", seed=seed, imu=imu,
+                            run_in_s=2.0, run_out_s=1.0, odom_rate_hz=50.0)  # fmt: skip
+
+    def drive(self, rec: Any) -> None:
+        """Play a recorded drive from here on; remember its first stamp, its last stamp and its true J."""
         t0 = self._play(rec.t - rec.t[0], rec.accel, rec.gyro, rec.odom_t, self.distance + rec.distance, rec.speed)
-        self.drives.append((t0, rec.j_true))
+        t_end = t0 + round(max(float(rec.t[-1] - rec.t[0]), float(rec.odom_t[-1])) * 1e9)
+        self.drives.append((t0, t_end, rec.j_true))
         self.distance += float(rec.distance[-1])
 
 
@@ -208,14 +215,20 @@ def test_car_profile_retry_waits_for_a_new_drive(
         car.stand(0.2)
         return ready(1)
 
+    soft, firm = car.record(0.1, seed=1), car.record(0.9, seed=2)  # before the timeline starts
     wait_for(standing, 90, interval=0.0, what="trial 1 ready to drive (the car standing still)")
     car.stand(10.3)  # the driver is late: attempt 1 times out 12 s after it was announced, 1.5 s into drive 1
-    car.drive(0.1, seed=1)  # soft: its bump comes 0.8 s after attempt 2 was announced
+    car.drive(soft)  # its bump comes 0.8 s after attempt 2 was announced
     assert ready(2), "attempt 1 did not time out during the first drive"
     retry = next(t for t in trials if t.attempt == 2 and t.state == Trial.STATE_READY_TO_DRIVE)
     assert "Go back before the start" in retry.instruction
+    # the premise: the retry was announced while drive 1 was under way (else drive 1 is a new drive for it)
+    announced = retry.stamp.sec * 1_000_000_000 + retry.stamp.nanosec
+    first, last, _ = car.drives[0]
+    assert first < announced < last, f"attempt 2 announced {(announced - first) / 1e9:.2f} s into a drive of " \
+        f"{(last - first) / 1e9:.2f} s: not during drive 1"  # fmt: skip
     car.stand(1.0)  # back at the start, stopped
-    car.drive(0.9, seed=2)  # firm: a very different J
+    car.drive(firm)  # a very different J
     car.stand(1.0)
     assert launcher.wait(timeout=60) == 0, procs.log("car")
 
@@ -224,6 +237,6 @@ def test_car_profile_retry_waits_for_a_new_drive(
     assert [(e["attempt"], "run timeout" in e["reason"]) for e in rejected] == [(1, True)], rejected
     (scored,) = [e for e in events if e["event"] == "trial_scored"]
     assert scored["attempt"] == 2
-    (_, j1), (_, j2) = car.drives
+    (_, _, j1), (_, _, j2) = car.drives
     assert abs(j1 - j2) > 0.1 * j1  # the two drives are told apart by their J (measured: 1.01 and 1.19)
     assert scored["j"] == pytest.approx(j2, rel=0.03) and abs(scored["j"] - j1) > 0.1 * j1
