@@ -92,6 +92,18 @@ class BacNode(Node):
         self.add_on_set_parameters_callback(self._on_set_parameters)
 
     # --- declarations ---------------------------------------------------------------
+    def _one_sided_bound(self, name: str, lo: float | None, hi: float | None) -> None:
+        """A bound on one side only (a descriptor range needs both): checked on every set instead."""
+        if (lo is None) == (hi is None):
+            return
+        self._param_checks[name] = lambda v: (
+            f"{name} must be >= {lo}"
+            if lo is not None and v < lo
+            else f"{name} must be <= {hi}"
+            if hi is not None and v > hi
+            else None
+        )
+
     def declare_float(
         self,
         name: str,
@@ -110,15 +122,7 @@ class BacNode(Node):
             read_only=read_only,
             floating_point_range=rng,
         )
-        if (lower is None) != (upper is None):
-            lo, hi = lower, upper
-            self._param_checks[name] = lambda v: (
-                f"{name} must be >= {lo}"
-                if lo is not None and v < lo
-                else f"{name} must be <= {hi}"
-                if hi is not None and v > hi
-                else None
-            )
+        self._one_sided_bound(name, lower, upper)
         value = self.declare_parameter(name, float(default), desc).value
         self._check_initial(name, value)
         return float(value)
@@ -141,15 +145,7 @@ class BacNode(Node):
             read_only=read_only,
             integer_range=rng,
         )
-        if (lower is None) != (upper is None):
-            lo, hi = lower, upper
-            self._param_checks[name] = lambda v: (
-                f"{name} must be >= {lo}"
-                if lo is not None and v < lo
-                else f"{name} must be <= {hi}"
-                if hi is not None and v > hi
-                else None
-            )
+        self._one_sided_bound(name, lower, upper)
         value = self.declare_parameter(name, int(default), desc).value
         self._check_initial(name, value)
         return int(value)

@@ -591,6 +591,21 @@ def _alignment_curves(config: SegmentConfig, pairs: list[tuple[FloatArray, Float
     return np.asarray(np.mean(curves, axis=0), dtype=np.float64)
 
 
+def _align_peak(
+    config: SegmentConfig, g: _Grid, pos: FloatArray, ref: Reference, half: int, reasons: list[str], at_edge: str
+) -> float:
+    """The run's samples at grid positions ``pos`` (``2 * half + n``) against the reference: the best offset
+    (``half`` = none); a flat or missing signal, or a peak at the edge of the search, is added to ``reasons``."""
+    curve = _alignment_curves(config, [(_linear(g.az, pos), ref.accel_z), (_linear(g.q, pos), ref.pitch_rate)])
+    k, edge = _peak(curve)
+    if not math.isfinite(k):
+        reasons.append("alignment failed: the signals are flat or missing")
+        return float(half)
+    if edge and half > 0:
+        reasons.append(at_edge)
+    return k
+
+
 def _final_score(config: SegmentConfig, az: FloatArray, q: FloatArray, ref: Reference) -> float:
     scores = []
     if config.align_signal in ("accel_z", "both", "none"):
@@ -847,19 +862,11 @@ def _cut_event(g: _Grid, drive: _Drive, config: SegmentConfig, ref: Reference | 
         ref.check(config, fs, 0.0)
     if ref is not None and config.align_signal != "none":
         span = i0 - lag_max + np.arange(n + 2 * lag_max, dtype=np.float64)
-        curve = _alignment_curves(
-            config,
-            [(_linear(g.az, span), ref.accel_z), (_linear(g.q, span), ref.pitch_rate)],
-        )
-        kk, edge = _peak(curve)
-        if not math.isfinite(kk):
-            reasons.append("alignment failed: the signals are flat or missing")
-            kk = float(lag_max)
-        elif edge and lag_max > 0:
-            reasons.append(
-                f"alignment peak at the edge of the +-{config.max_lag_s:g} s search range: the run does not "
-                "match the reference (increase max_lag_s if the impact detection is that uncertain)"
-            )
+        kk = _align_peak(
+            config, g, span, ref, lag_max, reasons,
+            f"alignment peak at the edge of the +-{config.max_lag_s:g} s search range: the run does not "
+            "match the reference (increase max_lag_s if the impact detection is that uncertain)",
+        )  # fmt: skip
         lag = kk - lag_max
     start = i0 + lag
     cov, hole = _coverage(g, start, start + n - 1)
@@ -946,19 +953,11 @@ def _cut_distance(g: _Grid, drive: _Drive, config: SegmentConfig, ref: Reference
     if ref is not None and config.align_signal != "none":
         s_coarse = s0 + (np.arange(n + 2 * m, dtype=np.float64) - m) * ds
         p_coarse = (_distance_to_time(ot, od, s_coarse) - g.t0_ns) / g.step_ns
-        curve = _alignment_curves(
-            config,
-            [(_linear(g.az, p_coarse), ref.accel_z), (_linear(g.q, p_coarse), ref.pitch_rate)],
-        )
-        k, edge = _peak(curve)
-        if not math.isfinite(k):
-            reasons.append("alignment failed: the signals are flat or missing")
-            k = float(m)
-        elif edge and m > 0:
-            reasons.append(
-                f"alignment peak at the edge of the +-{config.max_shift_m:g} m search range: the run does not "
-                "match the reference, or the start offset is larger (increase max_shift_m)"
-            )
+        k = _align_peak(
+            config, g, p_coarse, ref, m, reasons,
+            f"alignment peak at the edge of the +-{config.max_shift_m:g} m search range: the run does not "
+            "match the reference, or the start offset is larger (increase max_shift_m)",
+        )  # fmt: skip
         shift = (k - m) * ds
     s_fine = s0 + shift + np.arange(n, dtype=np.float64) * ds
     t_fine = _distance_to_time(ot, od, s_fine)

@@ -194,6 +194,23 @@ class GroupResult:
     started: float = 0.0  # time.time() at the start and the end of the group
     finished: float = 0.0
 
+    @classmethod
+    def ended(
+        cls,
+        campaigns: list[CampaignResult],
+        sim_s: float,
+        gp_s: float,
+        t_start: float,
+        sim_cpu_s: float,
+        gp_cpu_s: float,
+        steps: int,
+        started: float,
+    ) -> GroupResult:
+        """The group as it ends now in this process (``t_start``: its ``time.perf_counter()`` at the start)."""
+        worker = f"{socket.gethostname()}:{os.getpid()}"
+        wall = time.perf_counter() - t_start
+        return cls(campaigns, sim_s, gp_s, wall, sim_cpu_s, gp_cpu_s, steps, worker, started, time.time())
+
 
 @dataclass
 class CampaignsOutcome:
@@ -318,18 +335,7 @@ def run_group(
         )
     gp_s += time.perf_counter() - t3
     gp_cpu += time.process_time() - c3
-    return GroupResult(
-        results,
-        sim_s,
-        gp_s,
-        time.perf_counter() - t_start,
-        sim_cpu,
-        gp_cpu,
-        steps,
-        f"{socket.gethostname()}:{os.getpid()}",
-        started,
-        time.time(),
-    )
+    return GroupResult.ended(results, sim_s, gp_s, t_start, sim_cpu, gp_cpu, steps, started)
 
 
 def _run_turbo_group(
@@ -430,18 +436,7 @@ def _run_turbo_group(
         r.j_pred, r.j_std = mean, std
     gp_s += time.perf_counter() - t5
     gp_cpu += time.process_time() - c5
-    return GroupResult(
-        results,
-        sim_s,
-        gp_s,
-        time.perf_counter() - t_start,
-        sim_cpu,
-        gp_cpu,
-        steps,
-        f"{socket.gethostname()}:{os.getpid()}",
-        started,
-        time.time(),
-    )
+    return GroupResult.ended(results, sim_s, gp_s, t_start, sim_cpu, gp_cpu, steps, started)
 
 
 def _keep_runs(f: FloatArray, keep: int) -> NDArray[np.intp]:
