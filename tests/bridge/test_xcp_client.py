@@ -91,8 +91,9 @@ def test_busy_while_driving_names_the_xcp_error_and_keeps_the_previous_calibrati
     assert rig.client.apply({"damping_front": 0.4, "damping_rear": 0.4}).values == rig.ecu.active
 
 
-# refused always, these commands keep the bridge from reading the ECU back (a session, the page, the bytes)
-UNREADABLE = {Cmd.SHORT_UPLOAD, Cmd.GET_CAL_PAGE, Cmd.GET_STATUS}
+# refused always, these commands keep the bridge from reading the ECU back (a session, the page); a refused UPLOAD
+# does not: the ECU's CRC-32 of the page names the set it holds
+UNREADABLE = {Cmd.GET_CAL_PAGE, Cmd.GET_STATUS}
 
 
 @pytest.mark.parametrize(
@@ -111,7 +112,7 @@ UNREADABLE = {Cmd.SHORT_UPLOAD, Cmd.GET_CAL_PAGE, Cmd.GET_STATUS}
         (Cmd.DOWNLOAD, 0x10, "ERR_CMD_BUSY", ErrorCode.ECU_BUSY),
         (Cmd.DOWNLOAD, 0x33, "ERR_RESOURCE_TEMPORARY_NOT_ACCESSIBLE", ErrorCode.ECU_BUSY),
         (Cmd.BUILD_CHECKSUM, 0x22, "ERR_OUT_OF_RANGE", ErrorCode.ECU_OUT_OF_RANGE),
-        (Cmd.SHORT_UPLOAD, 0x24, "ERR_ACCESS_DENIED", ErrorCode.UNKNOWN_PARAMETER),
+        (Cmd.UPLOAD, 0x24, "ERR_ACCESS_DENIED", ErrorCode.UNKNOWN_PARAMETER),
         (Cmd.GET_CAL_PAGE, 0x20, "ERR_CMD_UNKNOWN", ErrorCode.INVALID_REQUEST),
         (Cmd.GET_STATUS, 0x31, "ERR_GENERIC", ErrorCode.SEQUENCE),
     ],
