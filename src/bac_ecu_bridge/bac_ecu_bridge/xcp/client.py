@@ -786,14 +786,14 @@ class XcpCalibrationClient:
         checksums with the bytes known. After a page other than the reference one was read, XCP's access goes
         back to the reference page (:meth:`_park`)."""
         s = self.settings
-        if page is not None and s.pages and self._get_page(MODE_XCP, deadline) != page:
-            self._set_page(MODE_XCP, page, deadline)
         reference = s.pages and page == s.reference_page
         if reference and self._reference is not None:
             # the flashed data set, read (and checked by the ECU's CRC-32) once: reading it again would move XCP's
             # access off the working page, and moving it back is a SET_CAL_PAGE one flipped bit (mode 0x02 ->
             # 0x03) away from switching the application onto a working page that a failed apply left half written
             return dict(self._reference)
+        if page is not None and s.pages and self._get_page(MODE_XCP, deadline) != page:
+            self._set_page(MODE_XCP, page, deadline)
         out = self._known_page(page, deadline) or self._read_runs(deadline)
         if reference:
             self._reference = dict(out)
