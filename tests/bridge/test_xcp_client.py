@@ -238,6 +238,39 @@ def test_an_ecu_that_acknowledges_writes_it_does_not_make_is_caught(make_xcp_rig
     assert rig.ecu.active == {"damping_front": 0.5, "damping_rear": 0.5} and rig.ecu.ecu_page == 0
 
 
+def test_a_read_command_garbled_into_a_write_never_changes_the_calibration_in_use(
+    make_xcp_rig: XcpRigFactory,
+) -> None:
+    """XCP on CAN has no check of its own: one flipped bit (0x04 of the command code) turns SHORT_UPLOAD (0xF4,
+    8 bytes) into a DOWNLOAD of 7 bytes that writes its own address bytes at the MTA. Reading back the page the
+    application uses, frame by frame, must not be able to change it (at 30 % faults it did, 8 times in 40
+    applies); the bridge's reads are 2-byte UPLOADs, which nothing garbled this way turns into a write."""
+    rig = make_xcp_rig("controller_ii")
+    res = rig.client.apply(ramp())
+    before = rig.ecu.commits
+    slave = rig.ecu.slave
+    honest = slave.handle
+    reads = [0]
+
+    def garbling(frame: bytes | bytearray) -> list[bytes]:
+        f = bytes(frame)
+        if f[:1] in (b"\xf4", b"\xf5"):
+            reads[0] += 1
+            if reads[0] % 3 == 0:
+                f = bytes([f[0] ^ 0x04]) + f[1:]  # SHORT_UPLOAD -> DOWNLOAD, UPLOAD -> 0xF1 (unknown)
+        return honest(f)
+
+    slave.handle = garbling  # type: ignore[method-assign]
+    client = rig.client
+    for _ in range(3):
+        client._degraded = True  # one answered command per frame, as after block transfers failed
+        client._page_bytes = {}  # nothing known: every byte is read back
+        client.last_confirmed = None
+        assert client.read_active().values == res.values
+    assert reads[0] >= 9  # the reads went frame by frame, and some were garbled
+    assert rig.ecu.active == res.values and rig.ecu.commits == before
+
+
 def test_a_silent_ecu_times_out_within_the_bound(make_xcp_rig: XcpRigFactory) -> None:
     config = XcpConfig(step_timeout_s=0.01, step_retries=2, max_attempts=3, timeout_s=0.5)
     rig = make_xcp_rig("controller_i", ecu_faults=FaultConfig(silent=True), config=config)
