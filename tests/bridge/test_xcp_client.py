@@ -212,6 +212,28 @@ def test_an_ecu_that_falls_back_to_its_reference_page_unanswered_is_reported_as_
     assert "reference page 0" in state.detail
 
 
+def test_a_settlement_that_finds_the_ecu_on_values_outside_the_bounds_switches_it_back_and_says_so(
+    make_xcp_rig: XcpRigFactory,
+) -> None:
+    """The commit goes unanswered and the working page the application now uses holds a value outside the
+    bounds (a garbled write that landed late): the settlement does not leave the ECU running on it, it switches
+    the application back to the reference page and the state names what happened."""
+    rig = make_xcp_rig("controller_ii", config=XcpConfig(step_timeout_s=0.02, step_retries=2, max_attempts=1))
+    slave = rig.ecu.slave
+
+    def garbled() -> None:  # p01 (ULONG, factor 0.01, 0..1000) becomes 42949672.95
+        slave.pages[1][0:4] = b"\xff\xff\xff\xff"
+
+    _swallow(rig, lambda f: f[:4] == bytes([0xEB, 0x01, 0x00, 0x01]), garbled)
+    with pytest.raises(BridgeError) as err:
+        rig.client.apply(ramp())
+    state = err.value.ecu_state
+    assert err.value.uncertain and state is not None and state.holds is Holds.BASELINE, state
+    assert "switched it to the reference page" in state.detail and "working page 1 was in use" in state.detail
+    assert rig.ecu.ecu_page == 0 and state.values == rig.ecu.active == rig.client.quantize(II.baseline_values())
+    assert rig.client.stats.restored_in_settle == 1
+
+
 def test_an_ecu_that_acknowledges_writes_it_does_not_make_is_caught(make_xcp_rig: XcpRigFactory) -> None:
     rig = make_xcp_rig("controller_i", config=XcpConfig(step_timeout_s=0.05, max_attempts=2))
     slave = rig.ecu.slave
