@@ -2,11 +2,11 @@
 for both protocols of the bridge side by side: bac's own and ASAM XCP on CAN.
 
 The bridge's clients with their default settings (bac: 25 ms step timeout, 5 re-sends, 3 transactions,
-read-back on; XCP: pyxcp as the master, 25 ms step timeout, the reference page while writing, BUILD_CHECKSUM
-and read-back, a page switch as the commit) against the simulated ECUs (bac_sim.ecu, bac_sim.xcp_ecu) on their
-own threads. The loss is applied to every frame, both directions, on the bridge's side. The baseline,
-measured in the same run, is one request/response round trip over the same bus (a bac STATUS request), so the
-ratios say how many round trips an apply costs.
+read-back on; XCP: pyxcp as the master, 10 ms step timeout (XCP's T1), 20 ms settle_s, the reference page
+while writing, BUILD_CHECKSUM and read-back, a page switch as the commit) against the simulated ECUs
+(bac_sim.ecu, bac_sim.xcp_ecu) on their own threads. The loss is applied to every frame, both directions, on
+the bridge's side. The baseline, measured in the same run, is one request/response round trip over the same
+bus (a bac STATUS request), so the ratios say how many round trips an apply costs.
 
     .venv/bin/python bench/can_apply.py [--applies 500] [--seed 1]
 

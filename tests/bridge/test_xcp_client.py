@@ -91,8 +91,9 @@ def test_busy_while_driving_names_the_xcp_error_and_keeps_the_previous_calibrati
     assert rig.client.apply({"damping_front": 0.4, "damping_rear": 0.4}).values == rig.ecu.active
 
 
-# refused always, these commands keep the bridge from reading the ECU back (a session, the page, the bytes)
-UNREADABLE = {Cmd.SHORT_UPLOAD, Cmd.GET_CAL_PAGE, Cmd.GET_STATUS}
+# refused always, these commands keep the bridge from reading the ECU back (a session, the page); a refused UPLOAD
+# does not: the ECU's CRC-32 of the page names the set it holds
+UNREADABLE = {Cmd.GET_CAL_PAGE, Cmd.GET_STATUS}
 
 
 @pytest.mark.parametrize(
@@ -111,7 +112,7 @@ UNREADABLE = {Cmd.SHORT_UPLOAD, Cmd.GET_CAL_PAGE, Cmd.GET_STATUS}
         (Cmd.DOWNLOAD, 0x10, "ERR_CMD_BUSY", ErrorCode.ECU_BUSY),
         (Cmd.DOWNLOAD, 0x33, "ERR_RESOURCE_TEMPORARY_NOT_ACCESSIBLE", ErrorCode.ECU_BUSY),
         (Cmd.BUILD_CHECKSUM, 0x22, "ERR_OUT_OF_RANGE", ErrorCode.ECU_OUT_OF_RANGE),
-        (Cmd.SHORT_UPLOAD, 0x24, "ERR_ACCESS_DENIED", ErrorCode.UNKNOWN_PARAMETER),
+        (Cmd.UPLOAD, 0x24, "ERR_ACCESS_DENIED", ErrorCode.UNKNOWN_PARAMETER),
         (Cmd.GET_CAL_PAGE, 0x20, "ERR_CMD_UNKNOWN", ErrorCode.INVALID_REQUEST),
         (Cmd.GET_STATUS, 0x31, "ERR_GENERIC", ErrorCode.SEQUENCE),
     ],
@@ -211,6 +212,28 @@ def test_an_ecu_that_falls_back_to_its_reference_page_unanswered_is_reported_as_
     assert "reference page 0" in state.detail
 
 
+def test_a_settlement_that_finds_the_ecu_on_values_outside_the_bounds_switches_it_back_and_says_so(
+    make_xcp_rig: XcpRigFactory,
+) -> None:
+    """The commit goes unanswered and the working page the application now uses holds a value outside the
+    bounds (a garbled write that landed late): the settlement does not leave the ECU running on it, it switches
+    the application back to the reference page and the state names what happened."""
+    rig = make_xcp_rig("controller_ii", config=XcpConfig(step_timeout_s=0.02, step_retries=2, max_attempts=1))
+    slave = rig.ecu.slave
+
+    def garbled() -> None:  # p01 (ULONG, factor 0.01, 0..1000) becomes 42949672.95
+        slave.pages[1][0:4] = b"\xff\xff\xff\xff"
+
+    _swallow(rig, lambda f: f[:4] == bytes([0xEB, 0x01, 0x00, 0x01]), garbled)
+    with pytest.raises(BridgeError) as err:
+        rig.client.apply(ramp())
+    state = err.value.ecu_state
+    assert err.value.uncertain and state is not None and state.holds is Holds.BASELINE, state
+    assert "switched it to the reference page" in state.detail and "working page 1 was in use" in state.detail
+    assert rig.ecu.ecu_page == 0 and state.values == rig.ecu.active == rig.client.quantize(II.baseline_values())
+    assert rig.client.stats.restored_in_settle == 1
+
+
 def test_an_ecu_that_acknowledges_writes_it_does_not_make_is_caught(make_xcp_rig: XcpRigFactory) -> None:
     rig = make_xcp_rig("controller_i", config=XcpConfig(step_timeout_s=0.05, max_attempts=2))
     slave = rig.ecu.slave
@@ -235,6 +258,39 @@ def test_an_ecu_that_acknowledges_writes_it_does_not_make_is_caught(make_xcp_rig
     assert err.value.code == ErrorCode.CRC_MISMATCH
     assert err.value.ecu_state is not None and err.value.ecu_state.holds is Holds.BASELINE  # the reference page
     assert rig.ecu.active == {"damping_front": 0.5, "damping_rear": 0.5} and rig.ecu.ecu_page == 0
+
+
+def test_a_read_command_garbled_into_a_write_never_changes_the_calibration_in_use(
+    make_xcp_rig: XcpRigFactory,
+) -> None:
+    """XCP on CAN has no check of its own: one flipped bit (0x04 of the command code) turns SHORT_UPLOAD (0xF4,
+    8 bytes) into a DOWNLOAD of 7 bytes that writes its own address bytes at the MTA. Reading back the page the
+    application uses, frame by frame, must not be able to change it (at 30 % faults it did, 8 times in 40
+    applies); the bridge's reads are 2-byte UPLOADs, which nothing garbled this way turns into a write."""
+    rig = make_xcp_rig("controller_ii")
+    res = rig.client.apply(ramp())
+    before = rig.ecu.commits
+    slave = rig.ecu.slave
+    honest = slave.handle
+    reads = [0]
+
+    def garbling(frame: bytes | bytearray) -> list[bytes]:
+        f = bytes(frame)
+        if f[:1] in (b"\xf4", b"\xf5"):
+            reads[0] += 1
+            if reads[0] % 3 == 0:
+                f = bytes([f[0] ^ 0x04]) + f[1:]  # SHORT_UPLOAD -> DOWNLOAD, UPLOAD -> 0xF1 (unknown)
+        return honest(f)
+
+    slave.handle = garbling  # type: ignore[method-assign]
+    client = rig.client
+    for _ in range(3):
+        client._degraded = True  # one answered command per frame, as after block transfers failed
+        client._page_bytes = {}  # nothing known: every byte is read back
+        client.last_confirmed = None
+        assert client.read_active().values == res.values
+    assert reads[0] >= 9  # the reads went frame by frame, and some were garbled
+    assert rig.ecu.active == res.values and rig.ecu.commits == before
 
 
 def test_a_silent_ecu_times_out_within_the_bound(make_xcp_rig: XcpRigFactory) -> None:

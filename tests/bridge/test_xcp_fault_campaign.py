@@ -1,15 +1,15 @@
-"""Applies of random in-bounds 20-parameter calibrations over XCP through buses that lose or garble 10 % of the
-frames (dropped, corrupted) and delay, duplicate or reorder more, on the bridge's side or the ECU's: never a false
-success, every failure within its bound, the ECU never left on values the bridge does not report, and the ECU
-application never runs on a value outside the declared bounds.
+"""Applies of random in-bounds 20-parameter calibrations over XCP through buses that lose or garble 10 % and
+30 % of the frames (dropped, corrupted) and delay, duplicate or reorder more, on the bridge's side or the ECU's:
+never a false success, every failure within its bound, the ECU never left on values the bridge does not report
+(a state it cannot read back within the bound is reported UNKNOWN, rarely), and the ECU application never runs
+on a value outside the declared bounds, not even for a moment.
 
-Not yet at the issue's 30 % (docs/ecu_bridge.md, "XCP under frame faults"): at 30 % lost frames few 20-parameter
-applies get through within their bound, and garbled frames (a payload corruption that CAN's own CRC would catch on
-a real bus: XCP on CAN has no CRC of its own) once made the simulated ECU run on a value outside the bounds.
+Garbled frames are payload corruptions that CAN's own CRC would catch on a real bus: XCP on CAN has no check of
+its own, so a garbled command can become another one (docs/ecu_bridge.md, "XCP under frame faults").
 
 pyxcp (the bridge's XcpCalibrationClient) talks to the simulated XCP ECU on python-can virtual buses, several
-pairs side by side. ``BAC_XCP_FAULT_APPLIES`` sets the number of applies (default 240; docs/ecu_bridge.md gives
-the figures of a 2,000-apply run).
+pairs side by side. ``BAC_XCP_FAULT_APPLIES`` / ``BAC_XCP_FAULT_APPLIES_30`` set the number of applies
+(bench/xcp_fault_campaign.py runs the issue's 2,000).
 """
 
 from __future__ import annotations
@@ -32,10 +32,17 @@ from bac_ecu_bridge.xcp.client import XcpConfig
 
 II = load("controller_ii")
 APPLIES = int(os.environ.get("BAC_XCP_FAULT_APPLIES", "120"))
+APPLIES_30 = int(os.environ.get("BAC_XCP_FAULT_APPLIES_30", "96"))
 PAIRS = 4
 # 10 % of the frames lost (5 %) or garbled (5 %), plus duplicates, delays and reordering
 FAULTS = FaultConfig(drop=0.05, corrupt=0.05, duplicate=0.03, delay=0.03, delay_s=0.01, reorder=0.03)
-CONFIG = XcpConfig(step_timeout_s=0.02, step_retries=8, max_attempts=3, timeout_s=3.0, settle_timeout_s=3.0)
+# the issue's 30 %: 15 % lost, 15 % garbled, 5 % each duplicated, delayed, reordered
+FAULTS_30 = FaultConfig(drop=0.15, corrupt=0.15, duplicate=0.05, delay=0.05, delay_s=0.01, reorder=0.05)
+# settle_s: the fault bus's worst delay (a frame held back for reordering is released after 50 ms; the
+# rest is the scheduling of a loaded machine's threads)
+CONFIG = XcpConfig(
+    step_timeout_s=0.01, step_retries=8, max_attempts=3, timeout_s=3.0, settle_timeout_s=3.0, settle_s=0.1
+)
 SLACK_S = 1.0  # scheduling slack on a loaded machine, on top of the bounded time
 
 
@@ -47,9 +54,10 @@ class Tally:
     failures: dict[str, int] = field(default_factory=dict)
     uncertain: int = 0
     unknown: int = 0
-    wrong_state: int = 0
+    wrong_state: int = 0  # a failure whose reported state is not what the ECU holds
     overtime: int = 0
-    out_of_bounds: int = 0
+    out_of_bounds: int = 0  # changes of what the ECU application uses onto a value outside the bounds
+    out_of_bounds_at_end: int = 0
     worst_failure_s: float = 0.0
     notes: list[str] = field(default_factory=list)
 
@@ -85,23 +93,25 @@ def campaign(rig: XcpRig, n: int, seed: int, tally: Tally, lock: threading.Lock)
                 if elapsed > CONFIG.timeout_s + CONFIG.settle_timeout_s + SLACK_S:
                     tally.overtime += 1
                 if state is not None and state.holds is Holds.UNKNOWN:
-                    tally.unknown += 1
-                if state is None or state.values is None or state.values != active:
+                    tally.unknown += 1  # reported as such: the node keeps a restore pending, no run is scored
+                elif state is None or state.values is None or state.values != active:
                     tally.wrong_state += 1
                     tally.notes.append(f"failed apply ({err}) left {active}, reported {state}")
+                tally.out_of_bounds_at_end += not in_bounds(II, active)
             continue
         active = ecu.active
         with lock:
             tally.applies += 1
             tally.successes += 1
+            tally.out_of_bounds_at_end += not in_bounds(II, active)
             if not (res.values == quantized == active):
                 tally.false_successes += 1
                 tally.notes.append(f"false success: asked {quantized}, told {res.values}, ECU holds {active}")
 
 
-def run(total: int, faults: FaultConfig = FAULTS) -> tuple[Tally, list[XcpRig]]:
-    """``total`` applies over PAIRS client/ECU pairs: even pairs with the faults on the bridge's side, odd ones
-    on the ECU's."""
+def run(total: int, faults: FaultConfig = FAULTS, pairs: int = PAIRS) -> tuple[Tally, list[XcpRig]]:
+    """``total`` applies over ``pairs`` client/ECU pairs: even pairs with the faults on the bridge's side, odd
+    ones on the ECU's."""
     make, close = xcp_rig_factory()
     tally = Tally()
     lock = threading.Lock()
@@ -113,7 +123,7 @@ def run(total: int, faults: FaultConfig = FAULTS) -> tuple[Tally, list[XcpRig]]:
                 tally.notes.append(f"the ECU ran on {values}")
 
     rigs = []
-    for k in range(PAIRS):
+    for k in range(pairs):
         side = FaultConfig(**{**faults.__dict__, "seed": 100 + k})
         rigs.append(
             make(
@@ -126,7 +136,7 @@ def run(total: int, faults: FaultConfig = FAULTS) -> tuple[Tally, list[XcpRig]]:
         )
     try:
         threads = [
-            threading.Thread(target=campaign, args=(rig, total // PAIRS, k, tally, lock)) for k, rig in enumerate(rigs)
+            threading.Thread(target=campaign, args=(rig, total // pairs, k, tally, lock)) for k, rig in enumerate(rigs)
         ]
         for t in threads:
             t.start()
@@ -146,8 +156,8 @@ def test_applies_at_10_percent_faults_never_succeed_falsely_nor_leave_an_unrepor
     )
     assert tally.applies == APPLIES - APPLIES % PAIRS
     assert tally.false_successes == 0, tally.notes[:5]
-    assert tally.wrong_state == 0, tally.notes[:5]
-    assert tally.out_of_bounds == 0, tally.notes[:5]
+    assert tally.wrong_state == 0 and tally.unknown == 0, tally.notes[:5]
+    assert tally.out_of_bounds == 0 and tally.out_of_bounds_at_end == 0, tally.notes[:5]
     assert tally.overtime == 0
     assert tally.successes >= 0.9 * tally.applies  # the faults are real, the protocol gets through them
     for k, rig in enumerate(rigs):
@@ -175,3 +185,30 @@ def test_the_harness_catches_a_client_that_trusts_its_writes() -> None:
     finally:
         close()
     assert tally.false_successes + tally.wrong_state > 0
+
+
+def test_applies_at_30_percent_faults_never_succeed_falsely_nor_run_the_ecu_out_of_bounds() -> None:
+    """The issue's fault campaign, short: 15 % dropped and 15 % garbled frames, 5 % each duplicated, delayed and
+    reordered, on either side. Few 20-parameter applies get through within 3 s (bench/xcp_fault_campaign.py gives
+    the rates), but none is a false success, every failure ends within its bound with a state that is what the ECU
+    holds (UNKNOWN rarely: the node then keeps a restore pending), and no garbled or late command puts the ECU
+    application on a value outside the bounds (before the fix: 7 times in 40 applies, and 31 of 40 states
+    unknown)."""
+    pairs = 8
+    tally, rigs = run(APPLIES_30, FAULTS_30, pairs)
+    print(
+        f"\n{tally.applies} XCP applies at 30 %: {tally.successes} succeeded, failures {tally.failures} "
+        f"({tally.uncertain} uncertain, {tally.unknown} unknown), worst failure {tally.worst_failure_s:.3f} s, "
+        f"false successes {tally.false_successes}, unreported states {tally.wrong_state}, out of bounds "
+        f"{tally.out_of_bounds} (at the end {tally.out_of_bounds_at_end})"
+    )
+    assert tally.applies == APPLIES_30 - APPLIES_30 % pairs
+    assert tally.false_successes == 0, tally.notes[:5]
+    assert tally.wrong_state == 0, tally.notes[:5]
+    assert tally.out_of_bounds == 0 and tally.out_of_bounds_at_end == 0, tally.notes[:5]
+    assert tally.overtime == 0
+    assert tally.unknown <= max(2, tally.applies // 20), tally.notes[:5]
+    for k, rig in enumerate(rigs):
+        counts = (rig.bridge_bus if k % 2 == 0 else rig.ecu_bus).counts  # type: ignore[attr-defined]
+        assert 0.10 < counts.dropped / counts.frames < 0.20
+        assert 0.10 < counts.corrupted / counts.frames < 0.20

@@ -167,12 +167,21 @@ class EcuBridgeNode(BacNode):
                 read_only=True,
             ),
         }
+        self.declare_float(
+            "xcp.step_timeout_s",
+            0.01,
+            "XCP's T1: wait for one response of the ECU, s (each lost frame costs one; raise it for an ECU whose XCP "
+            "driver answers in a slow task)",
+            0.001,
+            5.0,
+        )
         self.declare_float("xcp.t7_s", 0.02, "XCP t7: wait before repeating a command the ECU found busy, s", 0.0, 5.0)
         self.declare_float(
             "xcp.settle_s",
-            0.06,
-            "XCP: after an anomaly (a timeout, a late or duplicated answer) the final checks wait this long for "
-            "frames still on the way, s (longer than any frame stays in the adapter's queues)",
+            0.02,
+            "XCP: the bus's worst frame delay: after an anomaly (a timeout, a late or duplicated answer) the final "
+            "checks wait this long for frames still on the way, s (longer than any frame stays in the adapter's "
+            "or a gateway's queues)",
             0.0,
             5.0,
         )
@@ -310,7 +319,7 @@ class EcuBridgeNode(BacNode):
     def _xcp_config(self) -> XcpConfig:
         p = self.get_parameter
         return XcpConfig(
-            step_timeout_s=float(p("step_timeout_s").value),
+            step_timeout_s=float(p("xcp.step_timeout_s").value),
             step_retries=int(p("step_retries").value),
             max_attempts=int(p("max_attempts").value),
             timeout_s=float(p("default_timeout_s").value),

@@ -58,7 +58,7 @@ from typing import Any, TypeVar
 
 import can
 
-from bac_common.errors import OutOfBoundsError
+from bac_common.errors import BacError, OutOfBoundsError
 from bac_common.paramspace import CalibrationDefinition
 from bac_ecu_bridge.backend import ApplyResult, EcuState, EcuStatus, Holds, ReadResult, classify
 from bac_ecu_bridge.errors import (
@@ -159,13 +159,18 @@ class XcpSettings:
 
 @dataclass(frozen=True)
 class XcpConfig:
-    step_timeout_s: float = 0.025  # XCP's T1: wait for one response
+    # XCP's T1, the wait for one response: a CAN round trip of two frames takes well under 1 ms at 500 kbit/s and
+    # an XCP driver answers within its task cycle; every lost frame costs one T1 (then SYNCH and the repeat), so
+    # T1 is what a lossy bus's apply time is made of (at 10 % lost frames 25 ms gave a p99 of 827 ms, 10 ms 0.4 s)
+    step_timeout_s: float = 0.01
     step_retries: int = 5  # bound of the error matrix's "repeat infinite times", and of a command's repeats
     max_attempts: int = 3  # attempts per apply (the runs written and checked again)
     timeout_s: float = 3.0  # default overall time limit of an apply / read
     verify_readback: bool = True  # UPLOAD the written runs and compare every byte (besides BUILD_CHECKSUM)
     t7_s: float = 0.02  # XCP's t7: wait before repeating a command the ECU found busy
-    settle_s: float = 0.06  # after an anomaly, the final checks wait this long for frames still on the way
+    # the bus's worst frame delay: after an anomaly (a timeout, a late or duplicated answer) the final checks wait
+    # this long for frames still on the way (a write landing after its check); raise it behind gateways
+    settle_s: float = 0.02
     settle_timeout_s: float = 3.0  # reading the ECU back after an uncertain outcome
     block_mode: bool = True  # master block mode (DOWNLOAD_NEXT) when the ECU offers it
 
@@ -195,6 +200,7 @@ class XcpStats:
     reads_ok: int = 0
     reads_failed: int = 0
     settled: int = 0
+    restored_in_settle: int = 0  # settlements that found a page they could not name in use and switched it back
     repairs: int = 0  # 6-byte pieces written again after a read-back found them wrong
     errors: dict[str, int] = field(default_factory=dict)
 
@@ -261,6 +267,7 @@ class XcpCalibrationClient:
         self.last_confirmed: dict[str, float] | None = None
         self._ecu_page: int | None = None  # what the bridge knows of the page the ECU application uses
         self._page_bytes: dict[int, dict[Run, bytes]] = {}  # what the bridge knows each page holds
+        self._reference: dict[Run, bytes] | None = None  # the reference page (read-only: the flashed data set)
 
     # --- pyxcp ----------------------------------------------------------------------------------
     def _open(self) -> Any:
@@ -503,6 +510,13 @@ class XcpCalibrationClient:
         if status is not None and status.resourceProtectionStatus.calpag and self.key_algorithm is not None:
             self._unlock(deadline)  # without an algorithm, a protected command will be refused and say so
         del types
+        if self.settings.pages and self._reference is None:
+            # the reference page is read once, before the bridge writes anything (see _read_page); best effort:
+            # what fails here is asked again where it is needed
+            try:
+                self._read_page(self.settings.reference_page, deadline)
+            except (EcuTimeoutError, XcpCommandError, _MismatchError) as exc:
+                self._log.debug("XCP: reading the reference page at the start failed: %s", exc)
         return m
 
     def _plausible_connect(self, r: Any) -> bool:
@@ -563,9 +577,20 @@ class XcpCalibrationClient:
         self._cmd("SET_CAL_PAGE", lambda: self._request("SET_CAL_PAGE", mode, seg, page), deadline, _empty)
 
     def _get_page(self, mode: int, deadline: float) -> int:
+        """The page of the application (MODE_ECU) or of XCP's access, asked until two answers in a row agree:
+        every decision on pages rests on it, and XCP on CAN has no check of its own (one flipped bit of an
+        answer names the other page)."""
         seg = self.settings.segment
-        got = self._cmd("GET_CAL_PAGE", lambda: self._request("GET_CAL_PAGE", mode, seg), deadline, _length(3))
-        return int(got[2])
+        last: int | None = None
+        for _ in range(2 + self.config.step_retries):
+            got = self._cmd("GET_CAL_PAGE", lambda: self._request("GET_CAL_PAGE", mode, seg), deadline, _length(3))
+            page = int(got[2])
+            if page == last:
+                return page
+            if last is not None:
+                self._anomaly()
+            last = page
+        raise EcuTimeoutError("XCP GET_CAL_PAGE: the answers disagree again and again")
 
     def _set_mta(self, address: int, ext: int) -> None:
         got = self._request("SET_MTA", 0, 0, ext, *self._dword(address))
@@ -635,7 +660,7 @@ class XcpCalibrationClient:
 
     def _read_run(self, run: Run, deadline: float) -> bytes:
         """The bytes of one run: UPLOAD in slave block mode when offered (until a block fails in this apply),
-        else SHORT_UPLOAD by SHORT_UPLOAD (7 bytes each, answered, address in the command)."""
+        else UPLOAD by UPLOAD of 7 bytes each, answered in one frame."""
         m = self._master
         if bool(m.slaveProperties.get("slaveBlockMode")) and not self._degraded and run.size > 7:
 
@@ -656,15 +681,23 @@ class XcpCalibrationClient:
                 if self._clock() >= deadline:
                     raise
                 self._degraded = True
+        # UPLOAD of at most 7 bytes, answered in one frame, from the MTA (set first, and again after any anomaly):
+        # its command is 2 bytes long. Not SHORT_UPLOAD: its 8-byte command is one flipped bit (0xF4 -> 0xF0) away
+        # from a DOWNLOAD of 7 bytes that writes its own address bytes at the MTA, and on a bus that garbles
+        # frames above CAN's CRC (the fault campaign) that wrote garbage into the page the ECU application used
+        # whenever that page was read; a garbled 2-byte UPLOAD is refused (ERR_CMD_SYNTAX) whatever it becomes.
+        self._dirty = True
         out = b""
         for pos in range(0, run.size, 7):
             n = min(run.size - pos, 7)
             address = run.address + pos
 
             def one(n: int = n, address: int = address) -> bytes:
-                return self._request("SHORT_UPLOAD", n, 0, run.extension, *self._dword(address))
+                if self._dirty:
+                    self._set_mta(address, run.extension)
+                return self._request("UPLOAD", n)
 
-            out += self._cmd("SHORT_UPLOAD", one, deadline, _length(n))
+            out += self._cmd("UPLOAD", one, deadline, _length(n))
         return out
 
     def _crc_of(self, run: Run, deadline: float, strict: bool = True) -> int | None:
@@ -747,9 +780,86 @@ class XcpCalibrationClient:
 
     def _read_page(self, page: int | None, deadline: float) -> dict[Run, bytes]:
         """Every run of ``page`` (None: the page XCP accesses already), each checked by the ECU's checksum (or,
-        without BUILD_CHECKSUM, read twice alike)."""
-        if page is not None and self.settings.pages and self._get_page(MODE_XCP, deadline) != page:
+        without BUILD_CHECKSUM, read twice alike).
+
+        The reference page is read-only (the flashed data set): once read, later reads compare the ECU's
+        checksums with the bytes known. After a page other than the reference one was read, XCP's access goes
+        back to the reference page (:meth:`_park`)."""
+        s = self.settings
+        reference = s.pages and page == s.reference_page
+        if reference and self._reference is not None:
+            # the flashed data set, read (and checked by the ECU's CRC-32) once: reading it again would move XCP's
+            # access off the working page, and moving it back is a SET_CAL_PAGE one flipped bit (mode 0x02 ->
+            # 0x03) away from switching the application onto a working page that a failed apply left half written
+            return dict(self._reference)
+        if page is not None and s.pages and self._get_page(MODE_XCP, deadline) != page:
             self._set_page(MODE_XCP, page, deadline)
+        out = self._known_page(page, deadline) or self._read_runs(deadline)
+        if reference:
+            self._reference = dict(out)
+        elif page is not None and s.pages:
+            self._park(deadline, required=False)
+        return out
+
+    def _known_page(self, page: int | None, deadline: float) -> dict[Run, bytes] | None:
+        """The page's bytes when the ECU's CRC-32 of every run equals that of a set the bridge knows (what it
+        read of the page before, the last confirmed calibration, the definition's baseline): a checksum instead
+        of some 15 answered UPLOADs per 80 bytes, each of which a bus that garbles frames can spoil (a CRC-32
+        match by chance: 2^-32). None: none matches, or the ECU builds no checksums."""
+        if self._checksum_ok is False:
+            return None
+        candidates: list[dict[Run, bytes]] = []
+        if page is not None and page == self.settings.reference_page and self._reference is not None:
+            candidates.append(self._reference)
+        if page is not None and page in self._page_bytes:
+            candidates.append(self._page_bytes[page])
+        for values in (self.last_confirmed, self._baseline):
+            if values is None:
+                continue
+            try:
+                candidates.append(self.layout.image(values))
+            except (BacError, ValueError):
+                continue  # e.g. values read back outside the bounds
+        seen: list[dict[Run, bytes]] = []
+        for image in candidates:
+            if image in seen:
+                continue
+            seen.append(image)
+            if self._crcs_match(image, deadline):
+                return dict(image)
+        return None
+
+    def _crcs_match(self, data: Mapping[Run, bytes], deadline: float, strict: bool = False) -> bool:
+        """The ECU's CRC-32 of every run (of the page XCP accesses) equals the CRC-32 of ``data``; False also
+        when the ECU does not build checksums. ``strict``: a refusal of BUILD_CHECKSUM is raised (asked again by
+        the caller) instead of counting as a mismatch."""
+        for run, want in data.items():
+            crc = self._crc_of(run, deadline, strict=strict)
+            if crc is None or crc != zlib.crc32(want) & 0xFFFF_FFFF:
+                return False
+        return True
+
+    def _park(self, deadline: float, required: bool = True) -> None:
+        """XCP's access goes back to the reference page, which refuses writes (ERR_WRITE_PROTECTED): a garbled
+        or late command that turns into a DOWNLOAD can then change no page the ECU application may use. Asked
+        back with GET_CAL_PAGE (a garbled SET_CAL_PAGE is answered positively). ``required=False`` (after a
+        read): an ECU that refuses it is left as it is."""
+        s = self.settings
+        if not s.pages:
+            return
+        for _ in range(3):
+            try:
+                self._set_page(MODE_XCP, s.reference_page, deadline)
+            except XcpCommandError as exc:
+                if required or exc.code == ErrorCode.ECU_BUSY:
+                    raise
+                self._log.warning("XCP: %s; XCP's access stays on the page read", exc)
+                return
+            if self._get_page(MODE_XCP, deadline) == s.reference_page:
+                return
+        raise _MismatchError("XCP GET_CAL_PAGE: XCP's access does not go back to the reference page")
+
+    def _read_runs(self, deadline: float) -> dict[Run, bytes]:
         out: dict[Run, bytes] = {}
         for run in self.layout.runs:
             got = self._read_run(run, deadline)
@@ -757,10 +867,18 @@ class XcpCalibrationClient:
             if crc is None:
                 if self._read_run(run, deadline) != got:
                     raise _MismatchError(f"XCP read of 0x{run.address:X}+{run.size}: two reads disagree")
-            elif crc != zlib.crc32(got) & 0xFFFF_FFFF:
-                raise _MismatchError(
-                    f"XCP read of 0x{run.address:X}+{run.size}: the bytes do not match the ECU's CRC-32"
-                )
+            else:
+                # a garbled answer of the right length spoils one piece: read again and take, piece by piece, the
+                # bytes seen twice, until they match the ECU's CRC-32 (instead of reading everything again and
+                # again, which on a bus that garbles many frames rarely comes out whole)
+                reads = [got]
+                while zlib.crc32(got) & 0xFFFF_FFFF != crc:
+                    if len(reads) > REPAIR_ROUNDS:
+                        raise _MismatchError(
+                            f"XCP read of 0x{run.address:X}+{run.size}: the bytes do not match the ECU's CRC-32"
+                        )
+                    reads.append(self._read_run(run, deadline))
+                    got = _agreed(reads)
             out[run] = got
         return out
 
@@ -795,8 +913,10 @@ class XcpCalibrationClient:
         last: BridgeError | None = None
         touched = False  # a command that changes what the ECU application uses was sent
         uncertain = False  # ... and its outcome is not known
+        # block transfers come back only after an apply without any lost, late or garbled frame: on a lossy bus
+        # a block of 14 frames rarely gets through whole, and each failed block costs a step timeout
+        self._degraded = self._degraded and self._anomaly_at > -math.inf
         self._anomaly_at = -math.inf
-        self._degraded = False
         self._talked = False  # a session with the ECU was up during this apply
         while attempts < self.config.max_attempts and self._clock() < deadline:
             attempts += 1
@@ -889,6 +1009,10 @@ class XcpCalibrationClient:
         s = self.settings
         self._session(deadline)
         if s.pages:
+            if self._ecu_page is None:
+                # asked first: a SET_CAL_PAGE(ECU, reference) garbled in its page byte switches the application
+                # onto the working page, which a failed apply may have left half written
+                self._ecu_page = self._get_page(MODE_ECU, deadline)
             if self._ecu_page != s.reference_page:
                 # the controller runs on the reference page (the safe data set) while the working page is written
                 state.touched = state.in_doubt = True
@@ -900,8 +1024,13 @@ class XcpCalibrationClient:
                     raise
                 self._ecu_page = s.reference_page
                 state.in_doubt = False
-            # asked every attempt, before a byte is written: the page the application uses must be the reference
-            # (a SET_CAL_PAGE garbled on the way, e.g. into another mode, may be answered positively)
+            if self._get_page(MODE_XCP, deadline) != s.working_page:
+                # only after a confirmed apply (XCP's access parked on the reference page, the working page holds
+                # that apply's checked set), so a garbled mode 0x02 -> 0x03 switches onto checked values at worst
+                self._set_page(MODE_XCP, s.working_page, deadline)
+            # asked every attempt, after XCP's page is set and before a byte is written: the page the application
+            # uses must be the reference (a SET_CAL_PAGE garbled on the way, e.g. XCP's mode 0x02 into 0x03, is
+            # answered positively and switches the application too)
             if self._get_page(MODE_ECU, deadline) != s.reference_page:
                 self._ecu_page = None
                 state.touched = state.in_doubt = True
@@ -909,7 +1038,6 @@ class XcpCalibrationClient:
                     "XCP GET_CAL_PAGE: the ECU application does not use its reference page: the working page is "
                     "not written"
                 )
-            self._set_page(MODE_XCP, s.working_page, deadline)
         else:
             state.touched = state.in_doubt = True  # one page: the writes change what the ECU uses at once
         self._page_bytes.pop(s.working_page if s.pages else 0, None)
@@ -918,29 +1046,52 @@ class XcpCalibrationClient:
         got: dict[Run, bytes] = {}
         for run, data in image.items():
             got[run] = self._verify_run(run, data, deadline, self.config.verify_readback)
+        if self._anomaly_at > -math.inf:
+            # a write still on its way (delayed, duplicated, held back; of this attempt or an earlier one) after an
+            # anomaly could land after the check that passed: once the bus's worst delay has passed, the ECU's
+            # checksums are asked again
+            self._wait_settled()
+            for run, data in image.items():
+                if not self._holds(run, data, deadline):
+                    raise _MismatchError(f"XCP: the memory at 0x{run.address:X}+{run.size} changed after its check")
         if s.pages:
+            # nothing can write into the working page any more once XCP's access is on the (read-only) reference
+            # page; then the application switches to the checked working page
+            self._park(deadline)
             state.touched = state.in_doubt = True
             self._ecu_page = None
             self._set_page(MODE_ECU, s.working_page, deadline)  # the commit
-        # the final word, once frames still on the way after an anomaly have landed
-        self._wait_settled()
-        if s.pages and self._get_page(MODE_ECU, deadline) != s.working_page:
-            raise _MismatchError("XCP GET_CAL_PAGE: the ECU application does not use the working page after the switch")
-        for run, data in image.items():
-            if not self._holds(run, data, deadline):
-                raise _MismatchError(f"XCP: the memory at 0x{run.address:X}+{run.size} changed after the commit")
-        if self._anomaly_at > -math.inf and self._clock() - self._anomaly_at < self.config.settle_s:
-            self._wait_settled()  # an anomaly during the final checks: check once more after it settled
+            # the final word, once frames still on the way after an anomaly have landed
+            self._wait_settled()
+            if self._get_page(MODE_ECU, deadline) != s.working_page:
+                raise _MismatchError(
+                    "XCP GET_CAL_PAGE: the ECU application does not use the working page after the switch"
+                )
+            if self._get_page(MODE_XCP, deadline) != s.reference_page:
+                # the commit garbled into both modes (0x01 -> 0x03): XCP's access is on the page in use
+                self._park(deadline)
+                if self._get_page(MODE_ECU, deadline) != s.working_page:
+                    raise _MismatchError(
+                        "XCP GET_CAL_PAGE: the ECU application does not use the working page after the switch"
+                    )
+        elif self._anomaly_at > -math.inf and self._clock() - self._anomaly_at < self.config.settle_s:
+            self._wait_settled()  # one page: an anomaly during the final checks: check once more after it settled
             for run, data in image.items():
                 if not self._holds(run, data, deadline):
-                    raise _MismatchError(f"XCP: the memory at 0x{run.address:X}+{run.size} changed after the commit")
+                    raise _MismatchError(f"XCP: the memory at 0x{run.address:X}+{run.size} changed after its check")
         self._ecu_page = s.working_page if s.pages else 0
         state.in_doubt = False
         self._page_bytes[self._ecu_page] = dict(got)
         return self.layout.decode(got)
 
     def settle(self, requested: Mapping[str, float] | None, previous: Mapping[str, float] | None = None) -> EcuState:
-        """Read back what the ECU application uses (its page, that page's values) after an uncertain outcome."""
+        """What the ECU application uses after an uncertain outcome: its page, and what that page holds.
+
+        The reference page is the flashed data set (known once read, checked by the ECU's CRC-32). A working
+        page in use is compared by the ECU's CRC-32 with the request and the previous calibration; when it holds
+        neither, or values outside the declared bounds, the application is switched back to its reference page
+        (one idempotent command, asked until GET_CAL_PAGE confirms it) and the state says so: the bridge never
+        leaves the ECU running on a page it cannot name. Asked again until ``settle_timeout_s``."""
         self.stats.settled += 1
         t0 = self._clock()
         deadline = t0 + self.config.settle_timeout_s
@@ -948,13 +1099,22 @@ class XcpCalibrationClient:
         self.config = replace(saved, step_retries=max(saved.step_retries, 10))
         problem = "no time left"
         refused = ""  # the last negative response while reading back
+        s = self.settings
         try:
             while self._clock() < deadline:
                 self._wait_settled()
                 try:
                     self._session(deadline)
-                    page = self._get_page(MODE_ECU, deadline) if self.settings.pages else 0
-                    data = self._read_page(page, deadline)
+                    page = self._get_page(MODE_ECU, deadline) if s.pages else 0
+                    note = ""
+                    data: dict[Run, bytes] | None = None
+                    if s.pages and page != s.reference_page:
+                        data, note = self._settle_working(page, requested, previous, deadline)
+                        if data is None:
+                            continue
+                        page = self._ecu_page if self._ecu_page is not None else page
+                    else:
+                        data = self._read_page(page, deadline)
                 except _RestartError:
                     problem = "the session was lost"
                     continue
@@ -974,10 +1134,10 @@ class XcpCalibrationClient:
                 self.last_confirmed = dict(values)
                 holds = classify(values, requested, previous, self._baseline)
                 where = ""
-                if self.settings.pages:
-                    kind = "reference" if page == self.settings.reference_page else "working"
+                if s.pages:
+                    kind = "reference" if page == s.reference_page else "working"
                     where = f"the ECU application uses its {kind} page {page}"
-                return EcuState(holds, values, self._crc(values), True, where)
+                return EcuState(holds, values, self._crc(values), True, "; ".join(filter(None, (where, note))))
         finally:
             self.config = saved
         self.last_confirmed = None
@@ -985,6 +1145,65 @@ class XcpCalibrationClient:
         if refused and refused != problem:
             problem = f"{problem}; before, {refused}"
         return EcuState(Holds.UNKNOWN, detail=f"reading the ECU back failed: {problem}")
+
+    def _settle_working(
+        self,
+        page: int,
+        requested: Mapping[str, float] | None,
+        previous: Mapping[str, float] | None,
+        deadline: float,
+    ) -> tuple[dict[Run, bytes] | None, str]:
+        """The working page the application uses: the known set it holds (by the ECU's CRC-32), else the
+        reference page switched to. (None, "") when the page in use changed meanwhile: asked again."""
+        s = self.settings
+        known: list[dict[Run, bytes]] = []
+        for values in (requested, previous, self._baseline):
+            if values is None:
+                continue
+            try:
+                known.append(self.layout.image(values))
+            except (BacError, ValueError):
+                continue  # e.g. a previous read back outside the bounds: not a set to compare with
+        data: dict[Run, bytes] | None = None
+        why = "it holds neither the requested, the previous nor the baseline calibration"
+        if self._checksum_ok is not False:
+            if self._get_page(MODE_XCP, deadline) != page:
+                self._set_page(MODE_XCP, page, deadline)
+            data = next((image for image in known if self._crcs_match(image, deadline, strict=True)), None)
+            if data is not None:
+                # parked only on a page the bridge can name: XCP's access stays on a page of unknown content while
+                # the application is switched off it below, so that no SET_CAL_PAGE(XCP, working) has to follow
+                # that one flipped bit makes a switch of the application onto it
+                self._park(deadline, required=False)
+        else:  # no BUILD_CHECKSUM: read it (XCP goes back to the reference page after)
+            data = self._read_page(page, deadline)
+            if self._crc(self.layout.decode(data)) is None:
+                data, why = None, "it holds values outside the declared bounds"
+        if self._get_page(MODE_ECU, deadline) != page:
+            return None, ""  # a garbled SET_CAL_PAGE switched the application meanwhile: look again
+        if data is not None:
+            self._ecu_page = page
+            return data, ""
+        # the application runs on a page the bridge cannot name: back to the reference page
+        self._ecu_page = None
+        try:
+            self._set_page(MODE_ECU, s.reference_page, deadline)
+        except XcpCommandError as exc:
+            # refused (the vehicle moves, a locked ECU): what the page holds is read and reported as it is
+            data = self._read_page(page, deadline)
+            if self._get_page(MODE_ECU, deadline) != page:
+                return None, ""
+            self._ecu_page = page
+            return data, f"{why}; switching to the reference page was refused: {exc}"
+        self._wait_settled()
+        if self._get_page(MODE_ECU, deadline) != s.reference_page:
+            return None, ""
+        self._ecu_page = s.reference_page
+        self.stats.restored_in_settle += 1
+        return (
+            self._read_page(s.reference_page, deadline),
+            f"its working page {page} was in use and {why}: the bridge switched it to the reference page",
+        )
 
     def read_active(self, timeout_s: float | None = None) -> ReadResult:
         """The calibration the ECU application uses: its page, read back and checked by the ECU's CRC-32."""
@@ -995,6 +1214,9 @@ class XcpCalibrationClient:
                 self._session(deadline)
                 page = self._get_page(MODE_ECU, deadline) if self.settings.pages else 0
                 data = self._read_page(page, deadline)
+                if page != self.settings.reference_page and self._get_page(MODE_ECU, deadline) != page:
+                    # XCP's access went back to the reference page with a SET_CAL_PAGE garbled into both modes
+                    raise _MismatchError("XCP GET_CAL_PAGE: the page the ECU application uses changed while reading")
             except _RestartError:
                 continue
             except _MismatchError:
@@ -1044,12 +1266,17 @@ class XcpCalibrationClient:
         deadline = t0 + (self.config.timeout_s if not timeout_s or timeout_s <= 0 else timeout_s)
         try:
             self._session(deadline)
-            page = self._get_page(MODE_ECU, deadline) if self.settings.pages else 0
+            s = self.settings
+            page = self._get_page(MODE_ECU, deadline) if s.pages else 0
             known = self._page_bytes.get(page)
             if known is not None:
-                if self.settings.pages:
+                if s.pages:
                     self._set_page(MODE_XCP, page, deadline)
-                if all(self._holds(r, b, deadline) for r, b in known.items()):
+                same = all(self._holds(r, b, deadline) for r, b in known.items())
+                if s.pages and page != s.reference_page:
+                    self._park(deadline, required=False)
+                    same = same and self._get_page(MODE_ECU, deadline) == page
+                if same:
                     values = self.layout.decode(known)
                     return EcuStatus(len(values), self._raw_crc(values)[1], self._clock() - t0)
         except _RestartError:
@@ -1068,8 +1295,9 @@ class XcpCalibrationClient:
         for attempt in range(1, self.config.max_attempts + 1):
             try:
                 self._session(deadline)
-                self._ecu_page = None
-                self._set_page(MODE_ECU, s.reference_page, deadline)
+                if self._get_page(MODE_ECU, deadline) != s.reference_page:
+                    self._ecu_page = None
+                    self._set_page(MODE_ECU, s.reference_page, deadline)
                 self._wait_settled()
                 if self._get_page(MODE_ECU, deadline) != s.reference_page:
                     raise _MismatchError("XCP GET_CAL_PAGE: the ECU does not use its reference page after the switch")
@@ -1100,6 +1328,15 @@ class XcpCalibrationClient:
 class _Attempt:
     touched: bool = False  # a command that changes what the ECU application uses was sent in this attempt
     in_doubt: bool = False  # ... and its outcome is not known yet
+
+
+def _agreed(reads: list[bytes], piece: int = 7) -> bytes:
+    """Piece by piece (an UPLOAD's 7 bytes), the bytes most reads agree on (the latest read on a tie)."""
+    out = b""
+    for k in range(0, len(reads[-1]), piece):
+        seen = [r[k : k + piece] for r in reads]
+        out += max(reversed(seen), key=seen.count)
+    return out
 
 
 def _span(data: bytes, run: Run, p: Any) -> bytes:
