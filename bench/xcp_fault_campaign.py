@@ -9,6 +9,7 @@ outside the declared bounds is seen even when it is in use for a moment only.
 
     .venv/bin/python bench/xcp_fault_campaign.py [--applies 2000] [--protocols xcp,bac] [--pairs 4]
         [--faults drop=0.15,corrupt=0.15,duplicate=0.05,delay=0.05,delay_s=0.01,reorder=0.05] [--seed 0]
+        [--timeout 3.0]
 
 Counts per protocol: successes; false successes (reported applied, but the ECU, or the result, holds other
 values than the quantized request); failures, the worst failure time against its bound (``timeout_s``, plus
@@ -22,6 +23,7 @@ apply). The last line is one JSON object per protocol.
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import itertools
 import json
 import random
@@ -224,9 +226,13 @@ def main() -> None:
     ap.add_argument("--pairs", type=int, default=4, help="client/ECU pairs side by side")
     ap.add_argument("--faults", default=DEFAULT_FAULTS, help="FaultConfig spec (bac_ecu_bridge.faults)")
     ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--timeout", type=float, default=3.0, help="each apply's overall bound, s (both protocols)")
     ap.add_argument("--progress", type=float, default=60.0, help="print progress every this many seconds (0: no)")
     args = ap.parse_args()
     faults = FaultConfig.parse(args.faults)
+    global XCP_CONFIG, BAC_CONFIG  # noqa: PLW0603 (the pairs read them; a bench script, set once here)
+    XCP_CONFIG = dataclasses.replace(XCP_CONFIG, timeout_s=args.timeout)
+    BAC_CONFIG = dataclasses.replace(BAC_CONFIG, timeout_s=args.timeout)
     print(f"faults on either side: {args.faults}; {args.applies} applies per protocol, {args.pairs} pairs", flush=True)
     results = []
     for protocol in args.protocols.split(","):
