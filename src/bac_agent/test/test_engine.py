@@ -306,3 +306,36 @@ def test_search_space_from_spec_forms() -> None:
     assert s1.fixed == {"k": 4.0}
     np.testing.assert_allclose(s1.from_unit(np.array([0.5, 0.3])), [1.0, 1.5])
     assert SearchSpace.from_dict(s1.to_dict()) == s1
+
+
+@pytest.mark.parametrize("rule", ["mean", "observed", "best_run"])
+def test_the_configured_recommendation_rule_is_what_recommend_gives(rule: str) -> None:
+    """EngineConfig.recommend_rule (bo_agent's recommend_rule, issue 23) decides recommend() without an argument;
+    it is checked, kept in the state, and read back from a journal for an offline refit."""
+    from bac_agent.journal import journaled_engine_options
+
+    cfg = EngineConfig(budget=12, n_initial=5, seed=2, recommend_rule=rule)
+    eng = Engine({"a": (0.0, 1.0), "b": (0.0, 1.0)}, cfg)
+    rng = np.random.default_rng(0)
+    for _ in range(8):
+        p = eng.ask()
+        eng.tell(p, (p["a"] - 0.37) ** 2 + (p["b"] - 0.61) ** 2 + 0.01 * rng.standard_normal())
+    rec = eng.recommend()
+    assert rec.rule == rule
+    assert rec == eng.recommend(rule)
+    driven = [o.params for o in eng.observations]
+    if rule == "mean":
+        assert not any(rec.params == pytest.approx(p) for p in driven)  # between the runs
+    elif rule == "best_run":
+        assert rec.params == min(eng.observations, key=lambda o: o.value).params
+    else:
+        assert any(rec.params == pytest.approx(p) for p in driven)
+    assert Engine.from_json(eng.to_json()).recommend().rule == rule
+    opts = journaled_engine_options({"config": {"recommend_rule": rule}})
+    assert EngineConfig.from_dict(opts).recommend_rule == rule
+    assert EngineConfig.from_dict(journaled_engine_options({})).recommend_rule == "mean"
+
+
+def test_an_unknown_recommendation_rule_is_refused() -> None:
+    with pytest.raises(EngineError, match="recommend_rule must be one of mean, observed, best_run"):
+        EngineConfig(recommend_rule="median")

@@ -113,6 +113,10 @@ class EngineConfig:
     # best start
     acq_maxiter: int = 60
     recommend_beta: float = 0.0  # recommendation minimizes mean + beta * std (0: the paper's argmin of the mean)
+    # how recommend() chooses (RULES): "mean" the argmin of the posterior mean over the domain (the paper; the
+    # best rule on the tuning split of the problem families, issue 23), "observed" the driven calibration with the
+    # best posterior mean, "best_run" the driven calibration with the best measured J
+    recommend_rule: str = "mean"
     acquisition: str = "nei"  # "nei": noisy EI (sampled incumbents); "ei": log EI over the best posterior mean
     nei_samples: int = 64  # joint draws at the observed points for "nei"
     # with gp.mean == "bowl": the bowl is the prior mean while at most this many runs are told, then a constant
@@ -154,6 +158,8 @@ class EngineConfig:
             raise EngineError(f"n_initial must be >= 0 (0 = automatic), got {self.n_initial}")
         if self.output_warp not in WARPS:
             raise EngineError(f"output_warp must be one of {', '.join(WARPS)}, got {self.output_warp!r}")
+        if self.recommend_rule not in RULES:
+            raise EngineError(f"recommend_rule must be one of {', '.join(RULES)}, got {self.recommend_rule!r}")
         if self.acquisition not in ACQUISITIONS:
             raise EngineError(f"acquisition must be one of {', '.join(ACQUISITIONS)}, got {self.acquisition!r}")
         if not 0.0 < self.prior_weight < 1.0:
@@ -690,8 +696,8 @@ class Engine:
                 return None
         return np.asarray(U[int(np.argmin(sc))], dtype=float)
 
-    def recommend(self, rule: str = "mean") -> Recommendation:
-        """The campaign's answer, with its prediction. ``rule``:
+    def recommend(self, rule: str | None = None) -> Recommendation:
+        """The campaign's answer, with its prediction. ``rule`` (None: the configuration's ``recommend_rule``):
 
         * ``mean`` (the paper, the default): argmin over the domain of the posterior mean (+ recommend_beta · std);
         * ``observed``: the driven calibration with the best posterior mean (what Ax recommends);
@@ -701,6 +707,7 @@ class Engine:
         ``best_run``: to runs that kept every limit); when none is, the run that kept them with the best posterior
         mean, else the calibration least likely to break one.
         """
+        rule = self.config.recommend_rule if rule is None else rule
         if rule not in RULES:
             raise EngineError(f"recommendation rule must be one of {', '.join(RULES)}, got {rule!r}")
         with _one_blas_thread():
