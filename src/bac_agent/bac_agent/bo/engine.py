@@ -120,8 +120,9 @@ class EngineConfig:
     acquisition: str = "nei"  # "nei": noisy EI (sampled incumbents); "ei": log EI over the best posterior mean
     nei_samples: int = 64  # joint draws at the observed points for "nei"
     # with gp.mean == "bowl": the bowl is the prior mean while at most this many runs are told, then a constant
-    # (a trend helps while runs are few; later it would only bias a model that the runs can carry); 0 = automatic,
-    # twice the initial design
+    # (a trend helps while runs are few; later it would only bias a model that the runs can carry); 0 = automatic:
+    # the engine's own initial design + 1 (6 up to 4 dimensions; twice the design, 10, until 2026-11-24: the tuning
+    # split of the problem families chose the shorter bowl, the optima at a corner of Controller II's box sooner)
     bowl_runs: int = 0
     # "yeo-johnson": the GP is fitted to the runs through a fitted power transform (bo/warp.py); "none": as told
     output_warp: str = "yeo-johnson"
@@ -317,7 +318,10 @@ class Engine:
     @property
     def bowl_runs(self) -> int:
         """Runs told up to which a ``bowl`` prior mean is used (then a constant)."""
-        return self.config.bowl_runs or 2 * self.n_initial
+        if self.config.bowl_runs:
+            return self.config.bowl_runs
+        # the engine's own design (a transfer prior's shorter one is not counted: its bowl is kept as long)
+        return (self.config.n_initial or default_n_initial(self.space.dim, self.config.budget)) + 1
 
     def _gp_config(self) -> GPConfig:
         cfg = self.config.gp
