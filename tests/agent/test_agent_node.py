@@ -82,6 +82,7 @@ def test_campaign_runs_to_done_and_recommends(procs: Any, tmp_path: Path) -> Non
         "gp_mean:=constant",
         "output_warp:=none",
         "design_margin:=0.1",
+        "recommend_rule:=observed",
     )
     assert wait_exit(agent, 90, "bo_agent to finish") == 0, procs.log("agent")
     ev = jsonl(cdir / "journal.jsonl")
@@ -92,6 +93,18 @@ def test_campaign_runs_to_done_and_recommends(procs: Any, tmp_path: Path) -> Non
     assert start["config"]["gp_mean"] == "constant" and load_campaign(cdir).gp_mean == "constant"
     assert start["config"]["output_warp"] == "none" and load_campaign(cdir).engine_options["output_warp"] == "none"
     assert start["config"]["design_margin"] == 0.1
+    # the recommendation rule (issue 23): journaled, followed (a driven calibration), read back by a refit, reported
+    assert start["config"]["recommend_rule"] == "observed"
+    assert load_campaign(cdir).engine_options["recommend_rule"] == "observed"
+    (made,) = [e for e in ev if e["event"] == "recommendation"]
+    assert made["rule"] == "observed"
+    assert json.loads((cdir / "recommendation.json").read_text())["rule"] == "observed"
+    driven = [e["params"] for e in ev if e["event"] == "trial_scored" and e["kind"] != 2]
+    assert any(made["params"] == pytest.approx(p) for p in driven)
+    from bac_campaign.report import make_report
+
+    page = Path(make_report(cdir)["html"]).read_text()
+    assert "recommendation rule" in page and "observed: the driven calibration with the best posterior mean" in page
     scored = [e for e in ev if e["event"] == "trial_scored"]
     assert [e["trial_id"] for e in scored] == [1, 2, 3, 4, 5, 6]  # 5 trials + the confirmation run
     assert scored[-1]["kind"] == 2

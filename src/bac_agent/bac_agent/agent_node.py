@@ -31,7 +31,7 @@ from rclpy.clock import Clock
 from rclpy.clock_type import ClockType
 
 from bac_agent.bo.baselines import GridStrategy, RandomStrategy
-from bac_agent.bo.engine import ACQUISITIONS, Engine, EngineConfig
+from bac_agent.bo.engine import ACQUISITIONS, RULES, Engine, EngineConfig
 from bac_agent.bo.gp import MEANS, GPConfig
 from bac_agent.bo.space import SearchSpace
 from bac_agent.bo.warp import WARPS
@@ -120,6 +120,15 @@ class BoAgentNode(BacNode):
             "bo: the recommendation minimizes posterior mean + beta * std (0: the paper's argmin of the mean)",
             0.0,
             5.0,
+            read_only=True,
+        )
+        recommend_rule = self.declare_str(
+            "recommend_rule",
+            "mean",
+            "bo: the recommendation is the argmin of the posterior mean over the box (mean: the paper, the best on "
+            "the tuning split), the driven calibration with the best posterior mean (observed) or with the best "
+            "measured J (best_run); with outcome limits always within them",
+            choices=RULES,
             read_only=True,
         )
         gp_mean = self.declare_str(
@@ -275,6 +284,7 @@ class BoAgentNode(BacNode):
                     seed=seed,
                     acquisition=acquisition,
                     recommend_beta=recommend_beta,
+                    recommend_rule=recommend_rule,
                     output_warp=output_warp,
                     design_margin=design_margin,
                     initial_points=initial_points,
@@ -306,6 +316,7 @@ class BoAgentNode(BacNode):
                 "definition_file": str(definition_file),
                 "acquisition": acquisition,
                 "recommend_beta": recommend_beta,
+                "recommend_rule": recommend_rule,
                 "gp_mean": gp_mean,
                 "bowl_runs": optimizer.bowl_runs if isinstance(optimizer, Engine) else 0,
                 "output_warp": output_warp,

@@ -524,6 +524,10 @@ class Campaign:
         journaled = {"campaign_id": first.get("campaign_id"), **{k: first.get(k) for k in _STARTED_KEYS}}
         rec = self.started_record()
         mine = {"campaign_id": self.cfg.campaign_id, **{k: rec[k] for k in _STARTED_KEYS}}
+        for side in (journaled, mine):
+            conf = side.get("config")
+            if isinstance(conf, Mapping):
+                side["config"] = {**ADDED_LATER, **conf}
         problems, changed = config_differences(journaled, mine)
         if problems:
             raise CampaignError(
@@ -948,6 +952,7 @@ class Campaign:
             "params": rec.params,
             "predicted_j": rec.predicted_j,
             "predicted_std": rec.predicted_std,
+            "rule": rec.rule,  # how it was chosen (bo_agent's recommend_rule)
             "n_observations": rec.n_observations,
             "trials_done": self.trials_done,
             "best_observed_params": rec.best_observed_params,
@@ -984,6 +989,9 @@ RESUME_MAY_CHANGE = frozenset(
         "definition_file",
     }
 )
+# config entries added after campaigns were journaled without them, with the value such a campaign ran with: a
+# journal without the entry is compared as if it held that value (it resumes when the agent keeps it)
+ADDED_LATER: Mapping[str, Any] = {"recommend_rule": "mean"}
 _MISSING = object()
 
 

@@ -183,13 +183,14 @@ class Journal:
 def journaled_engine_options(started: Mapping[str, Any]) -> dict[str, Any]:
     """The EngineConfig fields an offline refit (``bac report``, ``bac rescore --refit``) needs to model and
     recommend the way the live campaign did, from its ``campaign_started`` record: ``recommend_beta``
-    (0: the paper's argmin of the posterior mean), the GP's prior mean, ``bowl_runs``, the output warp, and a
-    transfer prior and outcome limits when the campaign had them.
-    Journals written before these were configurable get what the agent used then: beta 0, a constant mean,
-    no warp."""
+    (0: the paper's argmin of the posterior mean), ``recommend_rule``, the GP's prior mean, ``bowl_runs``, the
+    output warp, and a transfer prior and outcome limits when the campaign had them.
+    Journals written before these were configurable get what the agent used then: beta 0, the rule ``mean``, a
+    constant mean, no warp."""
     cfg = started.get("config") or {}
     options: dict[str, Any] = {
         "recommend_beta": float(cfg.get("recommend_beta", 0.0) or 0.0),
+        "recommend_rule": str(cfg.get("recommend_rule", "mean") or "mean"),
         "gp": {"mean": str(cfg.get("gp_mean", "constant") or "constant")},
         "bowl_runs": int(cfg.get("bowl_runs", 0) or 0),
         "output_warp": str(cfg.get("output_warp", "none") or "none"),

@@ -532,6 +532,11 @@ REFUSED: dict[str, tuple[str, Refusal]] = {
         'config.output_warp: journaled "yeo-johnson", this agent "none"',
         lambda: (engine(), config(extra=_extra(output_warp="none")), DEFINITION),
     ),
+    "recommendation rule": (
+        # a journal from before the rule was configurable ran with "mean" (campaign.ADDED_LATER)
+        'config.recommend_rule: journaled "mean", this agent "observed"',
+        lambda: (engine(), config(extra=_extra(recommend_rule="observed")), DEFINITION),
+    ),
     "acquisition": (
         'config.acquisition: journaled "nei", this agent "ei"',
         lambda: (engine(), config(extra=_extra(acquisition="ei")), DEFINITION),
@@ -603,6 +608,21 @@ def test_a_resume_may_change_time_limits_and_says_so(tmp_path: Path) -> None:
     (resumed,) = [e for e in again.c.journal.events if e["event"] == "campaign_resumed"]
     assert "config.run_timeout_s: journaled 30.0, this agent 60.0" in resumed["changed"]
     assert "config.apply_timeout_s: journaled 10.0, this agent 20.0" in resumed["changed"]
+
+
+def test_a_journal_from_before_the_recommendation_rule_resumes_with_the_rule_it_ran_with(tmp_path: Path) -> None:
+    """campaign_started without recommend_rule (journaled before it was a parameter): the agent with the rule
+    those campaigns used (mean) resumes it; with another rule it is refused (the case above)."""
+    chain = start(tmp_path, Clock())
+    for _ in range(3):
+        chain.step()
+    chain.c.journal.close()
+    started = chain.c.journal.events[0]
+    assert "recommend_rule" not in started["config"]
+    again = start(tmp_path, Clock(), cfg=config(extra=_extra(recommend_rule="mean")))
+    assert again.pending is not None
+    (resumed,) = [e for e in again.c.journal.events if e["event"] == "campaign_resumed"]
+    assert resumed["changed"] == []
 
 
 def test_an_identical_configuration_resumes_even_after_it_finished(tmp_path: Path) -> None:

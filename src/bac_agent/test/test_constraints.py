@@ -2,11 +2,14 @@
 
 from __future__ import annotations
 
+from typing import Any
+
 import numpy as np
 import pytest
 
 from bac_agent.bo import Engine, EngineConfig
 from bac_agent.bo.constraints import ConstraintError, OutcomeLimit, parse_limits, violations
+from bac_agent.bo.engine import EngineError
 
 OPT = np.array([0.2, 0.3])  # J's unconstrained optimum: there the travel is 70, the limit 60
 
@@ -87,3 +90,52 @@ def test_outcomes_are_kept_in_the_state_and_rules_choose_among_runs_that_kept_th
         assert rec.rule == rule
     with pytest.raises(ValueError, match="rule"):
         eng.recommend("nearest")
+
+
+def test_an_outcome_model_starts_its_fit_from_the_prior_mode_and_its_last_fit(monkeypatch: pytest.MonkeyPatch) -> None:
+    """Each constrained outcome's MAP fit starts from the prior's mode and the last fit only, no prior draws
+    (issue 23's latency: 2 limits cost as much as J's fit each)."""
+    from bac_agent.bo import gp as gp_module
+    from bac_agent.bo.constraints import OutcomeLimit, OutcomeModel
+
+    starts: list[int] = []
+    real = gp_module.minimize
+
+    def counting(*args: object, **kw: object) -> object:
+        starts.append(1)
+        return real(*args, **kw)  # type: ignore[call-overload]
+
+    monkeypatch.setattr(gp_module, "minimize", counting)
+    rng = np.random.default_rng(0)
+    X = rng.random((12, 3))
+    v = 50.0 + 20.0 * X[:, 0] + 0.1 * rng.standard_normal(12)
+    m = OutcomeModel(OutcomeLimit("max_travel_mm", 60.0))
+    m.fit(X, v, np.random.default_rng(1))
+    assert len(starts) == 1
+    m.fit(X, v, np.random.default_rng(1))
+    assert len(starts) == 1 + 2
+    # the model still tells a safe calibration from an unsafe one
+    p = m.prob_violation(np.array([[0.1, 0.5, 0.5], [0.95, 0.5, 0.5]]))
+    assert p[0] < 0.05
+    assert p[1] > 0.5
+
+
+def test_the_acquisition_maximizer_stops_after_acq_maxiter(monkeypatch: pytest.MonkeyPatch) -> None:
+    """The acquisition's L-BFGS-B is bounded by acq_maxiter (issue 23's latency), which is checked."""
+    from scipy.optimize import minimize as real
+
+    seen: list[Any] = []
+
+    def recording(*args: Any, **kw: Any) -> Any:
+        seen.append((kw.get("options") or {}).get("maxiter"))
+        return real(*args, **kw)
+
+    monkeypatch.setattr("bac_agent.bo.engine.minimize", recording)
+    eng = Engine({"a": (0.0, 1.0), "b": (0.0, 1.0)}, EngineConfig(budget=10, n_initial=3, acq_maxiter=7))
+    for _ in range(4):
+        p = eng.ask()
+        eng.tell(p, (p["a"] - 0.3) ** 2 + p["b"] ** 2)
+    eng.ask()
+    assert seen and seen[-1] == 7
+    with pytest.raises(EngineError, match="acq_maxiter"):
+        EngineConfig(acq_maxiter=0)

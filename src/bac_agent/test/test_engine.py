@@ -109,9 +109,10 @@ def test_both_acquisitions_find_quadratic_minimum_under_noise(acquisition: str) 
         p = eng.ask()
         assert eng.pending and 0.0 <= p["a"] <= 1.0 and 0.0 <= p["b"] <= 1.0
         eng.tell(p, quad(p) + 0.02 * rng.standard_normal())
-    # within the noise's standard deviation of the minimum (with the design over [0.1, 0.9], log EI's seed 3
-    # ends at 0.011; noisy EI at 0.002)
-    assert quad(eng.recommend().params) < 0.02
+    # near the minimum: noisy EI (the default) within the noise's standard deviation (seed 3: 0.006); log EI within
+    # 1.25 of it (seed 3: 0.022 since the bowl is kept for the design + 1 runs, 0.011 with twice the design; over
+    # seeds 0-9 log EI's median 0.0025 against 0.0011 before, noisy EI's 0.0010 against 0.0018)
+    assert quad(eng.recommend().params) < (0.02 if acquisition == "nei" else 0.025)
 
 
 def test_asks_never_leave_bounds_and_follow_resolution() -> None:
@@ -188,7 +189,13 @@ def test_engine_finds_quadratic_minimum_under_noise() -> None:
 
 def test_bowl_mean_only_for_the_first_runs() -> None:
     eng = Engine({"a": (0.0, 1.0), "b": (0.0, 1.0)}, budget=14, seed=3)
-    assert eng.n_initial == 5 and eng.bowl_runs == 10  # automatic: twice the initial design
+    # automatic: the initial design + 1 (twice the design until issue 23's tuning split chose the shorter bowl);
+    # with a transfer prior the engine's own design counts, not the prior's shorter one
+    assert eng.n_initial == 5 and eng.bowl_runs == 6
+    assert Engine({"a": (0.0, 1.0)}, EngineConfig(n_initial=3)).bowl_runs == 4
+    src = {"X": [[0.1], [0.5], [0.9]], "y": [1.0, 0.5, 1.0], "hyper": Hyper(np.array([0.5]), 1.0, 1e-4).to_dict()}
+    with_prior = Engine({"a": (0.0, 1.0)}, EngineConfig(prior=src))
+    assert with_prior.n_initial == 3 and with_prior.bowl_runs == 6
     rng = np.random.default_rng(3)
     means = []
     while not eng.done:
@@ -197,8 +204,8 @@ def test_bowl_mean_only_for_the_first_runs() -> None:
         eng.recommend()
         assert eng.hyper is not None
         means.append((eng._gp.config.mean, eng.hyper.bowl is not None))
-    assert means[2:10] == [("bowl", True)] * 8  # from 3 runs on, a bowl-shaped J gets its bowl
-    assert means[10:] == [("constant", False)] * 4  # then the constant mean
+    assert means[2:6] == [("bowl", True)] * 4  # from 3 runs on, a bowl-shaped J gets its bowl
+    assert means[6:] == [("constant", False)] * 8  # then the constant mean
     r = eng.recommend()
     assert quad(r.params) < 0.01
     fixed = Engine({"a": (0.0, 1.0)}, EngineConfig(bowl_runs=3, gp=GPConfig(mean="constant")))
@@ -306,3 +313,36 @@ def test_search_space_from_spec_forms() -> None:
     assert s1.fixed == {"k": 4.0}
     np.testing.assert_allclose(s1.from_unit(np.array([0.5, 0.3])), [1.0, 1.5])
     assert SearchSpace.from_dict(s1.to_dict()) == s1
+
+
+@pytest.mark.parametrize("rule", ["mean", "observed", "best_run"])
+def test_the_configured_recommendation_rule_is_what_recommend_gives(rule: str) -> None:
+    """EngineConfig.recommend_rule (bo_agent's recommend_rule, issue 23) decides recommend() without an argument;
+    it is checked, kept in the state, and read back from a journal for an offline refit."""
+    from bac_agent.journal import journaled_engine_options
+
+    cfg = EngineConfig(budget=12, n_initial=5, seed=2, recommend_rule=rule)
+    eng = Engine({"a": (0.0, 1.0), "b": (0.0, 1.0)}, cfg)
+    rng = np.random.default_rng(0)
+    for _ in range(8):
+        p = eng.ask()
+        eng.tell(p, (p["a"] - 0.37) ** 2 + (p["b"] - 0.61) ** 2 + 0.01 * rng.standard_normal())
+    rec = eng.recommend()
+    assert rec.rule == rule
+    assert rec == eng.recommend(rule)
+    driven = [o.params for o in eng.observations]
+    if rule == "mean":
+        assert not any(rec.params == pytest.approx(p) for p in driven)  # between the runs
+    elif rule == "best_run":
+        assert rec.params == min(eng.observations, key=lambda o: o.value).params
+    else:
+        assert any(rec.params == pytest.approx(p) for p in driven)
+    assert Engine.from_json(eng.to_json()).recommend().rule == rule
+    opts = journaled_engine_options({"config": {"recommend_rule": rule}})
+    assert EngineConfig.from_dict(opts).recommend_rule == rule
+    assert EngineConfig.from_dict(journaled_engine_options({})).recommend_rule == "mean"
+
+
+def test_an_unknown_recommendation_rule_is_refused() -> None:
+    with pytest.raises(EngineError, match="recommend_rule must be one of mean, observed, best_run"):
+        EngineConfig(recommend_rule="median")

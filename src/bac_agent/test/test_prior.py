@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from typing import Any
+
 import numpy as np
 import pytest
 
@@ -97,3 +99,54 @@ def test_a_source_of_other_dimensions_is_refused() -> None:
     src = SourceSurface.from_function(lambda U: np.sum(U, axis=1), 3, 16)
     with pytest.raises(ValueError, match="3 dimensions"):
         Engine({"a": (0.0, 1.0), "b": (0.0, 1.0)}, EngineConfig(prior=src.to_dict()))
+
+
+def test_the_source_is_evaluated_without_its_variance(monkeypatch: pytest.MonkeyPatch) -> None:
+    """The source's mean and gradient (evaluated at every step of the acquisition's maximizer) skip the posterior
+    variance (issue 23's latency) and equal the full prediction's."""
+    from bac_agent.bo.gp import latent_sd_with_grad, latent_var
+
+    src = SourceSurface.from_function(sim, 2, 64)
+    U = np.random.default_rng(3).random((5, 2))
+    mu, _, dmu, _ = src._gp.predict_with_grad(U)  # type: ignore[attr-defined]
+    calls: list[int] = []
+
+    def counting_sd(*args: Any, **kw: Any) -> Any:
+        calls.append(1)
+        return latent_sd_with_grad(*args, **kw)
+
+    def counting_var(*args: Any, **kw: Any) -> Any:
+        calls.append(1)
+        return latent_var(*args, **kw)
+
+    monkeypatch.setattr("bac_agent.bo.gp.latent_sd_with_grad", counting_sd)
+    monkeypatch.setattr("bac_agent.bo.gp.latent_var", counting_var)
+    s, g = src.standardized_and_grad(U)
+    assert np.allclose(s, mu) and np.allclose(g, dmu)
+    assert np.allclose(src.standardized(U), mu)
+    assert not calls
+
+
+def test_fitting_with_a_source_refines_the_residual_from_one_start(monkeypatch: pytest.MonkeyPatch) -> None:
+    """The model with the source: MAP fits of the kernel without the source and of the residual (each from the
+    prior's mode and the best prior draw), then the residual once more from the first fit alone (issue 23's
+    latency; it searched again from 3 starts)."""
+    from scipy.optimize import minimize as real
+
+    from bac_agent.bo.prior import TransferSettings, fit_with_source
+
+    src = SourceSurface.from_function(sim, 2, 64)
+    U = np.random.default_rng(4).random((8, 2))
+    starts: list[int] = []
+
+    def counting(*args: Any, **kw: Any) -> Any:
+        starts.append(1)
+        return real(*args, **kw)
+
+    monkeypatch.setattr("bac_agent.bo.gp.minimize", counting)
+    gp, fit = fit_with_source(
+        EngineConfig().gp, U, car(U), src, TransferSettings(), np.random.default_rng(0), previous=None
+    )
+    assert len(starts) == 2 + 2 + 1
+    assert fit.weight > 0.9
+    assert np.allclose(gp.predict(U)[0], car(U), atol=0.05)

@@ -48,6 +48,12 @@ from bac_common.errors import BacError
 from bac_common.paramspace import CalibrationDefinition
 
 KIND_NAMES = {0: "initial", 1: "optimized", 2: "confirmation", 3: "grid", 4: "manual"}
+# bo_agent's recommend_rule (bac_agent.bo.engine.RULES), as the report says it
+RULE_TEXT = {
+    "mean": "the argmin of the posterior mean over the box",
+    "observed": "the driven calibration with the best posterior mean",
+    "best_run": "the driven calibration with the best measured J",
+}
 
 
 class ReportError(BacError, ValueError):
@@ -148,6 +154,7 @@ def load_campaign(path: str | Path) -> Campaign:
                 "predicted_std": _num(e.get("predicted_std")),
                 "predicted_outcomes": dict(e.get("predicted_outcomes") or {}),
                 "transfer": dict(e.get("transfer") or {}),
+                "rule": str(e.get("rule") or "mean"),
             }
     if rec is None and (p / "recommendation.json").exists():
         data = json.loads((p / "recommendation.json").read_text())
@@ -155,6 +162,7 @@ def load_campaign(path: str | Path) -> Campaign:
             "params": data["params"],
             "predicted_j": _num(data.get("predicted_j")),
             "predicted_std": _num(data.get("predicted_std")),
+            "rule": str(data.get("rule") or "mean"),
         }
     return Campaign(
         path=p,
@@ -751,6 +759,8 @@ def write_html(
         ]
         if rec:
             out_rows.append(["recommendation", html.escape(_fmt_params(rec.get("params", {}), 8))])
+            rule = str(rec.get("rule") or "mean")
+            out_rows.append(["recommendation rule", html.escape(f"{rule}: {RULE_TEXT.get(rule, rule)}")])
             out_rows.append(
                 [
                     "predicted J",

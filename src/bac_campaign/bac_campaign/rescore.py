@@ -635,7 +635,7 @@ def _segmenter_template(files: Sequence[Path], overrides: Mapping[str, Any] | No
 
 
 def refit(campaign_dir: Path, runs: Sequence[RunResult]) -> dict[str, Any]:
-    """Fit the campaign's GP on the rescored J of each trial and recommend (argmin of the posterior mean)."""
+    """Fit the campaign's GP on the rescored J of each trial and recommend by the campaign's rule (recommend_rule)."""
     from bac_agent.bo import Engine, EngineConfig
     from bac_common.paramspace import CalibrationDefinition
 

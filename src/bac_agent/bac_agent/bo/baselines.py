@@ -97,7 +97,13 @@ class _Baseline:
         if best is None:
             raise EngineError("nothing has been told yet: tell() at least one result first")
         return Recommendation(
-            dict(best.params), best.value, math.nan, len(self.observations), dict(best.params), best.value
+            dict(best.params),
+            best.value,
+            math.nan,
+            len(self.observations),
+            dict(best.params),
+            best.value,
+            rule="best_run",  # no model: the run with the best measured J
         )
 
 

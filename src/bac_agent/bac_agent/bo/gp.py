@@ -404,15 +404,24 @@ class GP:
         keep = w > 1e-6
         return Bowl(C[keep], beta0[keep], beta1[keep], w[keep] / w[keep].sum(), scale, c.bowl_tip)
 
-    def _map_hyper(self, rng: np.random.Generator) -> FloatArray:
-        """MAP log-hyperparameters of the data minus ``_offset`` (multi-start L-BFGS-B)."""
+    def _map_hyper(self, rng: np.random.Generator, warm_only: bool = False) -> FloatArray:
+        """MAP log-hyperparameters of the data minus ``_offset`` (multi-start L-BFGS-B).
+
+        ``warm_only``: one start, the current hyperparameters (a refinement after a small change of the offset,
+        e.g. a transfer prior's trend rescaled; no draws are taken from ``rng``)."""
         d = self.X.shape[1]
         loc, scale = self._prior(d)
         bounds = self._bounds(d)
         lo = np.array([b[0] for b in bounds])
         hi = np.array([b[1] for b in bounds])
+        warm = self.hyper is not None and self.hyper.lengthscales.shape[0] == d
+        if warm_only and warm:
+            assert self.hyper is not None
+            starts = [np.clip(self.hyper.to_vector(), lo, hi)]
+            return self._minimize_from(starts, bounds, self._d2())
         starts = [np.clip(loc, lo, hi)]
-        if self.hyper is not None and self.hyper.lengthscales.shape[0] == d:
+        if warm:
+            assert self.hyper is not None
             starts.append(np.clip(self.hyper.to_vector(), lo, hi))
         draws = [np.clip(loc + scale * rng.standard_normal(d + 2) * 0.7, lo, hi) for _ in range(self.config.draws)]
         D2 = self._d2()
@@ -420,6 +429,10 @@ class GP:
             # screen the prior draws by their objective; optimize only from the best ones
             vals = [self.neg_log_posterior(v, D2)[0] for v in draws]
             starts += [draws[i] for i in np.argsort(vals)[: self.config.restarts]]
+        return self._minimize_from(starts, bounds, D2)
+
+    def _minimize_from(self, starts: list[FloatArray], bounds: list[tuple[float, float]], D2: FloatArray) -> FloatArray:
+        """The best of L-BFGS-B runs of the negative log posterior from each start."""
         best_v, best_f = starts[0], math.inf
         for v0 in starts:
             try:
@@ -500,6 +513,33 @@ class GP:
         Ks = matern52_from_r2(sq_dist(Xq, self.X, h.lengthscales), h.outputscale)
         mu = h.mean_at(Xq) + Ks @ self._alpha
         return mu, latent_var(self._L, Ks, h.outputscale)
+
+    def predict_mean_units(self, Xq: FloatArray) -> FloatArray:
+        """Posterior mean of the latent function, standardized units (no variance: a transfer prior's surface is
+        evaluated at every step of the acquisition's maximizer, where only its mean is wanted)."""
+        if not self.fitted:
+            raise GPError("the GP has no data yet")
+        assert self.hyper is not None
+        h = self.hyper
+        Xq = np.atleast_2d(np.asarray(Xq, dtype=float))
+        Ks = matern52_from_r2(sq_dist(Xq, self.X, h.lengthscales), h.outputscale)
+        return np.asarray(h.mean_at(Xq) + Ks @ self._alpha, dtype=float)
+
+    def predict_mean_with_grad(self, Xq: FloatArray) -> tuple[FloatArray, FloatArray]:
+        """Standardized posterior mean and its gradient w.r.t. the query points: (m,), (m, d)."""
+        if not self.fitted:
+            raise GPError("the GP has no data yet")
+        assert self.hyper is not None
+        h = self.hyper
+        Xq = np.atleast_2d(np.asarray(Xq, dtype=float))
+        il2 = 1.0 / h.lengthscales**2
+        r2 = sq_dist(Xq, self.X, h.lengthscales)
+        Ks = matern52_from_r2(r2, h.outputscale)
+        F = matern52_dr2_factor(r2, h.outputscale)
+        m0, dm0 = h.mean_and_grad(Xq)
+        Fa = F * self._alpha[None, :]
+        dmu = dm0 - (Xq * Fa.sum(axis=1)[:, None] - Fa @ self.X) * il2
+        return np.asarray(m0 + Ks @ self._alpha, dtype=float), np.asarray(dmu, dtype=float)
 
     def predict(self, Xq: FloatArray) -> tuple[FloatArray, FloatArray]:
         """Posterior mean and standard deviation of the latent function, in the units of y."""

@@ -112,11 +112,11 @@ class SourceSurface:
     # --- values ------------------------------------------------------------------------------------
     def standardized(self, U: FloatArray) -> FloatArray:
         """s(U): the source's J at unit-cube points, standardized by its own loc and scale."""
-        mu, _ = self._gp.predict_std_units(np.atleast_2d(U))  # type: ignore[attr-defined]
-        return np.asarray(mu, dtype=float)
+        mu: FloatArray = self._gp.predict_mean_units(np.atleast_2d(U))  # type: ignore[attr-defined]
+        return mu
 
     def standardized_and_grad(self, U: FloatArray) -> tuple[FloatArray, FloatArray]:
-        mu, _, dmu, _ = self._gp.predict_with_grad(np.atleast_2d(U))  # type: ignore[attr-defined]
+        mu, dmu = self._gp.predict_mean_with_grad(np.atleast_2d(U))  # type: ignore[attr-defined]
         return np.asarray(mu, dtype=float), np.asarray(dmu, dtype=float)
 
     def predict_j(self, U: FloatArray) -> FloatArray:
@@ -311,7 +311,9 @@ def fit_with_source(
         fit = weigh_source(gp1.X, z, s, h1, h0, settings.scale_sd, settings.weight)
         gp1._offset = fit.b * s
         gp1.hyper = h1
-        h1 = Hyper.from_vector(gp1._map_hyper(rng))
+        # the residual's kernel again on what the learned scale leaves: a refinement from h1 (the offset moved
+        # from s to b·s), not a new search (one start: issue 23's latency)
+        h1 = Hyper.from_vector(gp1._map_hyper(rng, warm_only=True))
         gp1._offset = 0.0
     else:
         loc0, _ = gp0._prior(X.shape[1])
