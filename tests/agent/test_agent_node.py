@@ -83,6 +83,7 @@ def test_campaign_runs_to_done_and_recommends(procs: Any, tmp_path: Path) -> Non
         "output_warp:=none",
         "design_margin:=0.1",
         "recommend_rule:=observed",
+        "bowl_runs:=10",
     )
     assert wait_exit(agent, 90, "bo_agent to finish") == 0, procs.log("agent")
     ev = jsonl(cdir / "journal.jsonl")
@@ -93,6 +94,7 @@ def test_campaign_runs_to_done_and_recommends(procs: Any, tmp_path: Path) -> Non
     assert start["config"]["gp_mean"] == "constant" and load_campaign(cdir).gp_mean == "constant"
     assert start["config"]["output_warp"] == "none" and load_campaign(cdir).engine_options["output_warp"] == "none"
     assert start["config"]["design_margin"] == 0.1
+    assert start["config"]["bowl_runs"] == 10  # settable: campaigns from before the default moved to 6 resume
     # the recommendation rule (issue 23): journaled, followed (a driven calibration), read back by a refit, reported
     assert start["config"]["recommend_rule"] == "observed"
     assert load_campaign(cdir).engine_options["recommend_rule"] == "observed"

@@ -138,6 +138,15 @@ class BoAgentNode(BacNode):
             choices=MEANS,
             read_only=True,
         )
+        bowl_runs = self.declare_int(
+            "bowl_runs",
+            0,
+            "bo with gp_mean bowl: runs the bowl-shaped trend lasts (0 = automatic: the initial design + 1; "
+            "campaigns started before 2026-11-24 07:15 used twice the initial design: set it to resume them)",
+            0,
+            1000,
+            read_only=True,
+        )
         output_warp = self.declare_str(
             "output_warp",
             "yeo-johnson",
@@ -289,6 +298,7 @@ class BoAgentNode(BacNode):
                     design_margin=design_margin,
                     initial_points=initial_points,
                     gp=GPConfig(mean=gp_mean),
+                    bowl_runs=bowl_runs,
                     prior=source.to_dict() if source is not None else None,
                     prior_weight=prior_weight,
                     constraints=tuple(constraints),
