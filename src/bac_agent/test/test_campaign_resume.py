@@ -528,6 +528,10 @@ REFUSED: dict[str, tuple[str, Refusal]] = {
         'config.gp_mean: journaled "bowl", this agent "constant"',
         lambda: (engine(), config(extra=_extra(gp_mean="constant")), DEFINITION),
     ),
+    "bowl length": (
+        "config.bowl_runs: journaled 6, this agent 10",
+        lambda: (engine(), config(extra=_extra(bowl_runs=10)), DEFINITION),
+    ),
     "output warp": (
         'config.output_warp: journaled "yeo-johnson", this agent "none"',
         lambda: (engine(), config(extra=_extra(output_warp="none")), DEFINITION),
@@ -620,6 +624,19 @@ def test_a_journal_from_before_the_recommendation_rule_resumes_with_the_rule_it_
     started = chain.c.journal.events[0]
     assert "recommend_rule" not in started["config"]
     again = start(tmp_path, Clock(), cfg=config(extra=_extra(recommend_rule="mean")))
+    assert again.pending is not None
+    (resumed,) = [e for e in again.c.journal.events if e["event"] == "campaign_resumed"]
+    assert resumed["changed"] == []
+
+
+def test_the_bowl_length_does_not_refuse_a_resume_without_the_bowl(tmp_path: Path) -> None:
+    """bowl_runs is journaled whatever the prior mean; without the bowl (gp_mean constant or zero) its length
+    changes nothing, so a campaign journaled with another (the default before 2026-11-24: 10) resumes."""
+    chain = start(tmp_path, Clock(), cfg=config(extra=_extra(gp_mean="constant", bowl_runs=10)))
+    for _ in range(3):
+        chain.step()
+    chain.c.journal.close()
+    again = start(tmp_path, Clock(), cfg=config(extra=_extra(gp_mean="constant", bowl_runs=6)))
     assert again.pending is not None
     (resumed,) = [e for e in again.c.journal.events if e["event"] == "campaign_resumed"]
     assert resumed["changed"] == []

@@ -118,6 +118,9 @@ def load_campaign(path: str | Path) -> Campaign:
     if not start.get("definition"):
         raise ReportError(f"{p}: the journal does not give the calibration definition")
     definition = CalibrationDefinition.from_dict(start["definition"])
+    # a journal from before the rule was recorded: the engine recommended by its posterior mean, the baselines
+    # (grid, random) their best run
+    default_rule = "mean" if str(start.get("strategy", "bo")) == "bo" else "best_run"
     rows: dict[int, TrialRow] = {}
     rec = None
     paused = ""
@@ -154,7 +157,7 @@ def load_campaign(path: str | Path) -> Campaign:
                 "predicted_std": _num(e.get("predicted_std")),
                 "predicted_outcomes": dict(e.get("predicted_outcomes") or {}),
                 "transfer": dict(e.get("transfer") or {}),
-                "rule": str(e.get("rule") or "mean"),
+                "rule": str(e.get("rule") or default_rule),
             }
     if rec is None and (p / "recommendation.json").exists():
         data = json.loads((p / "recommendation.json").read_text())
@@ -162,7 +165,7 @@ def load_campaign(path: str | Path) -> Campaign:
             "params": data["params"],
             "predicted_j": _num(data.get("predicted_j")),
             "predicted_std": _num(data.get("predicted_std")),
-            "rule": str(data.get("rule") or "mean"),
+            "rule": str(data.get("rule") or default_rule),
         }
     return Campaign(
         path=p,

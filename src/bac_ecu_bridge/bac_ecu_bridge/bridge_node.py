@@ -198,7 +198,13 @@ class EcuBridgeNode(BacNode):
             "TESTS AND DEMOS ONLY: faults injected on the bridge's bus, e.g. drop=0.1,corrupt=0.1,seed=3",
             read_only=True,
         )
-        self.declare_float("step_timeout_s", 0.025, "wait for one reply of the ECU, s", 0.001, 5.0)
+        self.declare_float(
+            "step_timeout_s",
+            0.025,
+            "bac protocol: wait for one reply of the ECU, s (XCP: xcp.step_timeout_s, XCP's T1)",
+            0.001,
+            5.0,
+        )
         self.declare_int("step_retries", 5, "re-sends of one request before the transaction fails", 0, 100)
         self.declare_int("max_attempts", 3, "transactions per apply (new sequence number each)", 1, 20)
         self.declare_float(
