@@ -24,8 +24,16 @@ _CHANNELS = itertools.count()
 
 
 def params_of(profile: str) -> dict[str, Any]:
+    """The profile's ecu_bridge parameters as ROS reads the file: nested mappings are dotted names."""
     data = yaml.safe_load((ROOT / "ros_ws" / "params" / f"{profile}.yaml").read_text())
-    return dict(data["ecu_bridge"]["ros__parameters"])
+
+    def flat(d: dict[str, Any], prefix: str = "") -> dict[str, Any]:
+        out: dict[str, Any] = {}
+        for k, v in d.items():
+            out.update(flat(v, f"{prefix}{k}.") if isinstance(v, dict) else {f"{prefix}{k}": v})
+        return out
+
+    return flat(data["ecu_bridge"]["ros__parameters"])
 
 
 class InProc:
