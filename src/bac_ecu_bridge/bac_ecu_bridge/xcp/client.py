@@ -7,15 +7,24 @@ the caller's python-can bus (any bus: a real adapter, ``virtual``,
 One apply, on an ECU with a reference and a working page (the A2L's two pages of
 the calibration segment; ``xcp`` settings of the definition)::
 
-    CONNECT, GET_COMM_MODE_INFO, GET_STATUS   once per session; GET_SEED/UNLOCK when CAL/PAG is protected
+    CONNECT, GET_COMM_MODE_INFO, GET_STATUS   once per session; GET_SEED/UNLOCK when CAL/PAG is protected;
+                                              the reference page read once (read-only: answered from it after)
     SET_CAL_PAGE(ECU, reference)              the controller runs on the safe data set while the writes go on
-    SET_CAL_PAGE(XCP, working)
+                                              (only when GET_CAL_PAGE(ECU) says it is elsewhere)
+    SET_CAL_PAGE(XCP, working)                only when XCP's access is elsewhere, confirmed by GET_CAL_PAGE(XCP);
+                                              GET_CAL_PAGE(ECU) must show the reference page before a byte is written
     SET_MTA + DOWNLOAD [+ DOWNLOAD_NEXT...]   each run of contiguous parameters (master block mode if offered)
     SET_MTA + BUILD_CHECKSUM  vs the host's CRC-32 of the written bytes
-    SET_MTA + UPLOAD (slave block mode) / SHORT_UPLOAD: the bytes read back must equal the written ones
+    SET_MTA + UPLOAD (slave block mode, else UPLOADs of 7 bytes, never SHORT_UPLOAD): the bytes read back must
+                                              equal the written ones; after an anomaly the CRC-32s asked again
+    SET_CAL_PAGE(XCP, reference)              the park: XCP's access on the write-protected page, confirmed
     SET_CAL_PAGE(ECU, working)                the commit: one page switch, never a half-written set in use
-    GET_CAL_PAGE(ECU) + BUILD_CHECKSUM        the final word: the controller uses the page, the page holds the set
+    GET_CAL_PAGE(ECU) and (XCP)               the final word: the controller uses the checked page, XCP is parked;
+                                              after an anomaly at or after the last check of the contents, XCP's
+                                              access goes to the page in use, its CRC-32s are asked again, parked
 
+Every SET_CAL_PAGE(XCP) is confirmed by GET_CAL_PAGE(XCP) (a garbled page byte is answered positively) before
+that page is named or read, and goes only towards a page the bridge has checked or the application uses already.
 Without pages the runs are written to the one page and verified the same way.
 The result's values are the ones read back (what the ECU holds), never the request.
 
@@ -1100,11 +1109,11 @@ class XcpCalibrationClient:
                 # an anomaly at or after the last check of the contents (during that check, the park or the commit:
                 # a lost answer, a repeat, a garbled or late frame): a write on its way could have landed after it.
                 # The application uses the working page now, so moving XCP's access there switches nothing: the
-                # ECU's CRC-32s are asked again once frames on the way have landed, then XCP's access is parked
-                # again. A mismatch fails the attempt with the application on the working page: the next attempt
-                # switches it to the reference page first, a settlement switches back a page it cannot name.
+                # ECU's CRC-32s are asked again (frames on the way have landed: waited above; the move itself puts
+                # no write on the way), then XCP's access is parked again. A mismatch fails the attempt with the
+                # application on the working page: the next attempt switches it to the reference page first, a
+                # settlement switches back a page it cannot name.
                 self._move_xcp(s.working_page, deadline)
-                self._wait_settled()
                 checked_at = self._clock()
                 self._check_image(image, deadline)
                 self._park(deadline)
