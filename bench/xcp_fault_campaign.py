@@ -17,7 +17,8 @@ values than the quantized request); failures, the worst failure time against its
 (it could not read the ECU back within the bound: the node then keeps the baseline restore pending and the
 agent scores no run); unreported states (the bridge names values the ECU does not hold); out-of-bounds ECU
 states (the ECU application ran on a value outside the declared bounds at any moment, and at the end of an
-apply). The last line is one JSON object per protocol.
+apply). Between applies each client is asked its status() once, as the node does every diagnostics period.
+The last line is one JSON object per protocol.
 """
 
 from __future__ import annotations
@@ -110,6 +111,14 @@ def pair(protocol: str, definition: CalibrationDefinition, faults: FaultConfig, 
     return client, ecu, close
 
 
+def poll(client: Any) -> None:
+    """What the node asks between applies, every diagnostics period: which set the ECU uses (its CRC-32)."""
+    try:
+        client.status(timeout_s=0.25)  # the node's bound: min(0.25 s, half the diagnostics period)
+    except BridgeError:
+        pass  # the node counts it as "not answering" and goes on
+
+
 def campaign(
     protocol: str, client: Any, ecu: Any, definition: CalibrationDefinition, n: int, seed: int, tally: Tally, lock: Any
 ) -> None:
@@ -121,7 +130,9 @@ def campaign(
             break
         except BridgeError:
             continue
-    for _ in range(n):
+    for k in range(n):
+        if k:
+            poll(client)
         want = {p.name: rng.uniform(p.lower, p.upper) for p in definition.parameters}
         quantized = client.quantize(want) if protocol == "xcp" else CalibrationCodec(definition).quantize(want)
         t0 = time.monotonic()

@@ -75,7 +75,12 @@ def campaign(rig: XcpRig, n: int, seed: int, tally: Tally, lock: threading.Lock)
             break
         except BridgeError:
             continue
-    for _ in range(n):
+    for k in range(n):
+        if k:
+            try:  # between applies the node asks which set the ECU uses, every diagnostics period
+                client.status(timeout_s=0.25)
+            except BridgeError:
+                pass
         want = {p.name: rng.uniform(p.lower, p.upper) for p in II.parameters}
         quantized = client.quantize(want)
         t0 = time.monotonic()

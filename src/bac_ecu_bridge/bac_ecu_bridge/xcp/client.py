@@ -7,15 +7,24 @@ the caller's python-can bus (any bus: a real adapter, ``virtual``,
 One apply, on an ECU with a reference and a working page (the A2L's two pages of
 the calibration segment; ``xcp`` settings of the definition)::
 
-    CONNECT, GET_COMM_MODE_INFO, GET_STATUS   once per session; GET_SEED/UNLOCK when CAL/PAG is protected
+    CONNECT, GET_COMM_MODE_INFO, GET_STATUS   once per session; GET_SEED/UNLOCK when CAL/PAG is protected;
+                                              the reference page read once (read-only: answered from it after)
     SET_CAL_PAGE(ECU, reference)              the controller runs on the safe data set while the writes go on
-    SET_CAL_PAGE(XCP, working)
+                                              (only when GET_CAL_PAGE(ECU) says it is elsewhere)
+    SET_CAL_PAGE(XCP, working)                only when XCP's access is elsewhere, confirmed by GET_CAL_PAGE(XCP);
+                                              GET_CAL_PAGE(ECU) must show the reference page before a byte is written
     SET_MTA + DOWNLOAD [+ DOWNLOAD_NEXT...]   each run of contiguous parameters (master block mode if offered)
     SET_MTA + BUILD_CHECKSUM  vs the host's CRC-32 of the written bytes
-    SET_MTA + UPLOAD (slave block mode) / SHORT_UPLOAD: the bytes read back must equal the written ones
+    SET_MTA + UPLOAD (slave block mode, else UPLOADs of 7 bytes, never SHORT_UPLOAD): the bytes read back must
+                                              equal the written ones; after an anomaly the CRC-32s asked again
+    SET_CAL_PAGE(XCP, reference)              the park: XCP's access on the write-protected page, confirmed
     SET_CAL_PAGE(ECU, working)                the commit: one page switch, never a half-written set in use
-    GET_CAL_PAGE(ECU) + BUILD_CHECKSUM        the final word: the controller uses the page, the page holds the set
+    GET_CAL_PAGE(ECU) and (XCP)               the final word: the controller uses the checked page, XCP is parked;
+                                              after an anomaly at or after the last check of the contents, XCP's
+                                              access goes to the page in use, its CRC-32s are asked again, parked
 
+Every SET_CAL_PAGE(XCP) is confirmed by GET_CAL_PAGE(XCP) (a garbled page byte is answered positively) before
+that page is named or read, and goes only towards a page the bridge has checked or the application uses already.
 Without pages the runs are written to the one page and verified the same way.
 The result's values are the ones read back (what the ECU holds), never the request.
 
@@ -793,7 +802,7 @@ class XcpCalibrationClient:
             # 0x03) away from switching the application onto a working page that a failed apply left half written
             return dict(self._reference)
         if page is not None and s.pages and self._get_page(MODE_XCP, deadline) != page:
-            self._set_page(MODE_XCP, page, deadline)
+            self._move_xcp(page, deadline)  # confirmed: what is read below is this page, no other
         out = self._known_page(page, deadline) or self._read_runs(deadline)
         if reference:
             self._reference = dict(out)
@@ -844,20 +853,27 @@ class XcpCalibrationClient:
         or late command that turns into a DOWNLOAD can then change no page the ECU application may use. Asked
         back with GET_CAL_PAGE (a garbled SET_CAL_PAGE is answered positively). ``required=False`` (after a
         read): an ECU that refuses it is left as it is."""
-        s = self.settings
-        if not s.pages:
+        if not self.settings.pages:
             return
+        try:
+            self._move_xcp(self.settings.reference_page, deadline)
+        except XcpCommandError as exc:
+            if required or exc.code == ErrorCode.ECU_BUSY:
+                raise
+            self._log.warning("XCP: %s; XCP's access stays on the page read", exc)
+
+    def _move_xcp(self, page: int, deadline: float) -> None:
+        """XCP's access to ``page``: SET_CAL_PAGE(XCP, page), confirmed by GET_CAL_PAGE(XCP) (two agreeing
+        answers), sent again when it did not go there. A SET_CAL_PAGE garbled in its page byte is answered
+        positively and leaves XCP's access elsewhere: without the confirmation, a CRC-32 or read of "the page"
+        would name the other one (the reference page matches the baseline; a working page in use would be
+        reported as holding it). :class:`_MismatchError` when it does not go there."""
         for _ in range(3):
-            try:
-                self._set_page(MODE_XCP, s.reference_page, deadline)
-            except XcpCommandError as exc:
-                if required or exc.code == ErrorCode.ECU_BUSY:
-                    raise
-                self._log.warning("XCP: %s; XCP's access stays on the page read", exc)
+            self._set_page(MODE_XCP, page, deadline)
+            if self._get_page(MODE_XCP, deadline) == page:
                 return
-            if self._get_page(MODE_XCP, deadline) == s.reference_page:
-                return
-        raise _MismatchError("XCP GET_CAL_PAGE: XCP's access does not go back to the reference page")
+            self._anomaly()  # acknowledged but not performed: a garbled command reached the ECU
+        raise _MismatchError(f"XCP GET_CAL_PAGE: XCP's access does not go to page {page} after SET_CAL_PAGE")
 
     def _read_runs(self, deadline: float) -> dict[Run, bytes]:
         out: dict[Run, bytes] = {}
@@ -888,6 +904,12 @@ class XcpCalibrationClient:
         if crc is None:
             return self._read_run(run, deadline) == data
         return crc == zlib.crc32(data) & 0xFFFF_FFFF
+
+    def _check_image(self, image: Mapping[Run, bytes], deadline: float) -> None:
+        """The page XCP accesses holds ``image`` (the ECU's CRC-32 of each run, or the bytes read back)."""
+        for run, data in image.items():
+            if not self._holds(run, data, deadline):
+                raise _MismatchError(f"XCP: the memory at 0x{run.address:X}+{run.size} changed after its check")
 
     def _wait_settled(self) -> None:
         """Frames still on the way after an anomaly land before the final checks."""
@@ -1024,10 +1046,15 @@ class XcpCalibrationClient:
                     raise
                 self._ecu_page = s.reference_page
                 state.in_doubt = False
+            if self._reference is None:
+                # known before a byte is written (reading it moves XCP's access there): afterwards the reference page
+                # is answered from what was read, and no read moves XCP's access off a working page that a failed
+                # apply left half written (moving it back would be the hazardous SET_CAL_PAGE(XCP, working))
+                self._read_page(s.reference_page, deadline)
             if self._get_page(MODE_XCP, deadline) != s.working_page:
                 # only after a confirmed apply (XCP's access parked on the reference page, the working page holds
                 # that apply's checked set), so a garbled mode 0x02 -> 0x03 switches onto checked values at worst
-                self._set_page(MODE_XCP, s.working_page, deadline)
+                self._move_xcp(s.working_page, deadline)
             # asked every attempt, after XCP's page is set and before a byte is written: the page the application
             # uses must be the reference (a SET_CAL_PAGE garbled on the way, e.g. XCP's mode 0x02 into 0x03, is
             # answered positively and switches the application too)
@@ -1044,6 +1071,7 @@ class XcpCalibrationClient:
         for run, data in image.items():
             self._write_run(run, data, deadline)
         got: dict[Run, bytes] = {}
+        checked_at = self._clock()  # the start of the last check of the page's contents
         for run, data in image.items():
             got[run] = self._verify_run(run, data, deadline, self.config.verify_readback)
         if self._anomaly_at > -math.inf:
@@ -1051,9 +1079,8 @@ class XcpCalibrationClient:
             # anomaly could land after the check that passed: once the bus's worst delay has passed, the ECU's
             # checksums are asked again
             self._wait_settled()
-            for run, data in image.items():
-                if not self._holds(run, data, deadline):
-                    raise _MismatchError(f"XCP: the memory at 0x{run.address:X}+{run.size} changed after its check")
+            checked_at = self._clock()
+            self._check_image(image, deadline)
         if s.pages:
             # nothing can write into the working page any more once XCP's access is on the (read-only) reference
             # page; then the application switches to the checked working page
@@ -1062,18 +1089,34 @@ class XcpCalibrationClient:
             self._ecu_page = None
             self._set_page(MODE_ECU, s.working_page, deadline)  # the commit
             # the final word, once frames still on the way after an anomaly have landed
-            self._wait_settled()
-            if self._get_page(MODE_ECU, deadline) != s.working_page:
-                raise _MismatchError(
-                    "XCP GET_CAL_PAGE: the ECU application does not use the working page after the switch"
-                )
-            if self._get_page(MODE_XCP, deadline) != s.reference_page:
-                # the commit garbled into both modes (0x01 -> 0x03): XCP's access is on the page in use
-                self._park(deadline)
+            for rechecked in (False, True):
+                self._wait_settled()
+                anomalous = self._anomaly_at >= checked_at
                 if self._get_page(MODE_ECU, deadline) != s.working_page:
                     raise _MismatchError(
                         "XCP GET_CAL_PAGE: the ECU application does not use the working page after the switch"
                     )
+                if self._get_page(MODE_XCP, deadline) != s.reference_page:
+                    # the commit garbled into both modes (0x01 -> 0x03), or a late SET_CAL_PAGE(XCP): XCP's access
+                    # is on the page in use
+                    self._anomaly()
+                    self._park(deadline)
+                    if rechecked:
+                        raise _MismatchError("XCP GET_CAL_PAGE: XCP's access went back to the page in use")
+                    anomalous = True
+                if rechecked or not anomalous:
+                    break
+                # an anomaly at or after the last check of the contents (during that check, the park or the commit:
+                # a lost answer, a repeat, a garbled or late frame): a write on its way could have landed after it.
+                # The application uses the working page now, so moving XCP's access there switches nothing: the
+                # ECU's CRC-32s are asked again (frames on the way have landed: waited above; the move itself puts
+                # no write on the way), then XCP's access is parked again. A mismatch fails the attempt with the
+                # application on the working page: the next attempt switches it to the reference page first, a
+                # settlement switches back a page it cannot name.
+                self._move_xcp(s.working_page, deadline)
+                checked_at = self._clock()
+                self._check_image(image, deadline)
+                self._park(deadline)
         elif self._anomaly_at > -math.inf and self._clock() - self._anomaly_at < self.config.settle_s:
             self._wait_settled()  # one page: an anomaly during the final checks: check once more after it settled
             for run, data in image.items():
@@ -1168,7 +1211,7 @@ class XcpCalibrationClient:
         why = "it holds neither the requested, the previous nor the baseline calibration"
         if self._checksum_ok is not False:
             if self._get_page(MODE_XCP, deadline) != page:
-                self._set_page(MODE_XCP, page, deadline)
+                self._move_xcp(page, deadline)  # confirmed: the CRC-32s below name this page, no other
             data = next((image for image in known if self._crcs_match(image, deadline, strict=True)), None)
             if data is not None:
                 # parked only on a page the bridge can name: XCP's access stays on a page of unknown content while
@@ -1214,7 +1257,11 @@ class XcpCalibrationClient:
                 self._session(deadline)
                 page = self._get_page(MODE_ECU, deadline) if self.settings.pages else 0
                 data = self._read_page(page, deadline)
-                if page != self.settings.reference_page and self._get_page(MODE_ECU, deadline) != page:
+                if (
+                    self.settings.pages
+                    and page != self.settings.reference_page
+                    and self._get_page(MODE_ECU, deadline) != page
+                ):
                     # XCP's access went back to the reference page with a SET_CAL_PAGE garbled into both modes
                     raise _MismatchError("XCP GET_CAL_PAGE: the page the ECU application uses changed while reading")
             except _RestartError:
@@ -1268,12 +1315,22 @@ class XcpCalibrationClient:
             self._session(deadline)
             s = self.settings
             page = self._get_page(MODE_ECU, deadline) if s.pages else 0
+            if s.pages and page == s.reference_page and self._reference is not None:
+                # the flashed data set (read-only, read and checked once): XCP's access is not moved to it. Parking
+                # it there after a failed apply would make the next apply send SET_CAL_PAGE(XCP, working) towards
+                # the half-written working page, one flipped bit (mode 0x02 -> 0x03) from switching the
+                # application onto it; the node asks this every diagnostics period
+                values = self.layout.decode(self._reference)
+                return EcuStatus(len(values), self._raw_crc(values)[1], self._clock() - t0)
             known = self._page_bytes.get(page)
             if known is not None:
                 if s.pages:
-                    self._set_page(MODE_XCP, page, deadline)
+                    # only to the page the application uses already (a working page the bridge has checked): a
+                    # command garbled into a switch of the application changes nothing; confirmed, so that the
+                    # CRC-32s below are this page's
+                    self._move_xcp(page, deadline)
                 same = all(self._holds(r, b, deadline) for r, b in known.items())
-                if s.pages and page != s.reference_page:
+                if s.pages:
                     self._park(deadline, required=False)
                     same = same and self._get_page(MODE_ECU, deadline) == page
                 if same:
