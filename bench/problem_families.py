@@ -281,14 +281,9 @@ class GridInstance:
         return self.evaluate(thetas)["j"]
 
     def noisy(self, thetas: FloatArray, rng: np.random.Generator) -> dict[str, FloatArray]:
-        from bac_sim.families import TRAVEL_NOISE_MM, TRAVEL_NOISE_REL
+        from bac_sim.families import with_run_noise
 
-        out = self.evaluate(thetas)
-        n = out["j"].shape[0]
-        out["j"] = out["j"] * (1.0 + self.noise_rel * rng.standard_normal(n))
-        t = out["max_travel_mm"]
-        out["max_travel_mm"] = t + (TRAVEL_NOISE_MM + TRAVEL_NOISE_REL * t) * rng.standard_normal(n)
-        return out
+        return with_run_noise(self.evaluate(thetas), self.noise_rel, rng)
 
 
 def load_truth(path: Path = TRUTH_PATH) -> dict[str, Any]:

@@ -65,6 +65,16 @@ TRAVEL_NOISE_MM = 1.5
 TRAVEL_NOISE_REL = 0.02
 
 
+def with_run_noise(out: dict[str, FloatArray], noise_rel: float, rng: np.random.Generator) -> dict[str, FloatArray]:
+    """Noise-free J and outcomes -> a run's: J relative noise ``noise_rel``, travel TRAVEL_NOISE_MM +
+    TRAVEL_NOISE_REL of it (std); ``out`` is changed and returned."""
+    n = out["j"].shape[0]
+    out["j"] = out["j"] * (1.0 + noise_rel * rng.standard_normal(n))
+    t = out["max_travel_mm"]
+    out["max_travel_mm"] = t + (TRAVEL_NOISE_MM + TRAVEL_NOISE_REL * t) * rng.standard_normal(n)
+    return out
+
+
 def _seed(*parts: object) -> int:
     """A stable 64-bit seed from names and numbers (Python's hash() is salted per process)."""
     h = hashlib.sha256("/".join(str(p) for p in parts).encode()).digest()
@@ -229,12 +239,7 @@ class CarInstance:
 
     def noisy(self, thetas: FloatArray, rng: np.random.Generator) -> dict[str, FloatArray]:
         """J and outcomes of runs with run-to-run noise (see the module doc)."""
-        out = self.evaluate(thetas)
-        n = out["j"].shape[0]
-        out["j"] = out["j"] * (1.0 + self.noise_rel * rng.standard_normal(n))
-        t = out["max_travel_mm"]
-        out["max_travel_mm"] = t + (TRAVEL_NOISE_MM + TRAVEL_NOISE_REL * t) * rng.standard_normal(n)
-        return out
+        return with_run_noise(self.evaluate(thetas), self.noise_rel, rng)
 
     def noisy_j(self, thetas: FloatArray, rng: np.random.Generator) -> FloatArray:
         return self.noisy(thetas, rng)["j"]

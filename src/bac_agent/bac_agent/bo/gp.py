@@ -525,8 +525,10 @@ class GP:
         Ks = matern52_from_r2(sq_dist(Xq, self.X, h.lengthscales), h.outputscale)
         return np.asarray(h.mean_at(Xq) + Ks @ self._alpha, dtype=float)
 
-    def predict_mean_with_grad(self, Xq: FloatArray) -> tuple[FloatArray, FloatArray]:
-        """Standardized posterior mean and its gradient w.r.t. the query points: (m,), (m, d)."""
+    def _mean_with_grad(
+        self, Xq: FloatArray
+    ) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray, FloatArray, FloatArray]:
+        """Standardized mean and its gradient, with what the std's gradient reuses: (Xq, mu, dmu, Ks, F, il2)."""
         if not self.fitted:
             raise GPError("the GP has no data yet")
         assert self.hyper is not None
@@ -539,7 +541,12 @@ class GP:
         m0, dm0 = h.mean_and_grad(Xq)
         Fa = F * self._alpha[None, :]
         dmu = dm0 - (Xq * Fa.sum(axis=1)[:, None] - Fa @ self.X) * il2
-        return np.asarray(m0 + Ks @ self._alpha, dtype=float), np.asarray(dmu, dtype=float)
+        return Xq, np.asarray(m0 + Ks @ self._alpha, dtype=float), np.asarray(dmu, dtype=float), Ks, F, il2
+
+    def predict_mean_with_grad(self, Xq: FloatArray) -> tuple[FloatArray, FloatArray]:
+        """Standardized posterior mean and its gradient w.r.t. the query points: (m,), (m, d)."""
+        _, mu, dmu, _, _, _ = self._mean_with_grad(Xq)
+        return mu, dmu
 
     def predict(self, Xq: FloatArray) -> tuple[FloatArray, FloatArray]:
         """Posterior mean and standard deviation of the latent function, in the units of y."""
@@ -548,20 +555,9 @@ class GP:
 
     def predict_with_grad(self, Xq: FloatArray) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray]:
         """Standardized mean, std and their gradients w.r.t. the query points: (m,), (m,), (m, d), (m, d)."""
-        if not self.fitted:
-            raise GPError("the GP has no data yet")
+        Xq, mu, dmu, Ks, F, il2 = self._mean_with_grad(Xq)
         assert self.hyper is not None
-        h = self.hyper
-        Xq = np.atleast_2d(np.asarray(Xq, dtype=float))
-        il2 = 1.0 / h.lengthscales**2
-        r2 = sq_dist(Xq, self.X, h.lengthscales)
-        Ks = matern52_from_r2(r2, h.outputscale)
-        F = matern52_dr2_factor(r2, h.outputscale)
-        m0, dm0 = h.mean_and_grad(Xq)
-        mu = m0 + Ks @ self._alpha
-        Fa = F * self._alpha[None, :]
-        dmu = dm0 - (Xq * Fa.sum(axis=1)[:, None] - Fa @ self.X) * il2
-        sd, dsd = latent_sd_with_grad(Xq, self.X, self._L, Ks, F, il2, h.outputscale)
+        sd, dsd = latent_sd_with_grad(Xq, self.X, self._L, Ks, F, il2, self.hyper.outputscale)
         return mu, sd, dmu, dsd
 
 
