@@ -6,6 +6,7 @@ import os
 import subprocess
 import sys
 import time
+from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
@@ -18,7 +19,7 @@ from bac_ecu_bridge.backend import Holds
 from bac_ecu_bridge.errors import BridgeError, ErrorCode
 from bac_ecu_bridge.faults import FaultConfig
 from bac_ecu_bridge.protocol import resolve_request
-from bac_ecu_bridge.xcp.client import XcpConfig, XcpSettings
+from bac_ecu_bridge.xcp.client import XcpCommandError, XcpConfig, XcpSettings
 from bac_ecu_bridge.xcp.seedkey import xor_algorithm
 from bac_sim.xcp_slave import Cmd
 
@@ -121,7 +122,10 @@ UNREADABLE = {Cmd.GET_CAL_PAGE, Cmd.GET_STATUS}
 def test_every_negative_response_surfaces_as_a_clear_error_naming_the_xcp_error(
     make_xcp_rig: XcpRigFactory, command: Cmd, error: int, name: str, code: ErrorCode
 ) -> None:
-    rig = make_xcp_rig("controller_i", refuse={int(command): error})
+    # an apply the ECU's CRC-32 confirms reads nothing back unless asked to: UPLOAD is refused on a client that reads
+    # every written byte back
+    config = replace(XFAST, verify_readback=True) if command is Cmd.UPLOAD else XFAST
+    rig = make_xcp_rig("controller_i", refuse={int(command): error}, config=config)
     t0 = time.monotonic()
     with pytest.raises(BridgeError) as err:
         rig.client.apply({"damping_front": 0.3, "damping_rear": 0.6})
@@ -136,6 +140,19 @@ def test_every_negative_response_surfaces_as_a_clear_error_naming_the_xcp_error(
         assert state.holds is not Holds.UNKNOWN, state
         assert rig.ecu.active == state.values  # what the bridge reports is what the ECU holds
     assert time.monotonic() - t0 < XFAST.timeout_s + XFAST.settle_timeout_s
+
+
+def test_the_ecus_crc32_confirms_an_apply_without_reading_it_back_unless_asked(make_xcp_rig: XcpRigFactory) -> None:
+    """By default the ECU's CRC-32 of each written run, equal to the host's, confirms the apply (INCA's and
+    CANape's download verification): no UPLOAD is sent, so an ECU that refuses UPLOAD is still calibrated, and
+    what the result reports is what the ECU holds. ``verify_readback`` reads every byte back besides."""
+    refuse_upload = {int(Cmd.UPLOAD): 0x24}  # ERR_ACCESS_DENIED
+    rig = make_xcp_rig("controller_ii", refuse=refuse_upload)
+    res = rig.client.apply(ramp())
+    assert res.values == rig.ecu.active == rig.client.quantize(ramp()) and res.read_back
+    strict = make_xcp_rig("controller_ii", refuse=refuse_upload, config=replace(XFAST, verify_readback=True))
+    with pytest.raises(XcpCommandError, match="XCP UPLOAD"):
+        strict.client.apply(ramp())
 
 
 def test_an_ecu_without_build_checksum_is_verified_by_read_back_alone(make_xcp_rig: XcpRigFactory) -> None:

@@ -28,7 +28,8 @@ class ApplyResult:
     attempts: int  # transactions tried
     latency_s: float
     seq: int
-    read_back: bool  # True when every value was read back and compared
+    read_back: bool  # True when every value was confirmed from the ECU's memory (read back and compared; over XCP
+    # also the ECU's CRC-32 of the written bytes equal to the host's)
     note: str = ""  # e.g. "settled by reading back after an unanswered commit"
 
 

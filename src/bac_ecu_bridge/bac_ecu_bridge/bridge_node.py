@@ -186,6 +186,12 @@ class EcuBridgeNode(BacNode):
             5.0,
         )
         self.declare_bool("xcp.block_mode", True, "XCP: DOWNLOAD in master block mode when the ECU offers it")
+        self.declare_bool(
+            "xcp.verify_readback",
+            False,
+            "XCP: UPLOAD every written byte back besides BUILD_CHECKSUM (off: the ECU's CRC-32 of each written run "
+            "confirms it; the bytes are read back anyway where the ECU builds no CRC-32 or its CRC-32 differs)",
+        )
         self.trace_file = self.declare_str(
             "can.trace_file",
             "",
@@ -211,7 +217,11 @@ class EcuBridgeNode(BacNode):
             "default_timeout_s", 3.0, "overall time limit of an apply when the request gives 0, s", 0.01, 600.0
         )
         self.declare_int("window", 16, "requests in flight at once", 1, 255)
-        self.declare_bool("verify_readback", True, "read every value back after the ECU's acknowledgment")
+        self.declare_bool(
+            "verify_readback",
+            True,
+            "bac protocol: read every value back after the ECU's acknowledgment (XCP: xcp.verify_readback)",
+        )
         self.restore_on_shutdown = self.declare_bool(
             "restore_baseline_on_shutdown", True, "write the safe baseline when the node stops"
         )
@@ -329,7 +339,7 @@ class EcuBridgeNode(BacNode):
             step_retries=int(p("step_retries").value),
             max_attempts=int(p("max_attempts").value),
             timeout_s=float(p("default_timeout_s").value),
-            verify_readback=bool(p("verify_readback").value),
+            verify_readback=bool(p("xcp.verify_readback").value),
             t7_s=float(p("xcp.t7_s").value),
             settle_s=float(p("xcp.settle_s").value),
             block_mode=bool(p("xcp.block_mode").value),
