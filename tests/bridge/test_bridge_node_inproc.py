@@ -285,3 +285,10 @@ def _start_with_ecu(ros: RosHarness, rig: InProc, initial: dict[str, float], dri
         rig.close()
 
     return close
+
+
+def test_xcp_reads_back_by_its_own_parameter_not_the_bac_protocols(inproc: Any) -> None:
+    """The bac protocol's verify_readback (on in the profiles) does not turn on XCP's full read-back, which the
+    ECU's CRC-32 makes redundant and which costs some 14 answered commands per 80 bytes on a lossy bus."""
+    assert inproc(verify_readback=True).node._xcp_config().verify_readback is False
+    assert inproc(**{"xcp.verify_readback": True}).node._xcp_config().verify_readback is True
