@@ -10,6 +10,7 @@ from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
+import can
 import pytest
 from bridge_rig import load
 from xcp_rig import XFAST, XcpRigFactory, make_xcp_rig_fixture  # noqa: F401  (the make_xcp_rig fixture)
@@ -19,8 +20,9 @@ from bac_ecu_bridge.backend import Holds
 from bac_ecu_bridge.errors import BridgeError, ErrorCode
 from bac_ecu_bridge.faults import FaultConfig
 from bac_ecu_bridge.protocol import resolve_request
-from bac_ecu_bridge.xcp.client import XcpCommandError, XcpConfig, XcpSettings
+from bac_ecu_bridge.xcp.client import XcpCalibrationClient, XcpCommandError, XcpConfig, XcpSettings
 from bac_ecu_bridge.xcp.seedkey import xor_algorithm
+from bac_sim.xcp_ecu import SimulatedXcpEcu
 from bac_sim.xcp_slave import Cmd
 
 II = load("controller_ii")
@@ -509,3 +511,151 @@ def test_pyxcp_is_imported_without_changing_the_process_hooks_or_writing_files(t
     )
     assert out.stdout.strip() == "True", out.stderr
     assert sorted(p.name for p in tmp_path.iterdir()) == ["home"] and not list((tmp_path / "home").iterdir())
+
+
+class _LateCrcBus(can.BusABC):
+    """The bridge's side of a bus that delays one BUILD_CHECKSUM answer of a status() poll by ``delay_s`` (the
+    bus's worst delay, below the client's settle_s) and, should the next apply ask a checksum before it arrives,
+    hands it that late answer in place of its own (which is lost)."""
+
+    def __init__(self, inner: can.BusABC, delay_s: float) -> None:
+        self.inner = inner
+        self.delay_s = delay_s
+        self.phase = ""
+        self.held: can.Message | None = None
+        self.held_at = 0.0
+        self.swapped = False
+        self.channel_info = "late-crc"
+        super().__init__(channel="late-crc")
+
+    def send(self, msg: can.Message, timeout: float | None = None) -> None:
+        self.inner.send(msg, timeout)
+
+    def _recv_internal(self, timeout: float | None) -> tuple[can.Message | None, bool]:
+        end = None if timeout is None else time.monotonic() + timeout
+        while True:
+            if self.held is not None and time.monotonic() - self.held_at >= self.delay_s:
+                late, self.held = self.held, None  # its delay is over: it arrives, late
+                return late, False
+            left = 0.002 if end is None else max(0.0, min(0.002, end - time.monotonic()))
+            msg = self.inner.recv(left)
+            if msg is None:
+                if end is not None and time.monotonic() >= end:
+                    return None, False
+                continue
+            d = bytes(msg.data)
+            is_crc = len(d) == 8 and d[0] == 0xFF and d[1] == 0x09  # a positive XCP_CRC_32 answer
+            if is_crc and self.phase == "status" and self.held is None and not self.swapped:
+                self.held, self.held_at = msg, time.monotonic()
+                continue
+            if is_crc and self.phase == "apply" and self.held is not None:
+                late, self.held = self.held, None
+                self.swapped = True
+                return late, False
+            return msg, False
+
+    def shutdown(self) -> None:
+        super().shutdown()
+        self.inner.shutdown()
+
+
+def test_a_late_checksum_answer_of_a_status_poll_never_confirms_the_next_apply() -> None:
+    """The node polls status() between applies. A BUILD_CHECKSUM answer of that poll, delayed on the bus (less than
+    settle_s), must not stand in for the next apply's check: applied again, the same set has the same CRC-32, and
+    a DOWNLOAD garbled in its data would be confirmed. Every call starts once the frames of the calls before it
+    have landed (found by an outside review: a false success with p01 = 168,172 on a 0-1000 parameter)."""
+    d = load("controller_ii")
+    channel = f"xcp-late-crc-{time.monotonic_ns()}"
+    ecu_bus = can.Bus(interface="virtual", channel=channel)
+    bus = _LateCrcBus(can.Bus(interface="virtual", channel=channel), delay_s=0.1)
+    ecu = SimulatedXcpEcu(ecu_bus, d)
+    ecu.start()
+    client = XcpCalibrationClient(bus, d, None, XcpConfig(step_timeout_s=0.02, settle_s=0.25))
+    try:
+        want = {p.name: p.lower + 0.4 * (p.upper - p.lower) for p in d.parameters}
+        client.apply(want)
+        slave = ecu.slave
+        honest = slave.handle
+        garble = [False]
+
+        def handle(frame: bytes | bytearray) -> list[bytes]:
+            f = bytearray(frame)
+            if garble[0] and f and f[0] == 0xF0 and len(f) >= 6:  # a DOWNLOAD: one bit of p01 flipped
+                f[5] ^= 0x01
+                garble[0] = False
+            return honest(bytes(f))
+
+        slave.handle = handle  # type: ignore[method-assign]
+        bus.phase = "status"
+        client.status()
+        assert bus.held is not None or bus.swapped or client.stats.stale_frames  # the premise: an answer was late
+        bus.phase, garble[0] = "apply", True
+        try:
+            res = client.apply(want)  # the same calibration again (a trial driven again, a resumed campaign)
+        except BridgeError as exc:
+            assert exc.ecu_state is not None and exc.ecu_state.values == ecu.active, exc.ecu_state
+        else:
+            assert res.values == client.quantize(want) == ecu.active
+        assert not bus.swapped, "a late answer of status() stood in for one of the apply's"
+    finally:
+        client.close()
+        ecu.stop()
+        bus.shutdown()
+        ecu_bus.shutdown()
+
+
+def test_an_ecu_with_another_checksum_type_is_verified_by_read_back(make_xcp_rig: XcpRigFactory) -> None:
+    """Many XCP drivers build XCP_ADD_44 or XCP_CRC_16 by default: the bridge reads every written byte back
+    instead of refusing the ECU."""
+    rig = make_xcp_rig("controller_ii")
+    slave = rig.ecu.slave
+    honest = slave.handle
+
+    def crc16(frame: bytes | bytearray) -> list[bytes]:
+        out = honest(frame)
+        if frame and frame[0] == Cmd.BUILD_CHECKSUM and out and out[0][0] == 0xFF:
+            b = bytearray(out[0])
+            b[1] = 0x07  # XCP_CRC_16
+            b[4:8] = (int.from_bytes(b[4:8], "little") & 0xFFFF).to_bytes(4, "little")
+            out = [bytes(b)]
+        return out
+
+    slave.handle = crc16  # type: ignore[method-assign]
+    res = rig.client.apply(ramp())
+    assert res.values == rig.ecu.active == rig.client.quantize(ramp())
+    assert rig.client.read_active().values == res.values
+
+
+def test_an_ecu_whose_checksum_does_not_cover_the_range_it_is_given_is_refused_by_name(
+    make_xcp_rig: XcpRigFactory,
+) -> None:
+    """A non-conforming XCP driver whose BUILD_CHECKSUM is not over the MTA range it is given (here: one byte
+    less) disagrees with the bytes UPLOAD reads, round after round: the error says so, and the application
+    stays on the baseline."""
+    rig = make_xcp_rig("controller_ii")
+    slave = rig.ecu.slave
+    honest = slave.handle
+
+    def off_by_one(frame: bytes | bytearray) -> list[bytes]:
+        f = bytearray(frame)
+        if f and f[0] == Cmd.BUILD_CHECKSUM and len(f) >= 8:
+            f[4] -= 1  # the block size's low byte (little endian): one byte less than asked
+        return honest(bytes(f))
+
+    slave.handle = off_by_one  # type: ignore[method-assign]
+    with pytest.raises(BridgeError, match="does not cover that range of the page") as err:
+        rig.client.apply(ramp())
+    assert err.value.ecu_state is not None and err.value.ecu_state.holds is not Holds.UNKNOWN
+    assert rig.ecu.active == rig.client.quantize(rig.definition.baseline_values())  # nothing of the request in use
+
+
+def test_a_refused_build_checksum_is_asked_again_in_the_next_session(make_xcp_rig: XcpRigFactory) -> None:
+    """A refusal of BUILD_CHECKSUM (confirmed, but on a bus that garbles frames it may be one) does not turn the
+    full read-back on for the client's whole life: after the ECU's reset the checksum is asked again."""
+    rig = make_xcp_rig("controller_ii", refuse={int(Cmd.BUILD_CHECKSUM): 0x20})  # ERR_CMD_UNKNOWN
+    assert rig.client.apply(ramp()).values == rig.ecu.active
+    slave = rig.ecu.slave
+    slave.refuse = {int(Cmd.UPLOAD): 0x24}  # now the ECU builds checksums and refuses reads
+    slave.reset()  # a power cycle: a new session
+    res = rig.client.apply(ramp(0.1))
+    assert res.values == rig.ecu.active == rig.client.quantize(ramp(0.1))

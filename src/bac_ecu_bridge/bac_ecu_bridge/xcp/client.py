@@ -42,13 +42,21 @@ within its ``timeout_s``; a refusal as busy (the vehicle moves:
 ERR_CMD_BUSY / ERR_RESOURCE_TEMPORARY_NOT_ACCESSIBLE after the matrix's repeats)
 ends it at once.
 
-**No stale answer is ever taken.** XCP responses carry no sequence number: any
+**Stale answers are fenced off.** XCP responses carry no sequence number: any
 response still queued when a command is sent is dropped, an answer of the
-wrong length is refused, and every write is judged by the bytes read back and
-the ECU's checksum, never by the positive responses alone. A frame still on its
-way (held in an adapter, duplicated) could land after the checks: after any
-anomaly of an apply (a timeout, a repeat, a stale or wrong answer) the final
-checks wait until ``settle_s`` has passed since the last one.
+wrong length is refused, and every write is judged by the ECU's CRC-32 of what
+it holds (or the bytes read back), never by the positive responses alone. A
+frame still on its way (held in an adapter, duplicated) could land after the
+checks: after any anomaly of an apply (a timeout, a repeat, a stale or wrong
+answer) the final checks wait until ``settle_s`` has passed since the last one,
+and every call (apply, read, status, restore) starts only once ``settle_s`` has
+passed since the last anomaly of the calls before it (a late CRC-32 of a status
+poll must not confirm the next apply of the same set).
+
+An ECU whose BUILD_CHECKSUM is not XCP_CRC_32 (e.g. XCP_ADD_44), or that has
+none, is verified by read-back (asked again in each session). One whose CRC-32
+disagrees, round after round, with the bytes UPLOAD reads is refused as
+non-conforming (:class:`ProtocolConfigError`).
 
 **Uncertain outcomes are settled.** When the commit (or the switch to the
 reference page) went unanswered, the ECU is read back (which page the
@@ -180,7 +188,7 @@ class XcpConfig:
     # equal to the host's is the confirmation (as INCA's and CANape's download verification); the bytes are read
     # back anyway where the ECU builds no CRC-32 and where its CRC-32 differs (to find the pieces to write again).
     # A full read-back is some 14 more answered commands per 80 bytes: at 10 % lost frames the p99 of an apply
-    # went from 510 to 392 ms without it (bench/can_apply.py, 2026-11-24)
+    # went from 527 to 400 ms without it (bench/can_apply.py, 2026-11-24)
     verify_readback: bool = False
     t7_s: float = 0.02  # XCP's t7: wait before repeating a command the ECU found busy
     # the bus's worst frame delay: after an anomaly (a timeout, a late or duplicated answer) the final checks wait
@@ -240,6 +248,10 @@ class _RestartError(Exception):
 
 class _MismatchError(BridgeError):
     code = ErrorCode.CRC_MISMATCH
+
+
+class _OtherChecksumError(Exception):
+    """The ECU answers BUILD_CHECKSUM, again and again, with another checksum type than XCP_CRC_32."""
 
 
 class XcpCalibrationClient:
@@ -522,6 +534,10 @@ class XcpCalibrationClient:
         status = self._cmd("GET_STATUS", m.getStatus, deadline)
         self._connected = True
         self._page_bytes = {}
+        if self._checksum_ok is False:
+            # asked again in each session: a refusal confirmed on a bus that garbles frames (or a checksum type
+            # misread) must not turn the full read-back on for the client's whole life
+            self._checksum_ok = None
         if status is not None and status.resourceProtectionStatus.calpag and self.key_algorithm is not None:
             self._unlock(deadline)  # without an algorithm, a protected command will be refused and say so
         del types
@@ -723,6 +739,10 @@ class XcpCalibrationClient:
             return None
         try:
             crc = self._checksum(run, deadline)
+        except _OtherChecksumError as exc:
+            self._checksum_ok = False  # asked again in the next session
+            self._log.warning("XCP: %s: every write is verified by read-back", exc)
+            return None
         except XcpCommandError as exc:
             if exc.error != 0x20:
                 if strict:
@@ -752,10 +772,8 @@ class XcpCalibrationClient:
             got = self._cmd("BUILD_CHECKSUM", build, deadline, check=crc32)
         except EcuTimeoutError:
             if len(kinds) >= 3 and len(set(kinds)) == 1 and kinds[0]:
-                raise ProtocolConfigError(
-                    f"the ECU builds {kinds[0]} checksums; the bridge compares XCP_CRC_32 (CRC-32 as zlib): "
-                    "configure the ECU's BUILD_CHECKSUM type (the A2L's CHECKSUM) to XCP_CRC_32"
-                ) from None
+                # e.g. XCP_ADD_44, many XCP drivers' default: an additive checksum is too weak to confirm a write
+                raise _OtherChecksumError(f"the ECU builds {kinds[0]} checksums, not XCP_CRC_32") from None
             raise
         return int(got.checksum)
 
@@ -763,6 +781,7 @@ class XcpCalibrationClient:
         """Make the ECU hold ``want`` in the run: its checksum must be the host's and, with read-back, every
         byte read back must match. What differs is written again (DOWNLOAD by DOWNLOAD), within bounds."""
         crc = zlib.crc32(want) & 0xFFFF_FFFF
+        disagree = 0  # rounds in which the bytes read back were the written ones but the ECU's CRC-32 was not
         for _ in range(REPAIR_ROUNDS):
             ecu_crc = self._crc_of(run, deadline)
             matches = ecu_crc is None or ecu_crc == crc
@@ -774,6 +793,7 @@ class XcpCalibrationClient:
             bad = [k for k in range(0, run.size, 6) if got[k : k + 6] != want[k : k + 6]]
             if not bad:
                 self._anomaly()  # the checksum and the bytes disagree: one of the answers was garbled or late
+                disagree += 1
                 continue
             self.stats.repairs += len(bad)
             self._dirty = True
@@ -788,6 +808,8 @@ class XcpCalibrationClient:
                 self._cmd("DOWNLOAD", one, deadline, _empty)
                 self._dirty = True  # each repaired piece sets its own MTA
         names = [p.name for p in run.params]
+        if disagree == REPAIR_ROUNDS:
+            raise _uncovered(run)
         raise _MismatchError(
             f"XCP: the ECU's memory of {', '.join(names[:4])}{'...' if len(names) > 4 else ''} does not take the "
             f"written bytes after {REPAIR_ROUNDS} rounds of checks and repairs"
@@ -896,6 +918,8 @@ class XcpCalibrationClient:
                 reads = [got]
                 while zlib.crc32(got) & 0xFFFF_FFFF != crc:
                     if len(reads) > REPAIR_ROUNDS:
+                        if all(r == reads[0] for r in reads):
+                            raise _uncovered(run)  # the same bytes every time: the checksum is over something else
                         raise _MismatchError(
                             f"XCP read of 0x{run.address:X}+{run.size}: the bytes do not match the ECU's CRC-32"
                         )
@@ -923,6 +947,18 @@ class XcpCalibrationClient:
         if wait > 0:
             time.sleep(wait)
 
+    def _fence(self) -> int:
+        """Before a call's first command: frames still on the way after an anomaly of an earlier call (a late
+        answer of the node's status poll, of a read, of the last apply) land and are dropped. Else one could
+        stand in for an answer of this call: a late CRC-32 of the same set, when the same calibration is applied
+        again, would confirm writes it never saw. Returns the number of frames dropped."""
+        if self._master is None:
+            return 0
+        self._wait_settled()
+        before = self.stats.stale_frames
+        self._flush()
+        return self.stats.stale_frames - before
+
     # --- public API ------------------------------------------------------------------------------------------
     def apply(self, values: Mapping[str, float], timeout_s: float | None = None) -> ApplyResult:
         """Write every raw parameter and return when the ECU holds exactly these values (see the module doc).
@@ -944,7 +980,10 @@ class XcpCalibrationClient:
         # block transfers come back only after an apply without any lost, late or garbled frame: on a lossy bus
         # a block of 14 frames rarely gets through whole, and each failed block costs a step timeout
         self._degraded = self._degraded and self._anomaly_at > -math.inf
+        stale = self._fence()
         self._anomaly_at = -math.inf
+        if stale:
+            self._anomaly()  # frames of an earlier call arrived late: this apply checks again after settle_s
         self._talked = False  # a session with the ECU was up during this apply
         while attempts < self.config.max_attempts and self._clock() < deadline:
             attempts += 1
@@ -992,7 +1031,7 @@ class XcpCalibrationClient:
         state_after = self.settle(want, previous)
         last.ecu_state = state_after
         if state_after.holds is Holds.REQUESTED and state_after.values is not None:
-            # the commit went through, only its answer was lost: every byte was read back
+            # the commit went through, only its answer was lost: the ECU's page was read and named (CRC-32)
             self.stats.applies_failed -= 1
             self.stats.applies_ok += 1
             self.last_confirmed = dict(state_after.values)
@@ -1256,6 +1295,7 @@ class XcpCalibrationClient:
 
     def read_active(self, timeout_s: float | None = None) -> ReadResult:
         """The calibration the ECU application uses: its page, read back and checked by the ECU's CRC-32."""
+        self._fence()
         t0 = self._clock()
         deadline = t0 + (self.config.timeout_s if not timeout_s or timeout_s <= 0 else timeout_s)
         for _ in range(self.config.max_attempts):
@@ -1296,6 +1336,7 @@ class XcpCalibrationClient:
     def read_page(self, page: int | None = None, timeout_s: float | None = None) -> dict[str, float]:
         """The values one page holds (None: the reference page, or the only page): e.g. the flashed data set,
         the nominal and baseline of a definition written from the A2L."""
+        self._fence()
         deadline = self._clock() + (self.config.timeout_s if not timeout_s or timeout_s <= 0 else timeout_s)
         if page is None:
             page = self.settings.reference_page if self.settings.pages else 0
@@ -1315,6 +1356,7 @@ class XcpCalibrationClient:
 
     def status(self, timeout_s: float | None = None) -> EcuStatus:
         """Which page the ECU application uses and the CRC-32 of its calibration (cheap when nothing changed)."""
+        self._fence()
         t0 = self._clock()
         deadline = t0 + (self.config.timeout_s if not timeout_s or timeout_s <= 0 else timeout_s)
         try:
@@ -1352,6 +1394,7 @@ class XcpCalibrationClient:
         if not self.settings.pages:
             return self.apply(self.definition.baseline_values(), timeout_s)
         s = self.settings
+        self._fence()
         t0 = self._clock()
         deadline = t0 + (self.config.timeout_s if not timeout_s or timeout_s <= 0 else timeout_s)
         last: BridgeError | None = None
@@ -1391,6 +1434,14 @@ class XcpCalibrationClient:
 class _Attempt:
     touched: bool = False  # a command that changes what the ECU application uses was sent in this attempt
     in_doubt: bool = False  # ... and its outcome is not known yet
+
+
+def _uncovered(run: Run) -> ProtocolConfigError:
+    return ProtocolConfigError(
+        f"XCP: the ECU's BUILD_CHECKSUM over 0x{run.address:X}+{run.size} differs, again and again, from the CRC-32 "
+        "of the bytes UPLOAD reads there: its checksum does not cover that range of the page XCP accesses (a "
+        "non-conforming XCP driver: its BUILD_CHECKSUM must use the MTA and block size it is given)"
+    )
 
 
 def _agreed(reads: list[bytes], piece: int = 7) -> bytes:
