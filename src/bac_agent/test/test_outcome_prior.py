@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import numpy as np
 import pytest
 
@@ -9,6 +11,7 @@ from bac_agent.bo import Engine, EngineConfig
 from bac_agent.bo.constraints import OutcomeLimit, OutcomeModel
 from bac_agent.bo.engine import EngineError
 from bac_agent.bo.prior import SourceSurface
+from bac_agent.bo.space import SearchSpace
 
 OPT = np.array([0.2, 0.3])  # J's unconstrained optimum: the nominal travel there is 70, the limit 60
 LIMIT = 60.0
@@ -166,3 +169,49 @@ def test_outcome_priors_are_checked_and_kept_in_the_state() -> None:
     again = Engine.from_json(eng.to_json())
     assert again.config.outcome_priors is not None and set(again.config.outcome_priors) == {"max_travel_mm"}
     assert again.ask() == eng.ask()
+
+
+def test_an_earlier_campaigns_measured_outcomes_are_the_outcome_priors(tmp_path: Path) -> None:
+    """bo_agent's prior_source names an earlier campaign: its runs' measured outcomes become the priors of the
+    outcomes this campaign limits (a reduce output, which scores J only, gives none); journaled for a refit."""
+    from bac_agent.journal import Journal, journaled_engine_options
+    from bac_agent.transfer import load_outcome_sources
+    from bac_common.paramspace import CalibrationDefinition
+    from bac_common.paths import resolve_definition
+
+    definition = CalibrationDefinition.load(resolve_definition("controller_i"))
+    space = SearchSpace.from_definition(definition)
+    j = Journal(tmp_path / "earlier")
+    j.append("campaign_started", campaign_id="earlier", names=list(space.names), stamp=0.0)
+    rng = np.random.default_rng(0)
+    U = rng.random((12, 2))
+    for k, u in enumerate(U):
+        outcomes = {"max_travel_mm": float(nominal_travel(u)[0])}
+        if k < 2:
+            outcomes["peak_accel_z"] = 5.0  # measured on 2 runs only: too few for a prior
+        j.append(
+            "trial_scored",
+            campaign_id="earlier",
+            trial_id=k + 1,
+            params=space.to_params(space.from_unit(u)),
+            j=float(j_of(u)[0]),
+            outcomes=outcomes,
+            stamp=float(k + 1),
+        )
+    j.close()
+    got = load_outcome_sources(tmp_path / "earlier", definition, ["max_travel_mm", "peak_accel_z"])
+    assert set(got) == {"max_travel_mm"}
+    assert got["max_travel_mm"].label.startswith("max_travel_mm: campaign earlier (12 runs")
+    Q = np.random.default_rng(1).random((32, 2))
+    np.testing.assert_allclose(got["max_travel_mm"].predict_j(Q), nominal_travel(Q), atol=2.0)
+    assert load_outcome_sources(tmp_path / "earlier", definition, []) == {}
+    assert load_outcome_sources(tmp_path, definition, ["max_travel_mm"]) == {}  # not a campaign folder
+    started = {
+        "config": {
+            "constraints": ["max_travel_mm<=60"],
+            "outcome_priors": {k: v.to_dict() for k, v in got.items()},
+        }
+    }
+    options = journaled_engine_options(started)
+    assert set(options["outcome_priors"]) == {"max_travel_mm"}
+    EngineConfig.from_dict({**options, "budget": 5})  # what a refit builds from the journal
