@@ -215,3 +215,34 @@ def test_an_earlier_campaigns_measured_outcomes_are_the_outcome_priors(tmp_path:
     options = journaled_engine_options(started)
     assert set(options["outcome_priors"]) == {"max_travel_mm"}
     EngineConfig.from_dict({**options, "budget": 5})  # what a refit builds from the journal
+
+
+def test_the_outcome_priors_posterior_is_that_of_a_gp_with_the_coefficients_integrated_out() -> None:
+    """a ~ N(0, σa²), b ~ N(1, σb²) and the residual GP are one GP of prior mean s(x) and covariance
+    k(x, x') + σa² + σb² s(x) s(x'): the model's mean and latent variance are that GP's (R&W 2006, eq. 2.42)."""
+    from bac_agent.bo import constraints as c
+    from bac_agent.bo.kernel import matern52_from_r2, sq_dist
+
+    rng = np.random.default_rng(5)
+    X = rng.random((9, 2))
+    v = car_travel(X) + 0.5 * rng.standard_normal(9)
+    src = _source(nominal_travel)
+    m = OutcomeModel(OutcomeLimit("max_travel_mm", LIMIT), src)
+    m.fit(X, v, np.random.default_rng(0))
+    h = m.gp.hyper
+    assert h is not None
+    Q = np.vstack([X[:2] + 0.01, rng.random((6, 2))])  # near runs and far from them
+    z = (v - src.loc) / src.scale
+    sX, sQ = src.standardized(X), src.standardized(Q)
+
+    def k(A: np.ndarray, B: np.ndarray, sa: np.ndarray, sb: np.ndarray) -> np.ndarray:
+        base = matern52_from_r2(sq_dist(A, B, h.lengthscales), h.outputscale)
+        return np.asarray(base + c.OUTCOME_PRIOR_OFFSET_SD**2 + c.OUTCOME_PRIOR_SCALE_SD**2 * np.outer(sa, sb))
+
+    K = k(X, X, sX, sX) + (h.noise + 1e-10 * h.outputscale) * np.eye(9)
+    Ks = k(Q, X, sQ, sX)
+    mean = sQ + Ks @ np.linalg.solve(K, z - sX)
+    var = np.diag(k(Q, Q, sQ, sQ)) - np.sum(Ks * np.linalg.solve(K, Ks.T).T, axis=1)
+    mu, sd, _, _ = m._moments(Q)
+    np.testing.assert_allclose(mu, mean, rtol=1e-6, atol=1e-8)
+    np.testing.assert_allclose(sd**2, var, rtol=1e-5, atol=1e-9)

@@ -27,8 +27,7 @@ J's transfer prior, the offset matters here (a limit is a level, not a shape): `
 (variance prior median ``residual_os``) for what the source does not explain. Before the first run the model is
 the source itself with the coefficients' and the residual's prior variance: the first proposal already keeps away
 from where the simulator says a limit breaks. The coefficients' posterior variance is added to the residual's
-(``hᵀ Σ h``, h = (1, s(x)); without the ``Hᵀ K⁻¹ k*`` correction, so a little larger than the exact value near
-the runs: on the safe side).
+where the runs do not pin the outcome down (Rasmussen & Williams 2006, eq. 2.42).
 """
 
 from __future__ import annotations
@@ -40,11 +39,11 @@ from dataclasses import dataclass, replace
 from typing import Any
 
 import numpy as np
+import scipy.linalg as sla
 from numpy.typing import NDArray
 from scipy.special import log_ndtr, ndtr
 
-from bac_agent.bo.gp import GP, GPConfig, GPError, Hyper
-from bac_agent.bo.kernel import matern52_from_r2, sq_dist
+from bac_agent.bo.gp import GP, GPConfig, GPError, Hyper, latent_sd_with_grad
 from bac_agent.bo.prior import PriorTrend, SourceSurface
 from bac_common.errors import BacError
 
@@ -150,6 +149,7 @@ class OutcomeModel:
         self.gp = GP(OUTCOME_GP if source is None else _SOURCE_OUTCOME_GP)
         self.n = 0
         self._coef_cov: FloatArray | None = None  # posterior covariance of (a, b) with a source
+        self._Kinv_H = np.zeros((0, 2))  # K⁻¹ H, H = (1, s) at the runs
 
     def fit(self, X: FloatArray, values: FloatArray, rng: np.random.Generator) -> None:
         ok = np.isfinite(values)
@@ -186,13 +186,10 @@ class OutcomeModel:
             loc, _ = gp._prior(X.shape[1])
             h = Hyper.from_vector(loc)
         n = gp.X.shape[0]
-        K = matern52_from_r2(sq_dist(gp.X, gp.X, h.lengthscales), h.outputscale)
-        K.flat[:: n + 1] += h.noise + 1e-10 * h.outputscale
         H = np.column_stack([np.ones(n), s])
-        try:
-            Kinv_H = np.linalg.solve(K, H)
-        except np.linalg.LinAlgError as exc:
-            raise GPError(f"outcome model of {self.limit.name}: {exc}") from exc
+        gp.hyper = replace(h, mean=0.0, bowl=None, prior=None)
+        gp._factorize(refit_mean=False)  # the residual kernel's Cholesky factor (the trend is set below)
+        Kinv_H = sla.cho_solve((gp._L, True), H, check_finite=False)
         prior_prec = np.diag([1.0 / OUTCOME_PRIOR_OFFSET_SD**2, 1.0 / OUTCOME_PRIOR_SCALE_SD**2])
         cov = np.linalg.inv(H.T @ Kinv_H + prior_prec)
         beta = cov @ (Kinv_H.T @ gp._z + prior_prec @ np.array([0.0, 1.0]))
@@ -200,6 +197,7 @@ class OutcomeModel:
         gp._factorize(refit_mean=False)
         self.gp = gp
         self._coef_cov = np.asarray(cov, dtype=float)
+        self._Kinv_H = np.asarray(Kinv_H, dtype=float)
 
     @property
     def fitted(self) -> bool:
@@ -231,15 +229,27 @@ class OutcomeModel:
             var = math.exp(_SOURCE_OUTCOME_GP.os_loc) + OUTCOME_PRIOR_OFFSET_SD**2 + OUTCOME_PRIOR_SCALE_SD**2 * s * s
             sd = np.sqrt(var)
             return s, sd, ds, (OUTCOME_PRIOR_SCALE_SD**2 * s / sd)[:, None] * ds
-        mu, sd, dmu, dsd = self.gp.predict_with_grad(U)
-        if src is not None and self._coef_cov is not None:  # the coefficients' uncertainty: h' Σ h
-            s, ds = src.standardized_and_grad(U)
-            c = self._coef_cov
-            extra = c[0, 0] + 2.0 * c[0, 1] * s + c[1, 1] * s * s
-            sd2 = np.sqrt(sd * sd + np.maximum(extra, 0.0))
-            dsd = (sd / sd2)[:, None] * dsd + ((c[0, 1] + c[1, 1] * s) / sd2)[:, None] * ds
-            sd = sd2
-        return mu, sd, dmu, dsd
+        gp = self.gp
+        if src is None or self._coef_cov is None:
+            return gp.predict_with_grad(U)
+        # the coefficients' uncertainty (Rasmussen & Williams 2006, eq. 2.42): + Rᵀ Σ R, R = h(x) − Hᵀ K⁻¹ k(X, x),
+        # h(x) = (1, s(x)); near the runs the residual's mean takes up most of an error of (a, b), and R is small
+        Xq, mu, dmu, Ks, F, il2 = gp._mean_with_grad(U)
+        assert gp.hyper is not None
+        sd, dsd = latent_sd_with_grad(Xq, gp.X, gp._L, Ks, F, il2, gp.hyper.outputscale)
+        s, ds = src.standardized_and_grad(Xq)
+        W = self._Kinv_H
+        R = np.column_stack([np.ones(Xq.shape[0]), s]) - Ks @ W
+        dR = []
+        for j in range(2):  # d(k(X, x)ᵀ w_j)/dx, as the GP's mean gradient with w_j for α, with its sign turned
+            Fw = F * W[:, j][None, :]
+            dR.append((Xq * Fw.sum(axis=1)[:, None] - Fw @ gp.X) * il2)
+        dR[1] = dR[1] + ds
+        RC = R @ self._coef_cov
+        extra = np.maximum(np.sum(RC * R, axis=1), 0.0)
+        sd2 = np.sqrt(sd * sd + extra)
+        dsd2 = (sd[:, None] * dsd + RC[:, 0:1] * dR[0] + RC[:, 1:2] * dR[1]) / sd2[:, None]
+        return mu, sd2, dmu, dsd2
 
     def prob_violation(self, U: FloatArray, measured: bool = True) -> FloatArray:
         """The probability that a run here *measures* the outcome beyond the limit (latent and noise variance);
