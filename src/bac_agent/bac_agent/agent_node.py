@@ -183,6 +183,15 @@ class BoAgentNode(BacNode):
         prior_weight = self.declare_float(
             "prior_weight", 0.5, "bo: prior probability that the transfer prior describes this car", 0.01, 0.99, True
         )
+        prior_runs = self.declare_int(
+            "prior_runs",
+            0,
+            "bo with prior_source: runs told up to which the prior's shape may be the model's prior mean, then the "
+            "car's runs alone (0 = no limit: as long as the runs support it)",
+            0,
+            1000,
+            read_only=True,
+        )
         constraints = [
             c
             for c in self.declare_str_list(
@@ -309,6 +318,7 @@ class BoAgentNode(BacNode):
                     bowl_runs=bowl_runs,
                     prior=source.to_dict() if source is not None else None,
                     prior_weight=prior_weight,
+                    prior_runs=prior_runs,
                     constraints=tuple(constraints),
                     constraint_level=constraint_level,
                     outcome_priors={k: v.to_dict() for k, v in outcome_sources.items()} or None,
@@ -346,6 +356,7 @@ class BoAgentNode(BacNode):
                 "prior_summary": prior_info,
                 "prior": source.to_dict() if source is not None else None,
                 "prior_weight": prior_weight,
+                "prior_runs": prior_runs,
                 "constraints": constraints,
                 "constraint_level": constraint_level,
                 # what the prior source knew of the limited outcomes: each surface (a refit models as the agent did)
