@@ -246,3 +246,28 @@ def test_the_outcome_priors_posterior_is_that_of_a_gp_with_the_coefficients_inte
     mu, sd, _, _ = m._moments(Q)
     np.testing.assert_allclose(mu, mean, rtol=1e-6, atol=1e-8)
     np.testing.assert_allclose(sd**2, var, rtol=1e-5, atol=1e-9)
+
+
+def test_a_source_evaluated_twice_at_the_same_points_computes_once(monkeypatch: pytest.MonkeyPatch) -> None:
+    """An outcome model evaluates its source twice per step of the acquisition's maximizer (its trend and the
+    coefficients' variance); the second is the first's result (issue 23's latency with outcome priors)."""
+    from bac_agent.bo import gp as gp_module
+
+    src = _source(nominal_travel)
+    calls: list[int] = []
+    real = gp_module.GP.predict_mean_with_grad
+
+    def counting(self: gp_module.GP, Xq: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        calls.append(1)
+        return real(self, Xq)
+
+    monkeypatch.setattr(gp_module.GP, "predict_mean_with_grad", counting)
+    U = np.array([[0.2, 0.3], [0.7, 0.9]])
+    s1, g1 = src.standardized_and_grad(U)
+    s2, g2 = src.standardized_and_grad(U.copy())
+    assert len(calls) == 1
+    np.testing.assert_array_equal(s1, s2)
+    np.testing.assert_array_equal(g1, g2)
+    s3, _ = src.standardized_and_grad(U + 0.01)  # other points: computed
+    assert len(calls) == 2 and not np.allclose(s3, s1)
+    np.testing.assert_allclose(src.standardized_and_grad(U)[0], src.standardized(U))
