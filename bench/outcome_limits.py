@@ -6,13 +6,25 @@ breaks it on every instance (soft dampers let the wheel travel towards the bump 
 median travel over the box (rounded down to a mm). An instance where fewer than 15 % of the box keep such a
 limit (a car that reaches its bump stops over this bump whatever the dampers do) is left out and listed. Each
 run measures J and the travel (noisy: 1.5 mm + 2 %). bac runs with ``constraints: max_travel_mm <= limit`` (its defaults
-otherwise, rule (a)), and without the limit for comparison, on the same seeds and noise streams.
+otherwise, rule (a)), and without the limit for comparison, on the same seeds and noise streams. Arms:
+
+* ``limit``: the limit, nothing known before the first run;
+* ``limit_sim``: the limit with what the simulation phase knows, as bac's method runs it (the simulation phase
+  precedes the car): the **nominal** car on the same bump (``bench/transfer.py``'s "simulator"), 64 noise-free runs
+  at Sobol points, its J as the transfer prior (``prior``) and its travel as the travel model's prior
+  (``outcome_priors``);
+* ``limit_simout``: the limit with the simulator's travel only (no prior on J);
+* ``none``: no limit.
 
 Printed per arm: the share of campaigns whose final recommendation keeps the limit (true travel), the share of
 all proposed runs whose true travel breaks it (goal < 10 %) and whose measured travel does, the median runs
 until the recommendation is within gap 0.05 of the **constrained** optimum while keeping the limit (budget + 1
-when never), with a 90 % bootstrap interval. The constrained optimum is the best point of a 41 × 41 grid of
-simulated runs that keeps the limit. LAST line: ``limit_violating_runs_pct <x>``.
+when never), with a 90 % bootstrap interval, the median final gap to it and the median final distance of the
+recommendation's true travel to the limit; and (a variant, added 2026-11-24) the median runs until the
+recommendation keeps the limit and is within gap 0.05 of the best calibration that keeps it by 2 mm
+(``SAFE_MARGIN_MM``; over the instances where one does). The constrained optimum is the best point of a 41 × 41 grid of
+simulated runs that keeps the limit. LAST lines: ``limit_violating_runs_pct_sim <x>`` (the ``limit_sim`` arm)
+and ``limit_violating_runs_pct <x>`` (the ``limit`` arm), each with the goal < 10.
 
     nice -n 10 .venv/bin/python bench/outcome_limits.py --split held-out
 """
@@ -38,6 +50,12 @@ from bac_common.progress import runs_to_optimum
 FAMILY = "bump_c1"
 MARGIN_MM = 4.0
 MIN_FEASIBLE = 0.15
+SOURCE_POINTS = 64  # the simulator's runs a prior is fitted to (as bench/transfer.py)
+# the added variant (2026-11-24): the best calibration whose true travel keeps this margin to the limit. A run's
+# travel scatters by 1.5 mm + 2 % (about 2.4 mm at 45 mm): a recommendation that keeps the limit with 95 %
+# confidence cannot sit on it, and on most instances 1 mm of margin already costs more than gap 0.05 of the
+# constrained optimum (docs/agent.md)
+SAFE_MARGIN_MM = 2.0
 
 
 def constrained_truth(index: int) -> dict[str, Any]:
@@ -52,13 +70,31 @@ def constrained_truth(index: int) -> dict[str, Any]:
     limit = float(np.floor(limit))
     ok = out["max_travel_mm"] <= limit
     k = int(np.argmin(np.where(ok, out["j"], np.inf)))
+    ok_m = out["max_travel_mm"] <= limit - SAFE_MARGIN_MM
     return {
+        "j_star_c_margin": float(np.min(out["j"][ok_m])) if ok_m.any() else float("nan"),
         "limit": limit,
         "j_star_c": float(out["j"][k]) if ok.any() else float("nan"),
         "u_star_c": U[k].tolist(),
         "feasible_share": float(np.mean(ok)),
         "j_med": truth["j_med"],
     }
+
+
+def travel_source(index: int) -> dict[str, Any]:
+    """The nominal car's travel on the instance's bump (SourceSurface.to_dict()): what the simulator knows of it."""
+    from bac_agent.bo.prior import SourceSurface
+    from bac_sim.families import get_family
+
+    fam = get_family(FAMILY)
+    nominal = fam.nominal(fam.instance(index))
+    b = nominal.bounds
+
+    def f(U: np.ndarray) -> np.ndarray:
+        return nominal.evaluate(b[:, 0] + U * (b[:, 1] - b[:, 0]))["max_travel_mm"]
+
+    label = f"nominal car's travel on {nominal.scenario.name}"
+    return SourceSurface.from_function(f, b.shape[0], SOURCE_POINTS, label=label, seed=index).to_dict()
 
 
 def _task(args: tuple[int, int, str, int, str]) -> dict[str, Any]:
@@ -72,9 +108,16 @@ def _task(args: tuple[int, int, str, int, str]) -> dict[str, Any]:
         ct = constrained_truth(index)
         b = inst.bounds
         names = ["damping_front", "damping_rear"]
-        cons = [f"max_travel_mm<={ct['limit']:.3f}"] if arm == "limit" else []
+        cons = [f"max_travel_mm<={ct['limit']:.3f}"] if arm.startswith("limit") else []
+        extra: dict[str, Any] = {}
+        if arm in ("limit_sim", "limit_simout"):
+            extra["outcome_priors"] = {"max_travel_mm": travel_source(index)}
+        if arm == "limit_sim":
+            from transfer import source_for
+
+            extra["prior"] = source_for(FAMILY, index, "sim")
         cfg = EngineConfig.from_dict(
-            {**json.loads(config or "{}"), "budget": budget, "seed": seed, "constraints": cons}
+            {**json.loads(config or "{}"), "budget": budget, "seed": seed, "constraints": cons, **extra}
         )
         eng = Engine([(n, lo, hi) for n, (lo, hi) in zip(names, b, strict=True)], cfg)
         noise_rng = np.random.default_rng([index, seed, 54321])
@@ -95,6 +138,8 @@ def _task(args: tuple[int, int, str, int, str]) -> dict[str, Any]:
     keeps = ev_recs["max_travel_mm"] <= ct["limit"]
     gap_c = (ev_recs["j"] - ct["j_star_c"]) / (ct["j_med"] - ct["j_star_c"])
     gap_c = np.where(keeps, gap_c, np.inf)
+    jm = ct["j_star_c_margin"]
+    gap_cm = np.where(keeps, (ev_recs["j"] - jm) / (ct["j_med"] - jm), np.inf) if np.isfinite(jm) else None
     return {
         "instance": index,
         "seed": seed,
@@ -106,6 +151,7 @@ def _task(args: tuple[int, int, str, int, str]) -> dict[str, Any]:
         "final_keeps": bool(keeps[-1]),
         "final_travel_minus_limit": float(ev_recs["max_travel_mm"][-1] - ct["limit"]),
         "gaps_c": [float(v) for v in gap_c],
+        "gaps_c_margin": [float(v) for v in gap_cm] if gap_cm is not None else None,
         "seconds": dt,
     }
 
@@ -113,7 +159,7 @@ def _task(args: tuple[int, int, str, int, str]) -> dict[str, Any]:
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--split", default="held-out", choices=sorted(pf.SPLITS))
-    ap.add_argument("--arms", default="limit,none")
+    ap.add_argument("--arms", default="limit,limit_sim,limit_simout,none")
     ap.add_argument("--budget", type=int, default=20)
     ap.add_argument("--instances", type=int, default=0, help="only the first N instances of the split (0: all)")
     ap.add_argument("--seeds", type=int, default=0, help="only the first N seeds of the split (0: all)")
@@ -146,10 +192,11 @@ def main(argv: list[str] | None = None) -> int:
     limits = sorted({(r["instance"], round(r["limit"], 1), round(100 * r["feasible_share"])) for r in results})
     print("# limits (instance, mm, feasible % of the box): " + ", ".join(f"{i}: {m} ({f} %)" for i, m, f in limits))
     print(
-        f"\n{'arm':<6} {'final keeps':>11} {'runs broke (true)':>17} {'(measured)':>10} {'runs to c-opt':>13} "
-        f"{'90% CI':>9} {'n':>4}"
+        f"\n{'arm':<12} {'final keeps':>11} {'runs broke (true)':>17} {'(measured)':>10} {'runs to c-opt':>13} "
+        f"{'90% CI':>9} {'n':>4} {'final gap_c':>11} {'final margin mm':>15} "
+        f"{f'runs to c-opt -{SAFE_MARGIN_MM:g} mm':>20} {'n':>3}"
     )
-    pct = float("nan")
+    pct: dict[str, float] = {}
     for arm in arms:
         rs = [r for r in results if r["arm"] == arm]
         keeps = float(np.mean([r["final_keeps"] for r in rs]))
@@ -161,16 +208,23 @@ def main(argv: list[str] | None = None) -> int:
         lo, hi = np.quantile(meds, [0.05, 0.95])
         med = float(np.median(runs))
         shown = f">{a.budget}" if med > a.budget else f"{med:g}"
+        final_gap = float(np.median([r["gaps_c"][-1] for r in rs]))
+        final_margin = float(np.median([-r["final_travel_minus_limit"] for r in rs]))
+        rm = [r for r in rs if r.get("gaps_c_margin") is not None]
+        med_m = float(np.median([min(runs_to_optimum(r["gaps_c_margin"]), a.budget + 1) for r in rm])) if rm else 0
+        shown_m = f">{a.budget}" if med_m > a.budget else f"{med_m:g}"
         print(
-            f"{arm:<6} {keeps:>11.0%} {broke_t:>17.1%} {broke_m:>10.1%} {shown:>13} {f'{lo:g}-{hi:g}':>9} {len(rs):>4}"
+            f"{arm:<12} {keeps:>11.0%} {broke_t:>17.1%} {broke_m:>10.1%} {shown:>13} {f'{lo:g}-{hi:g}':>9} "
+            f"{len(rs):>4} {final_gap:>11.3f} {final_margin:>15.2f} {shown_m:>20} {len(rm):>3}"
         )
-        if arm == "limit":
-            pct = 100 * broke_t
+        pct[arm] = 100 * broke_t
     out = Path(a.out or f"bench/out/outcome_limits_{a.split}.json")
     out.parent.mkdir(parents=True, exist_ok=True)
     out.write_text(json.dumps({"results": results}))
     print(f"\n# raw results {out}")
-    print(f"limit_violating_runs_pct {pct:.1f}")
+    if "limit_sim" in pct:
+        print(f"limit_violating_runs_pct_sim {pct['limit_sim']:.1f}")
+    print(f"limit_violating_runs_pct {pct.get('limit', float('nan')):.1f}")
     return 0
 
 

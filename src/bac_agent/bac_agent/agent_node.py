@@ -31,6 +31,7 @@ from rclpy.clock import Clock
 from rclpy.clock_type import ClockType
 
 from bac_agent.bo.baselines import GridStrategy, RandomStrategy
+from bac_agent.bo.constraints import parse_limits
 from bac_agent.bo.engine import ACQUISITIONS, RULES, Engine, EngineConfig
 from bac_agent.bo.gp import MEANS, GPConfig
 from bac_agent.bo.space import SearchSpace
@@ -50,7 +51,7 @@ from bac_agent.campaign import (
     TrialStatus,
 )
 from bac_agent.journal import Journal
-from bac_agent.transfer import load_source
+from bac_agent.transfer import load_outcome_sources, load_source
 from bac_agent.transfer import summary as source_summary
 from bac_common.contracts import SRV_APPLY_CALIBRATION, SRV_READ_CALIBRATION, TOPIC_RUN_SCORE, TOPIC_TRIAL
 from bac_common.errors import BacError
@@ -182,6 +183,15 @@ class BoAgentNode(BacNode):
         prior_weight = self.declare_float(
             "prior_weight", 0.5, "bo: prior probability that the transfer prior describes this car", 0.01, 0.99, True
         )
+        prior_runs = self.declare_int(
+            "prior_runs",
+            0,
+            "bo with prior_source: runs told up to which the prior's shape may be the model's prior mean, then the "
+            "car's runs alone (0 = no limit: as long as the runs support it)",
+            0,
+            1000,
+            read_only=True,
+        )
         constraints = [
             c
             for c in self.declare_str_list(
@@ -271,6 +281,13 @@ class BoAgentNode(BacNode):
             raise BacError(f"{cdir} already holds a campaign journal and resume is false: choose a new campaign_dir")
         source = load_source(prior_source, self.definition) if prior_source and self.strategy == "bo" else None
         prior_info = source_summary(source, SearchSpace.from_definition(self.definition)) if source else {}
+        # what the same source knows of the limited outcomes (an earlier campaign's measured outcomes; a reduce
+        # output has none): each outcome's model starts from it
+        outcome_sources = (
+            load_outcome_sources(prior_source, self.definition, [parse_limits([c])[0].name for c in constraints])
+            if source is not None and constraints
+            else {}
+        )
         # with a transfer prior the first trial is the prior's optimum (the model's, not the file's best guess)
         initial_points = (
             (dict(self.definition.best_guess),)
@@ -301,8 +318,10 @@ class BoAgentNode(BacNode):
                     bowl_runs=bowl_runs,
                     prior=source.to_dict() if source is not None else None,
                     prior_weight=prior_weight,
+                    prior_runs=prior_runs,
                     constraints=tuple(constraints),
                     constraint_level=constraint_level,
+                    outcome_priors={k: v.to_dict() for k, v in outcome_sources.items()} or None,
                 ),
             )
         cfg = CampaignConfig(
@@ -337,8 +356,11 @@ class BoAgentNode(BacNode):
                 "prior_summary": prior_info,
                 "prior": source.to_dict() if source is not None else None,
                 "prior_weight": prior_weight,
+                "prior_runs": prior_runs,
                 "constraints": constraints,
                 "constraint_level": constraint_level,
+                # what the prior source knew of the limited outcomes: each surface (a refit models as the agent did)
+                "outcome_priors": {k: v.to_dict() for k, v in outcome_sources.items()},
             },
             outcome_limits=tuple(constraints),
         )
@@ -391,6 +413,10 @@ class BoAgentNode(BacNode):
             )
         if constraints:
             self.get_logger().info(f"outcome limits: {', '.join(constraints)} (level {constraint_level:g})")
+        if outcome_sources:
+            self.get_logger().info("outcome priors: " + "; ".join(src.label for src in outcome_sources.values()))
+        elif source is not None and constraints:
+            self.get_logger().info("outcome priors: none (the prior source records no limited outcome)")
 
     # --- actions ----------------------------------------------------------------------------------
     def _do(self, actions: list[Action]) -> None:

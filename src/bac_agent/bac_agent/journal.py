@@ -184,7 +184,7 @@ def journaled_engine_options(started: Mapping[str, Any]) -> dict[str, Any]:
     """The EngineConfig fields an offline refit (``bac report``, ``bac rescore --refit``) needs to model and
     recommend the way the live campaign did, from its ``campaign_started`` record: ``recommend_beta``
     (0: the paper's argmin of the posterior mean), ``recommend_rule``, the GP's prior mean, ``bowl_runs``, the
-    output warp, and a transfer prior and outcome limits when the campaign had them.
+    output warp, and a transfer prior and outcome limits (with their outcome priors) when the campaign had them.
     Journals written before these were configurable get what the agent used then: beta 0, the rule ``mean``, a
     constant mean, no warp."""
     cfg = started.get("config") or {}
@@ -199,9 +199,12 @@ def journaled_engine_options(started: Mapping[str, Any]) -> dict[str, Any]:
     if cfg.get("prior"):
         options["prior"] = dict(cfg["prior"])
         options["prior_weight"] = float(cfg.get("prior_weight", 0.5) or 0.5)
+        options["prior_runs"] = int(cfg.get("prior_runs", 0) or 0)
     if cfg.get("constraints"):
         options["constraints"] = [str(c) for c in cfg["constraints"]]
         options["constraint_level"] = float(cfg.get("constraint_level", 0.05) or 0.05)
+        if cfg.get("outcome_priors"):  # what the prior source knew of the limited outcomes
+            options["outcome_priors"] = {str(k): dict(v) for k, v in cfg["outcome_priors"].items()}
     return options
 
 

@@ -12,6 +12,12 @@
   another car, on this car last season), over the same tuned dimensions by name; runs outside this campaign's
   bounds are left out.
 
+What the source knows of a **limited outcome** (``load_outcome_sources``; issue 23): an earlier campaign's runs
+carry their measured outcomes (``max_travel_mm``, ``peak_accel_z``, ...); each outcome this campaign limits and
+at least 3 of those runs measured becomes a source surface of that outcome, the prior of its model
+(``EngineConfig.outcome_priors``). A ``bac reduce`` output holds J only (the simulation phase scores J): it gives
+no outcome prior, and the car's outcome models start from their first runs as without a source.
+
 Either becomes a :class:`~bac_agent.bo.prior.SourceSurface` over this campaign's unit cube (a GP fitted to
 ``points`` Sobol samples of J_mu, or to the runs themselves), which the engine uses as its transfer prior
 (``EngineConfig.prior``). bac_reduce depends on bac_agent, not the other way round: the few lines that rebuild
@@ -21,7 +27,7 @@ a reduce campaign's posterior from its stored engine state are repeated here.
 from __future__ import annotations
 
 import json
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -66,8 +72,29 @@ def load_source(path: str | Path, definition: CalibrationDefinition, points: int
     )
 
 
-def from_campaign(folder: Path, definition: CalibrationDefinition) -> SourceSurface:
-    """The scored runs of an earlier campaign, fitted over ``definition``'s tuned space."""
+def load_outcome_sources(
+    path: str | Path, definition: CalibrationDefinition, names: Sequence[str]
+) -> dict[str, SourceSurface]:
+    """What the source at ``path`` knows of the outcomes ``names`` (those this campaign limits): a campaign
+    folder's runs of each outcome that at least 3 runs within the bounds measured, fitted over ``definition``'s
+    tuned space; a ``bac reduce`` output scores J only and gives none (an empty mapping)."""
+    p = Path(path).expanduser()
+    if not (p.is_dir() and (p / JOURNAL_NAME).is_file()) or not names:
+        return {}
+    out = {}
+    with _one_blas_thread():
+        for name in dict.fromkeys(names):
+            X, y, label = _campaign_runs(p, definition, outcome=name)
+            if len(y) >= 3:
+                out[name] = SourceSurface.fit(np.array(X), np.array(y), f"{name}: {label}", noisy=True)
+    return out
+
+
+def _campaign_runs(
+    folder: Path, definition: CalibrationDefinition, outcome: str | None = None
+) -> tuple[list[FloatArray], list[float], str]:
+    """The unit-cube points and values (J, or the measured ``outcome``) of an earlier campaign's scored runs within
+    ``definition``'s bounds, and a label."""
     events = read_journal(folder / JOURNAL_NAME).events
     if not events or events[0].get("event") != "campaign_started":
         raise TransferError(f"{folder / JOURNAL_NAME} does not start with campaign_started: not a campaign journal")
@@ -82,19 +109,28 @@ def from_campaign(folder: Path, definition: CalibrationDefinition) -> SourceSurf
     for e in events:
         if e.get("event") != "trial_scored" or e.get("j") is None:
             continue
+        value = e.get("j") if outcome is None else (e.get("outcomes") or {}).get(outcome)
+        if value is None or not np.isfinite(float(value)):
+            continue
         x = np.array([float(e["params"][n]) for n in space.names])
         u = space.to_unit(x)
         if np.any(u < -1e-9) or np.any(u > 1 + 1e-9):
             outside += 1
             continue
         X.append(np.clip(u, 0.0, 1.0))
-        y.append(float(e["j"]))
+        y.append(float(value))
+    label = f"campaign {events[0].get('campaign_id', folder.name)} ({len(y)} runs"
+    label += f", {outside} outside the bounds left out)" if outside else ")"
+    return X, y, label
+
+
+def from_campaign(folder: Path, definition: CalibrationDefinition) -> SourceSurface:
+    """The scored runs of an earlier campaign, fitted over ``definition``'s tuned space."""
+    X, y, label = _campaign_runs(folder, definition)
     if len(y) < 3:
         raise TransferError(
             f"the campaign in {folder} has {len(y)} scored runs within this campaign's bounds: a prior needs at least 3"
         )
-    label = f"campaign {events[0].get('campaign_id', folder.name)} ({len(y)} runs"
-    label += f", {outside} outside the bounds left out)" if outside else ")"
     return SourceSurface.fit(np.array(X), np.array(y), label, noisy=True)
 
 
@@ -174,4 +210,12 @@ def summary(source: SourceSurface, space: SearchSpace) -> dict[str, Any]:
     }
 
 
-__all__ = ["REDUCE_RESULT", "TransferError", "from_campaign", "from_reduce_result", "load_source", "summary"]
+__all__ = [
+    "REDUCE_RESULT",
+    "TransferError",
+    "from_campaign",
+    "from_reduce_result",
+    "load_outcome_sources",
+    "load_source",
+    "summary",
+]

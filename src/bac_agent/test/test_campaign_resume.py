@@ -541,6 +541,11 @@ REFUSED: dict[str, tuple[str, Refusal]] = {
         'config.recommend_rule: journaled "mean", this agent "observed"',
         lambda: (engine(), config(extra=_extra(recommend_rule="observed")), DEFINITION),
     ),
+    "transfer prior's runs": (
+        # a journal from before prior_runs and outcome_priors ran with no limit and none (campaign.ADDED_LATER)
+        "config.prior_runs: journaled 0, this agent 6",
+        lambda: (engine(), config(extra=_extra(prior_runs=6)), DEFINITION),
+    ),
     "acquisition": (
         'config.acquisition: journaled "nei", this agent "ei"',
         lambda: (engine(), config(extra=_extra(acquisition="ei")), DEFINITION),

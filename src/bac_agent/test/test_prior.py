@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from bac_agent.bo import Engine, EngineConfig
-from bac_agent.bo.engine import KIND_OPTIMIZED, KIND_PRIOR
+from bac_agent.bo.engine import KIND_OPTIMIZED, KIND_PRIOR, EngineError
 from bac_agent.bo.gp import GPError
 from bac_agent.bo.prior import SourceSurface
 
@@ -150,3 +150,28 @@ def test_fitting_with_a_source_refines_the_residual_from_one_start(monkeypatch: 
     assert len(starts) == 2 + 2 + 1
     assert fit.weight > 0.9
     assert np.allclose(gp.predict(U)[0], car(U), atol=0.05)
+
+
+def test_the_source_is_the_prior_mean_for_prior_runs_runs_then_the_engines_own_model() -> None:
+    """issue 23: a source that is nearly right kept its weight and held the model near its own optimum; with
+    ``prior_runs`` (0, the default: no limit) the car's runs alone are modelled after that many runs."""
+
+    def f(U: np.ndarray) -> np.ndarray:
+        return np.asarray(np.sum((np.atleast_2d(U) - 0.4) ** 2, axis=1))
+
+    src = SourceSurface.from_function(f, 2, 64, seed=0).to_dict()
+    assert Engine({"a": (0.0, 1.0), "b": (0.0, 1.0)}, EngineConfig(budget=15, prior=src)).prior_runs == 15
+    eng = Engine({"a": (0.0, 1.0), "b": (0.0, 1.0)}, EngineConfig(budget=12, seed=1, prior=src, prior_runs=4))
+    assert eng.prior_runs == 4
+    seen = []
+    for k in range(6):
+        s = eng.ask_with_info()
+        u = np.array([s.params["a"], s.params["b"]])
+        eng.tell(s.params, float(f(u)[0]) + 0.3)
+        eng.recommend()
+        trend = eng.hyper.prior if eng.hyper is not None else None
+        seen.append((k + 1, trend is not None, eng.recommend().transfer["prior_in_use"]))
+    assert seen[:4] == [(n, True, 1.0) for n in range(1, 5)]  # a right source is used for 4 runs
+    assert seen[4:] == [(5, False, 0.0), (6, False, 0.0)]  # then the engine's own model, and the journal says so
+    with pytest.raises(EngineError, match="prior_runs"):
+        EngineConfig(prior_runs=-1)

@@ -17,6 +17,17 @@ inside the limit but whose runs scatter across it counts as risky. The engine
 With fewer than 3 values of an outcome, its spread is unknown; the model then assumes a standard deviation as
 large as the distance from the values to the limit (or their spread if larger), so that after the first runs
 only calibrations near them count as safe, and calibrations far from them as uncertain.
+
+**What the simulator knows of an outcome** (``OutcomeModel(limit, source)``; issue 23): a
+:class:`~bac_agent.bo.prior.SourceSurface` of the outcome over the same unit cube (the simulation phase's travel,
+the nominal car's peaks, an earlier campaign's measurements) is the outcome GP's prior mean ``a + b · s(x)``, with
+``s`` the source's outcome standardized by its own mean and spread and the car's values put on that scale. Unlike
+J's transfer prior, the offset matters here (a limit is a level, not a shape): ``a ~ N(0, offset_sd²)``,
+``b ~ N(1, scale_sd²)``, both posteriors given the car's values under the residual's kernel, a GP residual
+(variance prior median ``residual_os``) for what the source does not explain. Before the first run the model is
+the source itself with the coefficients' and the residual's prior variance: the first proposal already keeps away
+from where the simulator says a limit breaks. The coefficients' posterior variance is added to the residual's
+where the runs do not pin the outcome down (Rasmussen & Williams 2006, eq. 2.42).
 """
 
 from __future__ import annotations
@@ -24,14 +35,16 @@ from __future__ import annotations
 import math
 import re
 from collections.abc import Mapping, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Any
 
 import numpy as np
+import scipy.linalg as sla
 from numpy.typing import NDArray
 from scipy.special import log_ndtr, ndtr
 
-from bac_agent.bo.gp import GP, GPConfig, GPError, Hyper
+from bac_agent.bo.gp import GP, GPConfig, GPError, Hyper, latent_sd_with_grad
+from bac_agent.bo.prior import PriorTrend, SourceSurface
 from bac_common.errors import BacError
 
 FloatArray = NDArray[np.float64]
@@ -45,6 +58,17 @@ FloatArray = NDArray[np.float64]
 # peak or a travel is one smooth response whose fits from a draw landed where the others did, and each start costs
 # as much as J's: issue 23's latency with two limits)
 OUTCOME_GP = GPConfig(mean="constant", ls_loc=math.log(0.5), noise_loc=-2.0, noise_scale=1.0, draws=0, restarts=0)
+
+# an outcome's source (the simulator's travel, peaks): priors of the trend a + b·s(x) and of the residual, in the
+# source's standardized units (its points' mean 0, spread 1); chosen on the tuning split of bench/outcome_limits.py
+# (issue 23; the nominal car against the drawn bump_c1 cars: offsets up to 0.7 of the nominal travel's spread,
+# scales 0.93-1.5, what a fitted a + b·s leaves 0.1-0.45 of it: docs/agent.md)
+OUTCOME_PRIOR_OFFSET_SD = 0.5
+OUTCOME_PRIOR_SCALE_SD = 0.3
+OUTCOME_PRIOR_RESIDUAL_OS = 0.1
+# the residual's GP under a source: the same kernel priors, its variance around OUTCOME_PRIOR_RESIDUAL_OS of the
+# source's spread (the noise prior is relative to the source's spread too)
+_SOURCE_OUTCOME_GP = replace(OUTCOME_GP, os_loc=math.log(OUTCOME_PRIOR_RESIDUAL_OS))
 _LIMIT_RE = re.compile(r"^\s*([A-Za-z_][A-Za-z0-9_.]*)\s*(<=|>=)\s*([-+0-9.eE]+)\s*$")
 
 
@@ -117,17 +141,23 @@ def parse_limits(specs: Sequence[Any]) -> tuple[OutcomeLimit, ...]:
 
 
 class OutcomeModel:
-    """The GP of one constrained outcome (see the module doc)."""
+    """The GP of one constrained outcome (see the module doc); ``source``: what the simulator knows of it."""
 
-    def __init__(self, limit: OutcomeLimit) -> None:
+    def __init__(self, limit: OutcomeLimit, source: SourceSurface | None = None) -> None:
         self.limit = limit
-        self.gp = GP(OUTCOME_GP)
+        self.source = source
+        self.gp = GP(OUTCOME_GP if source is None else _SOURCE_OUTCOME_GP)
         self.n = 0
+        self._coef_cov: FloatArray | None = None  # posterior covariance of (a, b) with a source
+        self._Kinv_H = np.zeros((0, 2))  # K⁻¹ H, H = (1, s) at the runs
 
     def fit(self, X: FloatArray, values: FloatArray, rng: np.random.Generator) -> None:
         ok = np.isfinite(values)
         X, v = X[ok], values[ok]
         self.n = int(v.size)
+        if self.source is not None:
+            self._fit_with_source(X, v, rng)
+            return
         if self.n == 0:
             return
         if self.n >= 3 and float(np.std(v)) > 1e-12 * max(1.0, abs(float(np.mean(v)))):
@@ -138,26 +168,99 @@ class OutcomeModel:
         loc, _ = self.gp._prior(X.shape[1])
         self.gp = GP(OUTCOME_GP).condition(X, v, Hyper.from_vector(loc), scaling=(mean, spread))
 
+    def _fit_with_source(self, X: FloatArray, v: FloatArray, rng: np.random.Generator) -> None:
+        """The residual's kernel (MAP from 3 values, the prior's mode before) and the posterior of (a, b)."""
+        src = self.source
+        assert src is not None
+        self._coef_cov = None
+        if self.n == 0:
+            return  # the source alone (see _moments)
+        gp = GP(_SOURCE_OUTCOME_GP, hyper=self.gp.hyper)
+        gp._set_data(X, v, (src.loc, src.scale))
+        s = src.standardized(gp.X)
+        if self.n >= 3:
+            gp._offset = s  # the residual's kernel on what the source (a = 0 … profiled, b = 1) leaves
+            h = Hyper.from_vector(gp._map_hyper(rng))
+            gp._offset = 0.0
+        else:
+            loc, _ = gp._prior(X.shape[1])
+            h = Hyper.from_vector(loc)
+        n = gp.X.shape[0]
+        H = np.column_stack([np.ones(n), s])
+        gp.hyper = replace(h, mean=0.0, bowl=None, prior=None)
+        gp._factorize(refit_mean=False)  # the residual kernel's Cholesky factor (the trend is set below)
+        Kinv_H = sla.cho_solve((gp._L, True), H, check_finite=False)
+        prior_prec = np.diag([1.0 / OUTCOME_PRIOR_OFFSET_SD**2, 1.0 / OUTCOME_PRIOR_SCALE_SD**2])
+        cov = np.linalg.inv(H.T @ Kinv_H + prior_prec)
+        beta = cov @ (Kinv_H.T @ gp._z + prior_prec @ np.array([0.0, 1.0]))
+        gp.hyper = replace(h, mean=0.0, bowl=None, prior=PriorTrend(src, float(beta[0]), float(beta[1])))
+        gp._factorize(refit_mean=False)
+        self.gp = gp
+        self._coef_cov = np.asarray(cov, dtype=float)
+        self._Kinv_H = np.asarray(Kinv_H, dtype=float)
+
     @property
     def fitted(self) -> bool:
-        return self.n > 0 and self.gp.fitted
+        return self.source is not None or (self.n > 0 and self.gp.fitted)
+
+    def _scaling(self) -> tuple[float, float]:
+        if self.source is not None and self.n == 0:
+            return self.source.loc, self.source.scale
+        return self.gp.y_mean, self.gp.y_std
 
     def _t(self, mu: FloatArray, sd: FloatArray) -> FloatArray:
         """Standardized margin to the limit: Φ(t) is the probability that the limit holds."""
-        gp = self.gp
-        b = (self.limit.bound - gp.y_mean) / gp.y_std
+        loc, scale = self._scaling()
+        b = (self.limit.bound - loc) / scale
         return np.asarray((b - mu) / sd if self.limit.upper else (mu - b) / sd, dtype=float)
 
     def _noise(self) -> float:
+        if self.source is not None and self.n == 0:
+            return float(math.exp(_SOURCE_OUTCOME_GP.noise_loc))  # the noise prior's mode
         h = self.gp.hyper
         return float(h.noise) if h is not None else 0.0
+
+    def _moments(self, U: FloatArray) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray]:
+        """Latent mean, standard deviation and their gradients (standardized units of ``_scaling``)."""
+        U = np.atleast_2d(U)
+        src = self.source
+        if src is not None and self.n == 0:  # the source alone: a = 0, b = 1 with their prior spread
+            s, ds = src.standardized_and_grad(U)
+            var = math.exp(_SOURCE_OUTCOME_GP.os_loc) + OUTCOME_PRIOR_OFFSET_SD**2 + OUTCOME_PRIOR_SCALE_SD**2 * s * s
+            sd = np.sqrt(var)
+            return s, sd, ds, (OUTCOME_PRIOR_SCALE_SD**2 * s / sd)[:, None] * ds
+        gp = self.gp
+        if src is None or self._coef_cov is None:
+            return gp.predict_with_grad(U)
+        # the coefficients' uncertainty (Rasmussen & Williams 2006, eq. 2.42): + Rᵀ Σ R, R = h(x) − Hᵀ K⁻¹ k(X, x),
+        # h(x) = (1, s(x)); near the runs the residual's mean takes up most of an error of (a, b), and R is small
+        Xq, mu, dmu, Ks, F, il2 = gp._mean_with_grad(U)
+        assert gp.hyper is not None
+        sd, dsd = latent_sd_with_grad(Xq, gp.X, gp._L, Ks, F, il2, gp.hyper.outputscale)
+        s, ds = src.standardized_and_grad(Xq)
+        W = self._Kinv_H
+        R = np.column_stack([np.ones(Xq.shape[0]), s]) - Ks @ W
+        dR = []
+        for j in range(2):  # d(k(X, x)ᵀ w_j)/dx, as the GP's mean gradient with w_j for α, with its sign turned
+            Fw = F * W[:, j][None, :]
+            dR.append((Xq * Fw.sum(axis=1)[:, None] - Fw @ gp.X) * il2)
+        dR[1] = dR[1] + ds
+        RC = R @ self._coef_cov
+        extra = np.maximum(np.sum(RC * R, axis=1), 0.0)
+        sd2 = np.sqrt(sd * sd + extra)
+        dsd2 = (sd[:, None] * dsd + RC[:, 0:1] * dR[0] + RC[:, 1:2] * dR[1]) / sd2[:, None]
+        return mu, sd2, dmu, dsd2
 
     def prob_violation(self, U: FloatArray, measured: bool = True) -> FloatArray:
         """The probability that a run here *measures* the outcome beyond the limit (latent and noise variance);
         ``measured`` False: that the calibration's true outcome is beyond it (the latent variance alone)."""
         if not self.fitted:
             return np.zeros(np.atleast_2d(U).shape[0])
-        mu, var = self.gp.predict_std_units(U)
+        if self.source is None:
+            mu, var = self.gp.predict_std_units(U)
+        else:
+            mu, sd_l, _, _ = self._moments(U)
+            var = sd_l * sd_l
         noise = self._noise() if measured else 0.0
         return np.asarray(1.0 - ndtr(self._t(mu, np.sqrt(np.maximum(var + noise, 1e-18)))), dtype=float)
 
@@ -165,7 +268,7 @@ class OutcomeModel:
         U = np.atleast_2d(U)
         if not self.fitted:
             return np.zeros(U.shape[0]), np.zeros_like(U)
-        mu, sd_f, dmu, dsd_f = self.gp.predict_with_grad(U)
+        mu, sd_f, dmu, dsd_f = self._moments(U) if self.source is not None else self.gp.predict_with_grad(U)
         sd = np.sqrt(np.maximum(sd_f**2 + (self._noise() if measured else 0.0), 1e-18))
         dsd = dsd_f * (sd_f / sd)[:, None]
         t = self._t(mu, sd)
@@ -181,18 +284,33 @@ class OutcomeModel:
         if not self.fitted:
             n = np.atleast_2d(U).shape[0]
             return np.full(n, math.nan), np.full(n, math.nan)
-        return self.gp.predict(U)
+        if self.source is None:
+            return self.gp.predict(U)
+        mu, sd, _, _ = self._moments(U)
+        loc, scale = self._scaling()
+        return loc + scale * mu, scale * sd
 
 
 class OutcomeModels:
     """Every constrained outcome's model, fitted together from the observations."""
 
-    def __init__(self, limits: Sequence[OutcomeLimit], level: float) -> None:
+    def __init__(
+        self,
+        limits: Sequence[OutcomeLimit],
+        level: float,
+        sources: Mapping[str, SourceSurface] | None = None,
+    ) -> None:
         if not 0.0 < level < 1.0:
             raise ConstraintError(f"constraint_level must be in (0, 1), got {level}")
         self.limits = tuple(limits)
         self.level = float(level)
-        self.models = [OutcomeModel(lim) for lim in self.limits]
+        sources = dict(sources or {})
+        self.models = [OutcomeModel(lim, sources.get(lim.name)) for lim in self.limits]
+
+    @property
+    def has_prior(self) -> bool:
+        """Some limited outcome has a source: the models predict before the first run."""
+        return any(m.source is not None for m in self.models)
 
     def __bool__(self) -> bool:
         return bool(self.limits)

@@ -1,0 +1,273 @@
+"""What the simulator knows of a limited outcome, carried to the car (bo/constraints.py, outcome_priors)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from bac_agent.bo import Engine, EngineConfig
+from bac_agent.bo.constraints import OutcomeLimit, OutcomeModel
+from bac_agent.bo.engine import EngineError
+from bac_agent.bo.prior import SourceSurface
+from bac_agent.bo.space import SearchSpace
+
+OPT = np.array([0.2, 0.3])  # J's unconstrained optimum: the nominal travel there is 70, the limit 60
+LIMIT = 60.0
+
+
+def j_of(U: np.ndarray) -> np.ndarray:
+    U = np.atleast_2d(U)
+    return np.asarray(np.sqrt(0.01 + np.sum((U - OPT) ** 2, axis=1)))
+
+
+def nominal_travel(U: np.ndarray) -> np.ndarray:
+    """The simulator's travel: soft (small u0) lets the suspension travel far: 80 at u0 = 0, 40 at u0 = 1."""
+    U = np.atleast_2d(U)
+    return np.asarray(80.0 - 40.0 * U[:, 0] + 5.0 * U[:, 1])
+
+
+def car_travel(U: np.ndarray) -> np.ndarray:
+    """The car travels more than the simulator says: an offset, a scale and a little shape the model lacks."""
+    U = np.atleast_2d(U)
+    return np.asarray(3.0 + 1.1 * nominal_travel(U) + 1.5 * np.sin(4.0 * U[:, 1]))
+
+
+def _source(f: object, seed: int = 0) -> SourceSurface:
+    return SourceSurface.from_function(f, 2, 64, label="nominal", seed=seed)
+
+
+def test_an_outcome_prior_predicts_before_the_first_run() -> None:
+    U = np.array([[0.1, 0.5], [0.9, 0.5]])  # nominal travel 78.5 and 46.5
+    lim = OutcomeLimit("max_travel_mm", LIMIT)
+    with_src = OutcomeModel(lim, _source(nominal_travel))
+    with_src.fit(np.zeros((0, 2)), np.zeros(0), np.random.default_rng(0))
+    p = with_src.prob_violation(U)
+    assert p[0] > 0.95 and p[1] < 0.1
+    mean, sd = with_src.predict(U)
+    np.testing.assert_allclose(mean, nominal_travel(U), atol=0.5)  # the source itself, a = 0, b = 1
+    assert np.all(sd > 0.5 * 0.5 * np.std(nominal_travel(np.random.default_rng(1).random((256, 2)))))
+    # without a source nothing is known before the first run
+    plain = OutcomeModel(lim)
+    plain.fit(np.zeros((0, 2)), np.zeros(0), np.random.default_rng(0))
+    np.testing.assert_array_equal(plain.prob_violation(U), [0.0, 0.0])
+
+
+def test_an_outcome_prior_learns_the_cars_offset_and_scale() -> None:
+    """Runs in one quarter of the box teach the model the car's offset and scale everywhere (a residual GP alone
+    would know them only near the runs)."""
+    rng = np.random.default_rng(3)
+    X = 0.5 + 0.5 * rng.random((8, 2))  # the upper-right quarter
+    v = car_travel(X) + 0.5 * rng.standard_normal(8)
+    m = OutcomeModel(OutcomeLimit("max_travel_mm", LIMIT), _source(nominal_travel))
+    m.fit(X, v, np.random.default_rng(0))
+    Q = 0.5 * np.random.default_rng(4).random((64, 2))  # the lower-left quarter
+    mean, _ = m.predict(Q)
+    assert np.median(np.abs(mean - car_travel(Q))) < 2.0  # with the offset and scale fixed at 0 and 1: 5.1
+    assert np.median(np.abs(nominal_travel(Q) - car_travel(Q))) > 9.0  # what the source alone is off by
+
+
+@pytest.mark.parametrize("n", [0, 2, 7])
+@pytest.mark.parametrize("measured", [True, False])
+def test_the_outcome_priors_gradient_matches_finite_differences(n: int, measured: bool) -> None:
+    rng = np.random.default_rng(n)
+    X = rng.random((n, 2))
+    v = car_travel(X) + 0.5 * rng.standard_normal(n)
+    m = OutcomeModel(OutcomeLimit("max_travel_mm", LIMIT), _source(nominal_travel))
+    m.fit(X, v, np.random.default_rng(0))
+    assert (m._coef_cov is not None) == (n > 0)
+    U = np.array([[0.45, 0.3], [0.55, 0.8], [0.35, 0.1]])  # near the limit: log P(keep) moves
+    lf, g = m.log_feasible_and_grad(U, measured)
+    eps = 1e-6
+    for k in range(2):
+        dU = np.zeros_like(U)
+        dU[:, k] = eps
+        fd = (m.log_feasible_and_grad(U + dU, measured)[0] - m.log_feasible_and_grad(U - dU, measured)[0]) / (2 * eps)
+        np.testing.assert_allclose(g[:, k], fd, rtol=1e-4, atol=1e-7)
+    # and the value agrees with prob_violation
+    np.testing.assert_allclose(np.exp(lf), 1.0 - m.prob_violation(U, measured), rtol=1e-9, atol=1e-12)
+
+
+def _campaign(priors: bool, seed: int, budget: int = 12) -> tuple[Engine, list[np.ndarray], list[str]]:
+    extra: dict[str, object] = {}
+    if priors:
+        extra = {
+            "prior": _source(j_of, seed).to_dict(),
+            "outcome_priors": {"max_travel_mm": _source(nominal_travel, seed).to_dict()},
+        }
+    cfg = EngineConfig(budget=budget, seed=seed, constraints=(f"max_travel_mm<={LIMIT}",), **extra)  # type: ignore[arg-type]
+    eng = Engine({"a": (0.0, 1.0), "b": (0.0, 1.0)}, cfg)
+    rng = np.random.default_rng(100 + seed)
+    asked, kinds = [], []
+    while not eng.done:
+        s = eng.ask_with_info()
+        u = np.array([s.params["a"], s.params["b"]])
+        asked.append(u)
+        kinds.append(s.kind)
+        travel = float(car_travel(u)[0]) + 0.5 * rng.standard_normal()
+        eng.tell(s.params, float(j_of(u)[0]) + 0.005 * rng.standard_normal(), {"max_travel_mm": travel})
+    return eng, asked, kinds
+
+
+def test_with_the_simulators_outcome_the_first_runs_keep_the_limit() -> None:
+    """The simulator's J optimum breaks the limit on the car; with its travel as the travel model's prior the first
+    run is the simulator's best calibration that keeps the limit, and no run of the campaign breaks it."""
+    assert car_travel(OPT)[0] > LIMIT + 10.0
+    broke_with, broke_without = 0, 0
+    for seed in range(3):
+        eng, asked, kinds = _campaign(True, seed)
+        assert kinds[0] == "prior"
+        t = car_travel(np.array(asked))
+        broke_with += int(np.sum(t > LIMIT))
+        assert asked[0][0] > OPT[0] + 0.2  # not the unconstrained optimum: where its travel keeps the limit
+        rec = eng.recommend()
+        assert car_travel(np.array([rec.params["a"], rec.params["b"]]))[0] <= LIMIT
+        _, asked0, _ = _campaign(False, seed)
+        broke_without += int(np.sum(car_travel(np.array(asked0)) > LIMIT))
+    assert broke_with == 0
+    assert broke_without >= 3  # without the prior the first runs break it: the test is real
+
+
+def test_a_design_point_the_outcome_prior_rejects_is_replaced_by_the_nearest_allowed() -> None:
+    src = _source(nominal_travel)
+    cfg = EngineConfig(
+        budget=10, seed=2, constraints=(f"max_travel_mm<={LIMIT}",), outcome_priors={"max_travel_mm": src.to_dict()}
+    )
+    eng = Engine({"a": (0.0, 1.0), "b": (0.0, 1.0)}, cfg)
+    d = Engine({"a": (0.0, 1.0), "b": (0.0, 1.0)}, EngineConfig(budget=10, seed=2)).ask()  # the same design
+    u_d = np.array([d["a"], d["b"]])
+    prior_only = OutcomeModel(OutcomeLimit("max_travel_mm", LIMIT), src)
+    assert prior_only.prob_violation(u_d[None, :])[0] > 0.05  # the prior rejects the first design point
+    s = eng.ask_with_info()
+    u = np.array([s.params["a"], s.params["b"]])
+    assert s.kind == "initial" and "design_point_skipped" in s.info
+    assert prior_only.prob_violation(u[None, :])[0] <= 0.05  # what is asked instead is allowed
+    g = np.linspace(0.0, 1.0, 201)
+    G = np.array(np.meshgrid(g, g, indexing="ij")).reshape(2, -1).T
+    ok = prior_only.prob_violation(G) <= 0.05
+    nearest = float(np.min(np.linalg.norm(G[ok] - u_d, axis=1)))
+    assert np.linalg.norm(u - u_d) <= nearest + 0.03  # and it is the allowed calibration nearest to the design point
+
+
+def test_outcome_priors_are_checked_and_kept_in_the_state() -> None:
+    src = _source(nominal_travel).to_dict()
+    with pytest.raises(EngineError, match="no limit names"):
+        EngineConfig(constraints=("max_travel_mm<=60",), outcome_priors={"peak_accel_z": src})
+    three = SourceSurface.from_function(lambda U: U[:, 0], 3, 16).to_dict()
+    with pytest.raises(EngineError, match="3 dimensions"):
+        Engine(
+            {"a": (0.0, 1.0), "b": (0.0, 1.0)},
+            EngineConfig(constraints=("max_travel_mm<=60",), outcome_priors={"max_travel_mm": three}),
+        )
+    cfg = EngineConfig(budget=8, seed=1, constraints=("max_travel_mm<=60",), outcome_priors={"max_travel_mm": src})
+    eng = Engine({"a": (0.0, 1.0), "b": (0.0, 1.0)}, cfg)
+    for _ in range(4):
+        p = eng.ask()
+        u = np.array([p["a"], p["b"]])
+        eng.tell(p, float(j_of(u)[0]), {"max_travel_mm": float(car_travel(u)[0])})
+    again = Engine.from_json(eng.to_json())
+    assert again.config.outcome_priors is not None and set(again.config.outcome_priors) == {"max_travel_mm"}
+    assert again.ask() == eng.ask()
+
+
+def test_an_earlier_campaigns_measured_outcomes_are_the_outcome_priors(tmp_path: Path) -> None:
+    """bo_agent's prior_source names an earlier campaign: its runs' measured outcomes become the priors of the
+    outcomes this campaign limits (a reduce output, which scores J only, gives none); journaled for a refit."""
+    from bac_agent.journal import Journal, journaled_engine_options
+    from bac_agent.transfer import load_outcome_sources
+    from bac_common.paramspace import CalibrationDefinition
+    from bac_common.paths import resolve_definition
+
+    definition = CalibrationDefinition.load(resolve_definition("controller_i"))
+    space = SearchSpace.from_definition(definition)
+    j = Journal(tmp_path / "earlier")
+    j.append("campaign_started", campaign_id="earlier", names=list(space.names), stamp=0.0)
+    rng = np.random.default_rng(0)
+    U = rng.random((12, 2))
+    for k, u in enumerate(U):
+        outcomes = {"max_travel_mm": float(nominal_travel(u)[0])}
+        if k < 2:
+            outcomes["peak_accel_z"] = 5.0  # measured on 2 runs only: too few for a prior
+        j.append(
+            "trial_scored",
+            campaign_id="earlier",
+            trial_id=k + 1,
+            params=space.to_params(space.from_unit(u)),
+            j=float(j_of(u)[0]),
+            outcomes=outcomes,
+            stamp=float(k + 1),
+        )
+    j.close()
+    got = load_outcome_sources(tmp_path / "earlier", definition, ["max_travel_mm", "peak_accel_z"])
+    assert set(got) == {"max_travel_mm"}
+    assert got["max_travel_mm"].label.startswith("max_travel_mm: campaign earlier (12 runs")
+    Q = np.random.default_rng(1).random((32, 2))
+    np.testing.assert_allclose(got["max_travel_mm"].predict_j(Q), nominal_travel(Q), atol=2.0)
+    assert load_outcome_sources(tmp_path / "earlier", definition, []) == {}
+    assert load_outcome_sources(tmp_path, definition, ["max_travel_mm"]) == {}  # not a campaign folder
+    started = {
+        "config": {
+            "constraints": ["max_travel_mm<=60"],
+            "outcome_priors": {k: v.to_dict() for k, v in got.items()},
+        }
+    }
+    options = journaled_engine_options(started)
+    assert set(options["outcome_priors"]) == {"max_travel_mm"}
+    EngineConfig.from_dict({**options, "budget": 5})  # what a refit builds from the journal
+
+
+def test_the_outcome_priors_posterior_is_that_of_a_gp_with_the_coefficients_integrated_out() -> None:
+    """a ~ N(0, σa²), b ~ N(1, σb²) and the residual GP are one GP of prior mean s(x) and covariance
+    k(x, x') + σa² + σb² s(x) s(x'): the model's mean and latent variance are that GP's (R&W 2006, eq. 2.42)."""
+    from bac_agent.bo import constraints as c
+    from bac_agent.bo.kernel import matern52_from_r2, sq_dist
+
+    rng = np.random.default_rng(5)
+    X = rng.random((9, 2))
+    v = car_travel(X) + 0.5 * rng.standard_normal(9)
+    src = _source(nominal_travel)
+    m = OutcomeModel(OutcomeLimit("max_travel_mm", LIMIT), src)
+    m.fit(X, v, np.random.default_rng(0))
+    h = m.gp.hyper
+    assert h is not None
+    Q = np.vstack([X[:2] + 0.01, rng.random((6, 2))])  # near runs and far from them
+    z = (v - src.loc) / src.scale
+    sX, sQ = src.standardized(X), src.standardized(Q)
+
+    def k(A: np.ndarray, B: np.ndarray, sa: np.ndarray, sb: np.ndarray) -> np.ndarray:
+        base = matern52_from_r2(sq_dist(A, B, h.lengthscales), h.outputscale)
+        return np.asarray(base + c.OUTCOME_PRIOR_OFFSET_SD**2 + c.OUTCOME_PRIOR_SCALE_SD**2 * np.outer(sa, sb))
+
+    K = k(X, X, sX, sX) + (h.noise + 1e-10 * h.outputscale) * np.eye(9)
+    Ks = k(Q, X, sQ, sX)
+    mean = sQ + Ks @ np.linalg.solve(K, z - sX)
+    var = np.diag(k(Q, Q, sQ, sQ)) - np.sum(Ks * np.linalg.solve(K, Ks.T).T, axis=1)
+    mu, sd, _, _ = m._moments(Q)
+    np.testing.assert_allclose(mu, mean, rtol=1e-6, atol=1e-8)
+    np.testing.assert_allclose(sd**2, var, rtol=1e-5, atol=1e-9)
+
+
+def test_a_source_evaluated_twice_at_the_same_points_computes_once(monkeypatch: pytest.MonkeyPatch) -> None:
+    """An outcome model evaluates its source twice per step of the acquisition's maximizer (its trend and the
+    coefficients' variance); the second is the first's result (issue 23's latency with outcome priors)."""
+    from bac_agent.bo import gp as gp_module
+
+    src = _source(nominal_travel)
+    calls: list[int] = []
+    real = gp_module.GP.predict_mean_with_grad
+
+    def counting(self: gp_module.GP, Xq: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        calls.append(1)
+        return real(self, Xq)
+
+    monkeypatch.setattr(gp_module.GP, "predict_mean_with_grad", counting)
+    U = np.array([[0.2, 0.3], [0.7, 0.9]])
+    s1, g1 = src.standardized_and_grad(U)
+    s2, g2 = src.standardized_and_grad(U.copy())
+    assert len(calls) == 1
+    np.testing.assert_array_equal(s1, s2)
+    np.testing.assert_array_equal(g1, g2)
+    s3, _ = src.standardized_and_grad(U + 0.01)  # other points: computed
+    assert len(calls) == 2 and not np.allclose(s3, s1)
+    np.testing.assert_allclose(src.standardized_and_grad(U)[0], src.standardized(U))
