@@ -157,7 +157,7 @@ class BoAgentNode(BacNode):
         )
         design_margin = self.declare_float(
             "design_margin",
-            0.0,
+            0.1,
             "bo: the initial design spans [m, 1 - m] of every parameter's range (0: the whole range)",
             0.0,
             0.49,

@@ -160,16 +160,15 @@ def test_initial_design_is_space_filling_and_seeded() -> None:
     assert pa == pb
     X = np.array([[p["x"], p["y"], p["z"]] for p in pa])
     for k in range(3):
-        # a Latin hypercube stretched over the whole range (the default margin 0, issue 23): 8 levels per axis,
-        # extremes on the faces
-        assert X[:, k].min() == pytest.approx(0.0) and X[:, k].max() == pytest.approx(1.0)
+        # a Latin hypercube stretched over [0.1, 0.9] (the default margin): 8 levels per axis, extremes at the margins
+        assert X[:, k].min() == pytest.approx(0.1) and X[:, k].max() == pytest.approx(0.9)
         assert np.min(np.diff(np.sort(X[:, k]))) > 0.0
     c = Engine({"x": (0, 1), "y": (0, 1), "z": (0, 1)}, budget=30, n_initial=8, seed=4)
     assert [c.ask() for _ in range(8)] != pa
-    # the margin is a setting: 0.1 keeps the design 10 % off the faces, on another parameter range too
-    d = Engine({"x": (10, 20), "y": (-1, 1)}, EngineConfig(budget=30, n_initial=6, seed=3, design_margin=0.1))
+    # the margin is a setting: 0 spreads the design over the whole range, on another parameter range too
+    d = Engine({"x": (10, 20), "y": (-1, 1)}, EngineConfig(budget=30, n_initial=6, seed=3, design_margin=0.0))
     Y = np.array([[p["x"], p["y"]] for p in (d.ask() for _ in range(6))])
-    assert Y.min(axis=0) == pytest.approx([11, -0.8]) and Y.max(axis=0) == pytest.approx([19, 0.8])
+    assert Y.min(axis=0) == pytest.approx([10, -1]) and Y.max(axis=0) == pytest.approx([20, 1])
     with pytest.raises(EngineError, match="design_margin"):
         EngineConfig(design_margin=0.5)
 
