@@ -320,6 +320,27 @@ def test_a_transfer_prior_and_an_outcome_limit_through_the_node_and_the_report(p
     broken = [e["trial_id"] for e in scored if e["violations"]]
     assert out["summary"]["limit_breaking_trials"] == broken
 
+    # a campaign started before outcome priors existed (its journal has neither key) resumes as it ran: the
+    # source's measured peaks do not become a prior it never had (the outside review: it was refused, and no
+    # parameter could turn the priors off)
+    lines = (cdir / "journal.jsonl").read_text().splitlines()
+    first = json.loads(lines[0])
+    assert first["event"] == "campaign_started"
+    for key in ("outcome_priors", "prior_runs"):
+        del first["config"][key]
+    (cdir / "journal.jsonl").write_text("\n".join([json.dumps(first), *lines[1:]]) + "\n")
+    agent2 = start_agent(
+        procs,
+        "agent2",
+        cdir,
+        "budget:=6",
+        "seed:=1",
+        f"prior_source:={source}",
+        "constraints:=['peak_accel_z<=6.0']",
+    )
+    assert wait_exit(agent2, 120, "the resumed bo_agent to finish") == 0, procs.log("agent2")
+    assert "cannot resume" not in procs.log("agent2")
+
 
 if __name__ == "__main__":
     sys.exit(pytest.main([__file__, "-q"]))

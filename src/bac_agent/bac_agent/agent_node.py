@@ -283,9 +283,14 @@ class BoAgentNode(BacNode):
         prior_info = source_summary(source, SearchSpace.from_definition(self.definition)) if source else {}
         # what the same source knows of the limited outcomes (an earlier campaign's measured outcomes; a reduce
         # output has none): each outcome's model starts from it
+        started = journal.events[0] if len(journal) else {}
+        started_config = started.get("config") if started.get("event") == "campaign_started" else None
         outcome_sources = (
-            load_outcome_sources(prior_source, self.definition, [parse_limits([c])[0].name for c in constraints])
-            if source is not None and constraints
+            load_outcome_sources(prior_source, self.definition, [limit.name for limit in parse_limits(constraints)])
+            if source is not None
+            and constraints
+            # a campaign started before outcome priors existed (its journal has no such key) resumes as it ran
+            and not (isinstance(started_config, dict) and "outcome_priors" not in started_config)
             else {}
         )
         # with a transfer prior the first trial is the prior's optimum (the model's, not the file's best guess)

@@ -365,3 +365,24 @@ def test_one_run_is_recommended_as_driven_not_an_arbitrary_point() -> None:
         r = eng.ask()
         eng.tell(r, 0.5)  # now the model decides, and may go between the runs
         assert eng.recommend().n_observations == 3
+
+
+def test_one_run_with_a_transfer_prior_the_runs_do_not_support_is_recommended_as_driven() -> None:
+    """A transfer prior gives the model its shape only while it is in use: with a low prior_weight one run does
+    not take it up (prior_in_use 0), the engine's own model of one run is flat, and its "argmin" would again be
+    an arbitrary calibration never driven (found by the outside review: (0.015, 0.931) for a run at (0.3, 0.6))."""
+    from bac_agent.bo.prior import SourceSurface
+
+    src = SourceSurface.from_function(lambda U: np.sum((U - [0.3, 0.6]) ** 2, axis=1), 2, 64, "bowl")
+    space = [("u0", 0.0, 1.0, 0.001), ("u1", 0.0, 1.0, 0.001)]
+    for weight in (0.3, 0.1):
+        eng = Engine(space, EngineConfig(budget=10, seed=0, prior=src.to_dict(), prior_weight=weight))
+        p = eng.ask()
+        eng.tell(p, 1.0)
+        rec = eng.recommend()
+        assert rec.transfer["prior_in_use"] == 0.0
+        assert rec.params == pytest.approx(p)
+    eng = Engine(space, EngineConfig(budget=10, seed=0, prior=src.to_dict(), prior_runs=1))
+    for _ in range(2):
+        eng.tell(eng.ask(), 1.0)  # two equal runs after the prior's last run: nothing to model
+    assert eng.recommend().params in [pytest.approx(o.params) for o in eng.observations]

@@ -648,10 +648,19 @@ def refit(campaign_dir: Path, runs: Sequence[RunResult]) -> dict[str, Any]:
         {**journaled_engine_options(started), "budget": max(1, len(runs)), "seed": int(started.get("seed", 0))}
     )
     eng = Engine(definition, cfg)
+    # the outcomes the live agent was told with each trial (a travel sensor's, the simulator's), and over them
+    # what the rescore measured again: the outcome limits' models learn as the agent's did
+    live: dict[int, dict[str, float]] = {}
+    for e in read_journal(campaign_dir / JOURNAL_NAME).events:
+        if e.get("event") == "trial_scored" and isinstance(e.get("outcomes"), dict):
+            live[int(e.get("trial_id", -1))] = {
+                str(k): float(v) for k, v in e["outcomes"].items() if isinstance(v, int | float)
+            }
     told = 0
     for r in runs:
         if r.params is not None and r.score.valid:
-            eng.tell(dict(r.params), r.score.j)
+            outcomes = {**live.get(r.run.trial_id, {}), **{str(k): float(v) for k, v in r.score.outcomes.items()}}
+            eng.tell(dict(r.params), r.score.j, outcomes)
             told += 1
     if told == 0:
         raise RescoreError("no valid rescored run with known parameters: nothing to fit")

@@ -435,10 +435,16 @@ class Engine:
         return s
 
     def _can_model(self) -> bool:
-        """A model of J can be fitted: two different runs, or one with a transfer prior (which gives the shape)."""
-        if self._source is not None:
-            return len(self.observations) >= 1
-        return len(self.observations) >= 2 and float(np.ptp([o.value for o in self.observations])) > 0.0
+        """A model of J with a shape: two different runs, or a transfer prior the runs support (in use: it gives
+        the shape). Else the posterior mean is flat and its argmin an arbitrary calibration."""
+        if not self.observations:
+            return False
+        if len(self.observations) >= 2 and float(np.ptp([o.value for o in self.observations])) > 0.0:
+            return True
+        if self._source is None or len(self.observations) > self.prior_runs:
+            return False
+        self._model()  # the fit weighs the prior against the runs
+        return self.transfer is not None and self.transfer.used
 
     def _outcomes_known(self) -> bool:
         """The outcome limits' models predict: runs were told, or a limit's outcome has a prior."""
@@ -452,17 +458,31 @@ class Engine:
         p = outc.prob_violation(cand).max(axis=1)
         ok = p <= outc.level
         if not np.any(ok):
-            return np.asarray(cand[int(np.argmin(p))], dtype=float)
+            i = int(np.argmin(p))
+            self._no_safe_candidate(float(p[i]))
+            return np.asarray(cand[i], dtype=float)
         d2 = np.where(ok, np.sum((cand - u) ** 2, axis=1), np.inf)
         return np.asarray(cand[int(np.argmin(d2))], dtype=float)
+
+    def _no_safe_candidate(self, p_violation: float) -> None:
+        """Said with the proposal (the campaign logs it as a warning and journals it)."""
+        self._acq_info["no_safe_candidate"] = (
+            f"no calibration is predicted to keep every limit with probability >= "
+            f"{1 - self.config.constraint_level:g}; the least risky one ({p_violation:.2f})"
+        )
 
     def _random_allowed(self) -> FloatArray:
         """A random point, within the outcome limits' level when they are modelled."""
         if self._outcomes_known():
             cand = self.rng.random((256, self.space.dim))
-            ok = self._outcome_models().allowed(cand)
+            outc = self._outcome_models()
+            p = outc.prob_violation(cand).max(axis=1)
+            ok = p <= outc.level
             if np.any(ok):
                 return np.asarray(cand[int(np.flatnonzero(ok)[0])], dtype=float)
+            i = int(np.argmin(p))
+            self._no_safe_candidate(float(p[i]))
+            return np.asarray(cand[i], dtype=float)
         return self.rng.random(self.space.dim)
 
     def _suggest(self, u: FloatArray, kind: str) -> Suggestion:
@@ -607,10 +627,7 @@ class Engine:
             worst = outc.prob_violation(cand).max(axis=1)
             worst = np.where(self._near_failures(cand), np.inf, worst)
             i = int(np.argmin(worst))
-            self._acq_info["no_safe_candidate"] = (
-                f"no calibration is predicted to keep every limit with probability >= "
-                f"{1 - self.config.constraint_level:g}; the least risky one ({worst[i]:.2f})"
-            )
+            self._no_safe_candidate(float(worst[i]))
             return np.asarray(cand[i], dtype=float)
         acq = np.where(ok, acq_values(cand), -np.inf)
         order = np.argsort(-acq)
