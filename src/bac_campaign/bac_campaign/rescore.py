@@ -650,16 +650,21 @@ def refit(campaign_dir: Path, runs: Sequence[RunResult]) -> dict[str, Any]:
     eng = Engine(definition, cfg)
     # the outcomes the live agent was told with each trial (a travel sensor's, the simulator's), and over them
     # what the rescore measured again: the outcome limits' models learn as the agent's did
-    live: dict[int, dict[str, float]] = {}
+    # (by run: a rejected attempt's own outcomes were never told, and one measurement is not told twice)
+    live: dict[tuple[int, int], dict[str, float]] = {}
     for e in read_journal(campaign_dir / JOURNAL_NAME).events:
-        if e.get("event") == "trial_scored" and isinstance(e.get("outcomes"), dict):
-            live[int(e.get("trial_id", -1))] = {
-                str(k): float(v) for k, v in e["outcomes"].items() if isinstance(v, int | float)
+        tid, attempt = e.get("trial_id"), e.get("attempt", 1)
+        if e.get("event") == "trial_scored" and isinstance(e.get("outcomes"), dict) and isinstance(tid, int):
+            live[(tid, int(attempt) if isinstance(attempt, int) else 1)] = {
+                str(k): float(v)
+                for k, v in e["outcomes"].items()
+                if isinstance(v, int | float) and not isinstance(v, bool)
             }
     told = 0
     for r in runs:
         if r.params is not None and r.score.valid:
-            outcomes = {**live.get(r.run.trial_id, {}), **{str(k): float(v) for k, v in r.score.outcomes.items()}}
+            rescored = {str(k): float(v) for k, v in r.score.outcomes.items() if math.isfinite(v)}
+            outcomes = {**live.get((r.run.trial_id, r.run.attempt), {}), **rescored}
             eng.tell(dict(r.params), r.score.j, outcomes)
             told += 1
     if told == 0:

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 from pathlib import Path
 from types import SimpleNamespace
+from typing import Any
 
 import numpy as np
 
@@ -54,3 +55,39 @@ def test_the_refit_tells_each_run_the_outcomes_the_agent_was_told(tmp_path: Path
     want = agent.recommend().params
     assert _peak(want["damping_front"]) <= 6.0 < _peak(blind.recommend().params["damping_front"])  # the premise
     assert np.allclose([rec["params"][k] for k in want], list(want.values()))
+
+
+def test_each_run_gets_its_own_outcomes_and_the_rescored_ones_win(tmp_path: Path, monkeypatch: Any) -> None:
+    """Outcomes are matched by run (trial and attempt): an attempt rejected live (now valid) was never told any,
+    and one measurement is not told twice; what the rescore measures again replaces what was told."""
+    definition = CalibrationDefinition.load(resolve_definition("controller_i"))
+    params = {"damping_front": 0.3, "damping_rear": 0.6}
+    with Journal(tmp_path) as jr:
+        jr.append(
+            "campaign_started",
+            campaign_id="c",
+            definition=definition.to_dict(),
+            strategy="bo",
+            seed=0,
+            config={"constraints": [LIMIT, "max_travel_mm<=60"]},
+        )
+        jr.append("trial_proposed", trial_id=1, kind=0, params=params, predicted_j=None, predicted_std=None)
+        jr.append("run_rejected", trial_id=1, attempt=1, reason="too slow")
+        jr.append("trial_scored", trial_id=1, attempt=2, j=1.0, outcomes={"peak_accel_z": 5.0, "max_travel_mm": 50.0})
+    told: list[dict[str, float]] = []
+    monkeypatch.setattr(Engine, "tell", lambda self, p, j, outcomes=None: told.append(dict(outcomes or {})))
+    monkeypatch.setattr(Engine, "recommend", lambda self: SimpleNamespace(params=p, predicted_j=1.0, predicted_std=0.0))
+    p = params
+    runs = [
+        RunResult(
+            RunId("c", 1, a),
+            params,
+            1.0,
+            "",
+            None,  # type: ignore[arg-type]
+            SimpleNamespace(valid=True, j=1.0, outcomes={"peak_accel_z": 5.5}),
+        )
+        for a in (1, 2)
+    ]
+    refit(tmp_path, runs)
+    assert told == [{"peak_accel_z": 5.5}, {"peak_accel_z": 5.5, "max_travel_mm": 50.0}]

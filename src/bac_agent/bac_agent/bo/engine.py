@@ -815,8 +815,8 @@ class Engine:
             raise EngineError("nothing has been told yet: tell() at least one result first")
         u: FloatArray | None = None
         if rule == "mean" and self._can_model():
-            # one run (or runs all equal) and no transfer prior: the posterior mean is flat, its "argmin" would be
-            # an arbitrary calibration never driven; the driven one is the answer (issue 23)
+            # (else: one run, or runs all equal, and no transfer prior in use: the posterior mean is flat, its
+            # "argmin" would be an arbitrary calibration never driven; the driven one is the answer, issue 23)
             u = self._minimize_bound(self.config.recommend_beta)
         if u is None:
             u = self._best_observed_unit(by_model=rule != "best_run")
