@@ -165,8 +165,9 @@ class EngineConfig:
     # a calibration known to keep the outcome limits (tuned values by name: the ECU's baseline, the calibration it
     # runs now). With limits of which one has no outcome prior (nothing known of it before run 1) it is run 1
     # (kind "safe"), in place of the nearest design point, and the initial design grows from it: each design point
-    # is proposed once the outcome models allow it, else the allowed calibration nearest to it (safe exploration,
-    # as SafeOpt: Sui et al. 2015). Ignored without limits or when every limited outcome has a prior (issue 23)
+    # is proposed once the outcome models allow it and it lies within a step of a run that kept the limits
+    # (SAFE_STEP), else the nearest such calibration (safe exploration, as SafeOpt: Sui et al. 2015). Ignored
+    # without limits or when every limited outcome has a prior. Not the default: docs/agent.md (issue 23)
     safe_start: Mapping[str, float] | None = None
 
     def __post_init__(self) -> None:
