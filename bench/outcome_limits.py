@@ -14,6 +14,12 @@ otherwise, rule (a)), and without the limit for comparison, on the same seeds an
   at Sobol points, its J as the transfer prior (``prior``) and its travel as the travel model's prior
   (``outcome_priors``);
 * ``limit_simout``: the limit with the simulator's travel only (no prior on J);
+* ``limit_safe_start`` (added 2026-11-24): the limit, nothing known before the first run, but a safe start
+  (``EngineConfig.safe_start``): run 1 is the calibration a user starts from, the shipped definition's baseline
+  (``controller_i.yaml``, the same for every instance, as on a real car: the ECU's reference calibration), and the
+  initial design grows from it within what the travel model allows. Whether that seed itself keeps each
+  instance's limit is printed (``# the safe start's true travel``): where it does not, the engine must learn
+  from that run and retreat;
 * ``none``: no limit.
 
 Printed per arm: the share of campaigns whose final recommendation keeps the limit (true travel), the share of
@@ -97,6 +103,26 @@ def travel_source(index: int) -> dict[str, Any]:
     return SourceSurface.from_function(f, b.shape[0], SOURCE_POINTS, label=label, seed=index).to_dict()
 
 
+def safe_seed() -> dict[str, float]:
+    """The calibration a user starts from: the shipped Controller I definition's baseline (tuned names)."""
+    from bac_common.paramspace import CalibrationDefinition
+
+    root = Path(__file__).resolve().parent.parent
+    d = CalibrationDefinition.load(root / "ros_ws" / "config" / "calibrations" / "controller_i.yaml")
+    base = d.baseline_values()
+    return {n: base[n] for n in d.tuned}
+
+
+def seed_travel(index: int) -> float:
+    """The safe start's true (noise-free) travel on an instance."""
+    inst = pf.instance(FAMILY, index)
+    seed = safe_seed()
+    b = inst.bounds
+    x = np.array([[seed["damping_front"], seed["damping_rear"]]])
+    assert np.all((x >= b[:, 0]) & (x <= b[:, 1]))
+    return float(inst.evaluate(x)["max_travel_mm"][0])
+
+
 def _task(args: tuple[int, int, str, int, str]) -> dict[str, Any]:
     index, seed, arm, budget, config = args
     from threadpoolctl import threadpool_limits
@@ -116,6 +142,8 @@ def _task(args: tuple[int, int, str, int, str]) -> dict[str, Any]:
             from transfer import source_for
 
             extra["prior"] = source_for(FAMILY, index, "sim")
+        if arm == "limit_safe_start":
+            extra["safe_start"] = safe_seed()
         cfg = EngineConfig.from_dict(
             {**json.loads(config or "{}"), "budget": budget, "seed": seed, "constraints": cons, **extra}
         )
@@ -159,7 +187,7 @@ def _task(args: tuple[int, int, str, int, str]) -> dict[str, Any]:
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--split", default="held-out", choices=sorted(pf.SPLITS))
-    ap.add_argument("--arms", default="limit,limit_sim,limit_simout,none")
+    ap.add_argument("--arms", default="limit,limit_sim,limit_simout,limit_safe_start,none")
     ap.add_argument("--budget", type=int, default=20)
     ap.add_argument("--instances", type=int, default=0, help="only the first N instances of the split (0: all)")
     ap.add_argument("--seeds", type=int, default=0, help="only the first N seeds of the split (0: all)")
@@ -191,6 +219,15 @@ def main(argv: list[str] | None = None) -> int:
     )
     limits = sorted({(r["instance"], round(r["limit"], 1), round(100 * r["feasible_share"])) for r in results})
     print("# limits (instance, mm, feasible % of the box): " + ", ".join(f"{i}: {m} ({f} %)" for i, m, f in limits))
+    if "limit_safe_start" in arms:
+        seeds_t = {i: seed_travel(i) for i, _, _ in limits}
+        broke = [i for i, m, _ in limits if seeds_t[i] > m]
+        print(
+            f"# the safe start {safe_seed()}'s true travel (instance: mm): "
+            + ", ".join(f"{i}: {seeds_t[i]:.1f}" for i, _, _ in limits)
+            + f"; it breaks the limit on {len(broke)} of {len(limits)} instances"
+            + (f" ({', '.join(map(str, broke))})" if broke else "")
+        )
     print(
         f"\n{'arm':<12} {'final keeps':>11} {'runs broke (true)':>17} {'(measured)':>10} {'runs to c-opt':>13} "
         f"{'90% CI':>9} {'n':>4} {'final gap_c':>11} {'final margin mm':>15} "
@@ -222,6 +259,8 @@ def main(argv: list[str] | None = None) -> int:
     out.parent.mkdir(parents=True, exist_ok=True)
     out.write_text(json.dumps({"results": results}))
     print(f"\n# raw results {out}")
+    if "limit_safe_start" in pct:
+        print(f"limit_violating_runs_pct_safe_start {pct['limit_safe_start']:.1f}")
     if "limit_sim" in pct:
         print(f"limit_violating_runs_pct_sim {pct['limit_sim']:.1f}")
     print(f"limit_violating_runs_pct {pct.get('limit', float('nan')):.1f}")

@@ -342,5 +342,34 @@ def test_a_transfer_prior_and_an_outcome_limit_through_the_node_and_the_report(p
     assert "cannot resume" not in procs.log("agent2")
 
 
+def test_a_safe_start_drives_the_baseline_first_and_grows_within_the_limit(procs: Any, tmp_path: Path) -> None:
+    """issue 23: with constraints and nothing known of the outcome, safe_start makes trial 1 the definition's
+    baseline (journaled), the next ones within the limit; a journal from before the safe start resumes as it ran."""
+    from standins import known_peak
+
+    cdir = tmp_path / "camp"
+    start_standins(procs, tmp_path)
+    params = ("budget:=5", "seed:=2", "constraints:=['peak_accel_z<=6.0']", "safe_start:=true")
+    agent = start_agent(procs, "agent", cdir, *params)
+    assert wait_exit(agent, 120, "bo_agent to finish") == 0, procs.log("agent")
+    ev = jsonl(cdir / "journal.jsonl")
+    start = next(e for e in ev if e["event"] == "campaign_started")
+    baseline = {"damping_front": 0.5, "damping_rear": 0.5}  # controller_i.yaml's baseline
+    assert start["config"]["safe_start"] == baseline
+    proposed = [e for e in ev if e["event"] == "trial_proposed"]
+    assert proposed[0]["reason"] == "safe" and proposed[0]["params"] == baseline
+    scored = [e for e in ev if e["event"] == "trial_scored"]
+    assert len(scored) == 5 and not any(e["violations"] for e in scored)
+    assert all(known_peak(list(e["params"].values())) <= 6.0 for e in scored)
+
+    lines = (cdir / "journal.jsonl").read_text().splitlines()
+    first = json.loads(lines[0])
+    del first["config"]["safe_start"]
+    (cdir / "journal.jsonl").write_text("\n".join([json.dumps(first), *lines[1:]]) + "\n")
+    agent2 = start_agent(procs, "agent2", cdir, *params)
+    assert wait_exit(agent2, 120, "the resumed bo_agent to finish") == 0, procs.log("agent2")
+    assert "cannot resume" not in procs.log("agent2")
+
+
 if __name__ == "__main__":
     sys.exit(pytest.main([__file__, "-q"]))

@@ -212,6 +212,14 @@ class BoAgentNode(BacNode):
             0.5,
             read_only=True,
         )
+        safe_start = self.declare_bool(
+            "safe_start",
+            False,
+            "bo with constraints: trial 1 is the definition's baseline (the ECU's reference calibration, assumed to "
+            "keep the limits) and the initial design grows from it within what the outcome models allow (only while "
+            "a limited outcome has no prior)",
+            True,
+        )
         grid_size = self.declare_int("grid_size", 4, "levels per dimension of the grid strategy", 1, 100, True)
         max_attempts = self.declare_int("max_attempts", 3, "runs per trial before it is given up", 1, 100)
         apply_timeout = self.declare_float("apply_timeout_s", 10.0, "time limit of one apply, s", 0.1, 600.0)
@@ -299,6 +307,15 @@ class BoAgentNode(BacNode):
             if start_from == "guess" and self.definition.best_guess and source is None
             else ()
         )
+        # a campaign started before the safe start (its journal has no such key) resumes as it ran
+        safe_calibration = (
+            self.definition.baseline_tuned()
+            if safe_start
+            and constraints
+            and self.strategy == "bo"
+            and not (isinstance(started_config, dict) and "safe_start" not in started_config)
+            else None
+        )
         optimizer: Optimizer
         if self.strategy == "grid":
             grid = GridStrategy(self.definition, grid_size, seed)
@@ -327,6 +344,7 @@ class BoAgentNode(BacNode):
                     constraints=tuple(constraints),
                     constraint_level=constraint_level,
                     outcome_priors={k: v.to_dict() for k, v in outcome_sources.items()} or None,
+                    safe_start=safe_calibration,
                 ),
             )
         cfg = CampaignConfig(
@@ -366,6 +384,8 @@ class BoAgentNode(BacNode):
                 "constraint_level": constraint_level,
                 # what the prior source knew of the limited outcomes: each surface (a refit models as the agent did)
                 "outcome_priors": {k: v.to_dict() for k, v in outcome_sources.items()},
+                # the calibration trial 1 drives and the design grows from (issue 23; {} = none)
+                "safe_start": dict(safe_calibration or {}),
             },
             outcome_limits=tuple(constraints),
         )

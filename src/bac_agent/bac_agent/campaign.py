@@ -53,6 +53,7 @@ from bac_agent.bo.engine import (
     KIND_INITIAL,
     KIND_OPTIMIZED,
     KIND_PRIOR,
+    KIND_SAFE,
     Recommendation,
     Suggestion,
 )
@@ -100,6 +101,7 @@ _KIND_OF_SUGGESTION = {
     KIND_INITIAL: Kind.INITIAL,
     KIND_GUESS: Kind.INITIAL,
     KIND_PRIOR: Kind.INITIAL,
+    KIND_SAFE: Kind.INITIAL,
     KIND_OPTIMIZED: Kind.OPTIMIZED,
     KIND_GRID: Kind.GRID,
 }
@@ -643,8 +645,9 @@ class Campaign:
         )
         t = self.trials[tid]
         acts: list[Action] = []
-        if "no_safe_candidate" in s.info:
-            acts.append(Log("warn", f"trial {tid}: {s.info['no_safe_candidate']}"))
+        for key in ("safe_start_broke", "no_safe_candidate"):
+            if key in s.info:
+                acts.append(Log("warn", f"trial {tid}: {s.info[key]}"))
         return [
             *acts,
             self._status(State.PROPOSED, f"Wait: trial {tid} calibration chosen ({s.kind})."),
@@ -997,7 +1000,7 @@ RESUME_MAY_CHANGE = frozenset(
 # journal without the entry is compared as if it held that value (it resumes when the agent keeps it)
 # configuration keys added after campaigns were journaled, with the value those campaigns ran with (issue 23,
 # 2026-11-24: no outcome priors, no limit on the transfer prior's runs)
-ADDED_LATER: Mapping[str, Any] = {"recommend_rule": "mean", "outcome_priors": {}, "prior_runs": 0}
+ADDED_LATER: Mapping[str, Any] = {"recommend_rule": "mean", "outcome_priors": {}, "prior_runs": 0, "safe_start": {}}
 _MISSING = object()
 
 

@@ -462,6 +462,77 @@ def test_every_cut_of_a_journal_with_limits_and_a_prior_resumes_to_the_same_camp
             assert got[key] == value, f"cut after line {k}: {key} differs"
 
 
+# --- with an outcome limit and a safe start, nothing known of the outcome before run 1 (issue 23) -----------------
+
+SAFE = {"damping_front": 0.8, "damping_rear": 0.5}  # keeps the limit: 40 + 8 + 1 = 49 mm
+
+
+def config_safe() -> CampaignConfig:
+    extra = {**config().extra, "constraints": [LIMIT], "constraint_level": 0.05, "safe_start": SAFE}
+    return config(outcome_limits=(LIMIT,), extra=extra)
+
+
+_PRISTINE_SAFE: list[Engine] = []
+
+
+def engine_safe() -> Engine:
+    if not _PRISTINE_SAFE:
+        cfg = EngineConfig(
+            budget=BUDGET,
+            n_initial=3,
+            seed=3,
+            n_candidates=64,
+            n_local=16,
+            acq_restarts=2,
+            nei_samples=8,
+            gp=GPConfig(bowl_centres=32, draws=2),
+            constraints=(LIMIT,),
+            safe_start=SAFE,
+        )
+        _PRISTINE_SAFE.append(Engine(SPACE, cfg))
+    return copy.deepcopy(_PRISTINE_SAFE[0])
+
+
+def start_safe(campaign_dir: Path, clock: Clock) -> Chain:
+    return start(campaign_dir, clock, config_safe(), engine_safe(), travel)
+
+
+@pytest.fixture(scope="module")
+def live_safe(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, dict[str, Any]]:
+    d = tmp_path_factory.mktemp("live_safe")
+    chain = start_safe(d, Clock())
+    chain.run()
+    chain.c.journal.close()
+    return d, outcome(d, chain)
+
+
+def test_every_cut_of_a_journal_with_a_safe_start_resumes_to_the_same_campaign(
+    live_safe: tuple[Path, dict[str, Any]], tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """Trial 1 is the safe calibration (reason ``safe``, journaled with the start), the design grows from it; cut
+    anywhere, the resumed campaign proposes, books and recommends what the uninterrupted one did."""
+    monkeypatch.setattr(os, "fsync", lambda fd: None)
+    src, expected = live_safe
+    events = [json.loads(x) for x in (src / JOURNAL_NAME).read_text().splitlines()]
+    assert events[0]["config"]["safe_start"] == SAFE
+    first = next(e for e in events if e["event"] == "trial_proposed")
+    assert first["reason"] == "safe" and first["kind"] == 0 and first["params"] == SAFE
+    raw = (src / JOURNAL_NAME).read_bytes()
+    lines = raw.splitlines(keepends=True)
+    for k in range(1, len(lines) + 1):
+        d = tmp_path / f"line_{k}"
+        d.mkdir()
+        (d / JOURNAL_NAME).write_bytes(b"".join(lines[:k]))
+        if k == len(lines):
+            shutil.copy(src / RECOMMENDATION_NAME, d / RECOMMENDATION_NAME)
+        last = json.loads(lines[k - 1])
+        chain = start_safe(d, Clock(100.0 + last["stamp"]))
+        chain.run()
+        got = outcome(d, chain)
+        for key, value in expected.items():
+            assert got[key] == value, f"cut after line {k}: {key} differs"
+
+
 LIMITS_REFUSED: dict[str, tuple[str, Callable[[], CampaignConfig]]] = {
     "limit": (
         'config.outcome_limits[0]: journaled "max_travel_mm <= 60", this agent "max_travel_mm <= 55"',
@@ -632,6 +703,24 @@ def test_a_journal_from_before_the_recommendation_rule_resumes_with_the_rule_it_
     assert again.pending is not None
     (resumed,) = [e for e in again.c.journal.events if e["event"] == "campaign_resumed"]
     assert resumed["changed"] == []
+
+
+def test_a_journal_from_before_the_safe_start_resumes_without_one(tmp_path: Path) -> None:
+    """campaign_started without safe_start (journaled before it existed) ran without one: the agent without one
+    (``{}``) resumes it (campaign.ADDED_LATER), an agent with one is refused."""
+    chain = start(tmp_path, Clock())
+    for _ in range(3):
+        chain.step()
+    chain.c.journal.close()
+    assert "safe_start" not in chain.c.journal.events[0]["config"]
+    camp = Campaign(engine(), Journal(tmp_path), config(extra=_extra(safe_start={})), Clock(), definition=DEFINITION)
+    assert camp.check_resume() == []
+    camp.journal.close()
+    safe = {"damping_front": 0.5, "damping_rear": 0.5}
+    camp = Campaign(engine(), Journal(tmp_path), config(extra=_extra(safe_start=safe)), Clock(), definition=DEFINITION)
+    with pytest.raises(CampaignError, match=r"config\.safe_start\.damping_front"):
+        camp.check_resume()
+    camp.journal.close()
 
 
 def test_the_bowl_length_does_not_refuse_a_resume_without_the_bowl(tmp_path: Path) -> None:

@@ -351,6 +351,22 @@ class CalibrationDefinition:
         """The safe calibration (raw, every parameter): baseline, else fixed, else nominal."""
         return {p.name: float(self.baseline.get(p.name, self.fixed.get(p.name, p.nominal))) for p in self.parameters}
 
+    def baseline_tuned(self) -> dict[str, float]:
+        """The safe calibration in the tuned dimensions (what an optimizer can start from): a raw dimension's
+        baseline value; a meta-parameter at its members' mean relative position in their ranges (exact when the
+        baseline moves them together), within its bounds."""
+        base = self.baseline_values()
+        out: dict[str, float] = {}
+        for d in self.dimensions:
+            if not d.is_meta:
+                out[d.name] = min(max(base[d.name], d.lower), d.upper)
+                continue
+            m = self.meta_parameter(d.name)
+            rel = [(base[n] - p.lower) / (p.upper - p.lower) for n in m.members for p in (self.parameter(n),)]
+            u = min(max(sum(rel) / len(rel), 0.0), 1.0)
+            out[d.name] = m.lower + u * (m.upper - m.lower)
+        return out
+
     # --- tuned values -> raw values ------------------------------------------------------
     def expand(self, values: Mapping[str, float]) -> dict[str, float]:
         """Map tuned values (every tuned dimension, by name) to the full raw calibration.

@@ -52,6 +52,20 @@ def test_meta_parameter_maps_relative_position_into_each_members_range() -> None
     assert raw["a"] == pytest.approx(0.25) and raw["b"] == pytest.approx(150.0)
 
 
+def test_the_baseline_in_the_tuned_dimensions_is_what_an_optimizer_can_start_from() -> None:
+    c1 = CalibrationDefinition.load(CALIB / "controller_i.yaml")
+    assert c1.baseline_tuned() == {"damping_front": 0.5, "damping_rear": 0.5}
+    d = CalibrationDefinition(
+        name="x",
+        parameters=(RawParameter("a", 0, 0.0, 1.0, 0.5, 1e-4), RawParameter("b", 1, 100.0, 300.0, 200.0, 0.1)),
+        tuned=("m",),
+        meta=(MetaParameter("m", ("a", "b"), 0.0, 10.0),),
+        baseline={"a": 0.2, "b": 180.0},  # relative positions 0.2 and 0.4
+    )
+    assert d.baseline_tuned() == {"m": pytest.approx(3.0)}
+    assert d.expand(d.baseline_tuned())["a"] == pytest.approx(0.3)
+
+
 @pytest.mark.parametrize("value", [-0.001, 1.0001, float("nan"), float("inf")])
 def test_out_of_bounds_values_are_refused(value: float) -> None:
     c1 = CalibrationDefinition.load(CALIB / "controller_i.yaml")

@@ -39,7 +39,7 @@ from numpy.typing import NDArray
 from scipy.optimize import minimize
 
 from bac_agent.bo.acquisition import NoisyEI, log_ei, log_ei_with_grad
-from bac_agent.bo.constraints import OutcomeLimit, OutcomeModels, parse_limits
+from bac_agent.bo.constraints import OutcomeLimit, OutcomeModels, parse_limits, violations
 from bac_agent.bo.design import candidates, default_n_initial, initial_design
 from bac_agent.bo.gp import GP, GPConfig, Hyper
 from bac_agent.bo.prior import SourceSurface, TransferFit, TransferSettings, fit_with_source
@@ -54,11 +54,21 @@ PRIOR_N_INITIAL = 3  # initial design with a transfer prior: its argmin and two 
 KIND_INITIAL = "initial"
 KIND_GUESS = "guess"  # a best guess given with the configuration (initial_points), asked first
 KIND_PRIOR = "prior"  # the argmin of a transfer prior's source (the simulator's optimum), asked first
+KIND_SAFE = "safe"  # a calibration known to keep the outcome limits (the ECU's baseline), asked first (safe_start)
 KIND_OPTIMIZED = "optimized"
 KIND_RANDOM = "random"
 KIND_GRID = "grid"
 ACQUISITIONS = ("ei", "nei")
 RULES = ("mean", "observed", "best_run")  # Engine.recommend(rule)
+# a safe start's design grows from the runs that kept every limit by steps (SafeOpt's safe set, Sui et al. 2015: a
+# calibration is safe when a safe run's margin to the limit exceeds the Lipschitz constant times the distance), not
+# by the outcome model's extrapolation alone: fitted to a few runs close together it is confident far beyond them
+# (a MAP lengthscale from 3 runs). The step from a run is at most SAFE_STEP (unit cube) and at most its margin to
+# each limit over SAFE_LIPSCHITZ_FACTOR times the steepest slope seen between two runs (an estimate of the
+# Lipschitz constant; pairs closer than SAFE_MIN_PAIR, where the scatter of a run dominates, left out)
+SAFE_STEP = 0.25
+SAFE_LIPSCHITZ_FACTOR = 1.5
+SAFE_MIN_PAIR = 0.05
 
 
 def _make_blas_limiter() -> Callable[[], Any]:
@@ -152,6 +162,13 @@ class EngineConfig:
     # what the simulator (or an earlier campaign) knows of a limited outcome: outcome name -> SourceSurface.to_dict()
     # of that outcome over this space's unit cube; its model's prior mean from the first run on (bo/constraints.py)
     outcome_priors: Mapping[str, Any] | None = None
+    # a calibration known to keep the outcome limits (tuned values by name: the ECU's baseline, the calibration it
+    # runs now). With limits of which one has no outcome prior (nothing known of it before run 1) it is run 1
+    # (kind "safe"), in place of the nearest design point, and the initial design grows from it: each design point
+    # is proposed once the outcome models allow it and it lies within a step of a run that kept the limits
+    # (SAFE_STEP), else the nearest such calibration (safe exploration, as SafeOpt: Sui et al. 2015). Ignored
+    # without limits or when every limited outcome has a prior. Not the default: docs/agent.md (issue 23)
+    safe_start: Mapping[str, float] | None = None
 
     def __post_init__(self) -> None:
         if self.budget < 1:
@@ -197,6 +214,7 @@ class EngineConfig:
         d["constraints"] = [OutcomeLimit.from_spec(c).to_dict() for c in self.constraints]
         d["prior"] = dict(self.prior) if self.prior is not None else None
         d["outcome_priors"] = {k: dict(v) for k, v in self.outcome_priors.items()} if self.outcome_priors else None
+        d["safe_start"] = dict(self.safe_start) if self.safe_start else None
         return d
 
     @classmethod
@@ -206,6 +224,8 @@ class EngineConfig:
             {str(k): float(v) for k, v in p.items()} for p in data.get("initial_points") or ()
         )
         data["constraints"] = tuple(OutcomeLimit.from_spec(c).to_dict() for c in data.get("constraints") or ())
+        if data.get("safe_start"):
+            data["safe_start"] = {str(k): float(v) for k, v in data["safe_start"].items()}
         gp = dict(data.pop("gp", {}) or {})
         for k in ("ls_bounds", "os_bounds"):
             if k in gp:
@@ -326,6 +346,23 @@ class Engine:
                 remaining.remove(min(remaining, key=lambda i: float(np.sum((self._design[i] - g) ** 2))))
             self._design = np.vstack([guesses[:n_g], self._design[remaining]])
             self._n_guess = n_g
+        self._n_safe = 0
+        if self.safe_start_used:
+            self._start_safe()
+
+    @property
+    def safe_start_used(self) -> bool:
+        """A safe start is given, limits are set and one limited outcome has no prior (see EngineConfig)."""
+        return bool(self.config.safe_start) and any(m.source is None for m in self._outcomes.models)
+
+    def _start_safe(self) -> None:
+        """The safe calibration first, in place of the design point nearest to it (the guesses are kept)."""
+        assert self.config.safe_start is not None
+        u = self.space.to_unit(self.space.to_array(self.config.safe_start))
+        rows = list(range(self._n_guess, self._design.shape[0])) or [self._design.shape[0] - 1]
+        drop = min(rows, key=lambda i: float(np.sum((self._design[i] - u) ** 2)))
+        self._design = np.vstack([u[None, :], np.delete(self._design, drop, axis=0)])
+        self._n_safe = 1
 
     def _source_argmin_allowed(self, fallback: FloatArray) -> FloatArray:
         """The source's best calibration among those the outcome priors allow (Sobol candidates and the source's
@@ -416,16 +453,30 @@ class Engine:
         k = self.n_trials + len(self.pending)
         self._acq_info: dict[str, Any] = {}
         s: Suggestion | None = None
+        if self._n_safe and k == 1 and len(self.observations) == 1:
+            self._say_safe_start_broke(self.observations[0])
         if k < self.n_initial and k < self._design.shape[0]:
             u = self._design[k]
-            if self._outcomes_known() and not self._outcome_models().allowed(u[None, :])[0]:
+            if self._n_safe and k >= self._n_safe and self._kept_runs().size:
+                # from a safe start that kept the limits: the design point when it is allowed and within a step of
+                # a run that kept them, else the nearest such calibration (the explored region grows outwards)
+                v = self._grow_safe(u)
+                if v is u:
+                    s = self._suggest(u, self._guess_kind if k - self._n_safe < self._n_guess else KIND_INITIAL)
+                else:
+                    self._acq_info["design_point_skipped"] = "predicted to break an outcome limit, or not yet reached"
+                    s = self._suggest(v, KIND_INITIAL)
+            elif self._outcomes_known() and not self._outcome_models().allowed(u[None, :])[0]:
                 # a design point the outcome models expect to break a limit: the model chooses instead (before it
-                # can, the allowed calibration nearest to the design point)
+                # can, the allowed calibration nearest to the design point); from a safe start always the nearest
+                # allowed one: the explored region grows from the safe calibration towards the design's points
                 self._acq_info["design_point_skipped"] = "predicted to break an outcome limit"
                 if not self._can_model():
                     s = self._suggest(self._nearest_allowed(u), KIND_INITIAL)
+            elif k < self._n_safe:
+                s = self._suggest(u, KIND_SAFE)
             else:
-                s = self._suggest(u, self._guess_kind if k < self._n_guess else KIND_INITIAL)
+                s = self._suggest(u, self._guess_kind if k - self._n_safe < self._n_guess else KIND_INITIAL)
         if s is None:
             if not self._can_model():
                 s = self._suggest(self._random_allowed(), KIND_RANDOM)
@@ -463,6 +514,57 @@ class Engine:
             return np.asarray(cand[i], dtype=float)
         d2 = np.where(ok, np.sum((cand - u) ** 2, axis=1), np.inf)
         return np.asarray(cand[int(np.argmin(d2))], dtype=float)
+
+    def _kept_runs(self) -> FloatArray:
+        """The runs (unit cube) that kept every outcome limit as measured."""
+        ok = self._outcomes.observed_ok([o.outcomes for o in self.observations])
+        return self._obs_unit()[ok] if np.any(ok) else np.zeros((0, self.space.dim))
+
+    def _safe_radii(self) -> FloatArray:
+        """How far (unit cube) the safe region reaches from each run that kept every limit (SAFE_STEP at most)."""
+        ok = self._outcomes.observed_ok([o.outcomes for o in self.observations])
+        U = self._obs_unit()
+        r = np.full(int(np.sum(ok)), SAFE_STEP)
+        d = np.sqrt(np.sum((U[:, None, :] - U[None, :, :]) ** 2, axis=2))
+        far = d > SAFE_MIN_PAIR
+        for lim in self._limits:
+            v = np.array([float(o.outcomes.get(lim.name, math.nan)) for o in self.observations])
+            dv = np.abs(v[:, None] - v[None, :])
+            slopes = np.where(far & np.isfinite(dv), dv / np.where(far, d, 1.0), 0.0)
+            slope = float(np.max(slopes)) if slopes.size else 0.0
+            if slope <= 0.0:
+                continue
+            margin = (lim.bound - v[ok]) if lim.upper else (v[ok] - lim.bound)
+            r = np.minimum(r, np.where(np.isfinite(margin), margin, 0.0) / (SAFE_LIPSCHITZ_FACTOR * slope))
+        return r
+
+    def _grow_safe(self, u: FloatArray) -> FloatArray:
+        """``u`` itself when the outcome models allow it and it lies within SAFE_STEP of a run that kept every limit,
+        else the nearest such calibration (Sobol candidates), else the least likely to break a limit."""
+        kept = self._kept_runs()
+        cand = np.vstack([u[None, :], candidates(self.config.n_candidates, self.space.dim, self.rng)])
+        outc = self._outcome_models()
+        p = outc.prob_violation(cand).max(axis=1)
+        radii = self._safe_radii()
+        near = np.any(np.sum((cand[:, None, :] - kept[None, :, :]) ** 2, axis=2) <= radii[None, :] ** 2, axis=1)
+        ok = (p <= outc.level) & near & ~self._near_failures(cand)
+        if ok[0]:
+            return u
+        if not np.any(ok):
+            i = int(np.argmin(np.where(near, p, np.inf))) if np.any(near) else int(np.argmin(p))
+            self._no_safe_candidate(float(p[i]))
+            return np.asarray(cand[i], dtype=float)
+        d2 = np.where(ok, np.sum((cand - u) ** 2, axis=1), np.inf)
+        return np.asarray(cand[int(np.argmin(d2))], dtype=float)
+
+    def _say_safe_start_broke(self, run: Observation) -> None:
+        """The safe start's run broke a limit: said with the next proposal (the campaign logs it as a warning)."""
+        broke = violations(self._limits, run.outcomes)
+        if broke:
+            self._acq_info["safe_start_broke"] = (
+                f"the safe start broke {'; '.join(broke)}: it does not keep these limits; the next calibrations are "
+                "those least likely to break them"
+            )
 
     def _no_safe_candidate(self, p_violation: float) -> None:
         """Said with the proposal (the campaign logs it as a warning and journals it)."""

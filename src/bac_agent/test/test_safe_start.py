@@ -1,0 +1,92 @@
+"""A safe start (issue 23): with outcome limits and nothing known of an outcome before run 1, run 1 is a
+calibration known to keep the limits (the ECU's baseline) and the initial design grows from it."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from bac_agent.bo import Engine, EngineConfig
+from bac_agent.bo.engine import KIND_SAFE
+from bac_agent.bo.prior import SourceSurface
+
+LIMIT = "max_travel_mm<=60"
+SAFE = {"a": 0.9, "b": 0.5}  # travel 46.5: keeps the limit
+
+
+def travel_of(u: np.ndarray) -> float:
+    """Soft (small a) lets the suspension travel far: 80 at a = 0, 40 at a = 1; 60 at a = 0.5 + b / 8."""
+    return float(80.0 - 40.0 * u[0] + 5.0 * u[1])
+
+
+def j_of(u: np.ndarray) -> float:
+    return float(np.sqrt(0.01 + np.sum((u - np.array([0.2, 0.3])) ** 2)))
+
+
+def _engine(seed: int, **over: object) -> Engine:
+    cfg = EngineConfig.from_dict({"budget": 12, "seed": seed, "constraints": [LIMIT], **over})
+    return Engine({"a": (0.0, 1.0), "b": (0.0, 1.0)}, cfg)
+
+
+def _design_phase(eng: Engine, seed: int) -> list[np.ndarray]:
+    rng = np.random.default_rng(seed)
+    asked = []
+    for _ in range(eng.n_initial):
+        p = eng.ask()
+        u = np.array([p["a"], p["b"]])
+        asked.append(u)
+        eng.tell(
+            p, j_of(u) + 0.005 * rng.standard_normal(), {"max_travel_mm": travel_of(u) + 1.0 * rng.standard_normal()}
+        )
+    return asked
+
+
+def test_run_1_is_the_safe_start_and_the_design_grows_from_it_within_the_limit() -> None:
+    broken_plain = 0
+    for seed in range(6):
+        eng = _engine(seed, safe_start=SAFE)
+        s = eng.ask_with_info()
+        assert s.kind == KIND_SAFE and s.params == SAFE
+        eng.pending.clear()
+        asked = _design_phase(eng, seed)
+        assert np.allclose(asked[0], [0.9, 0.5])
+        # every run of the design keeps the limit: each design point is driven once the travel model allows it,
+        # else the allowed calibration nearest to it
+        assert all(travel_of(u) <= 60.0 for u in asked), (seed, asked)
+        assert len({tuple(np.round(u, 3)) for u in asked}) == len(asked)  # it grows: no run repeated
+        broken_plain += sum(travel_of(u) > 60.0 for u in _design_phase(_engine(seed), seed))
+    assert broken_plain > 0  # without the safe start the first design point breaks it in some campaigns
+
+
+def test_the_safe_start_is_kept_in_the_state_and_the_resumed_engine_asks_the_same() -> None:
+    eng = _engine(1, safe_start=SAFE)
+    p = eng.ask()
+    eng.tell(p, j_of(np.array([0.9, 0.5])), {"max_travel_mm": 46.0})
+    again = Engine.from_json(eng.to_json())
+    assert again.config.safe_start == SAFE
+    assert again.ask() == eng.ask()
+
+
+def test_the_safe_start_is_used_only_with_limits_and_an_outcome_without_a_prior() -> None:
+    plain = Engine({"a": (0.0, 1.0), "b": (0.0, 1.0)}, EngineConfig(budget=12, seed=2))
+    no_limits = Engine({"a": (0.0, 1.0), "b": (0.0, 1.0)}, EngineConfig(budget=12, seed=2, safe_start=SAFE))
+    assert not no_limits.safe_start_used and no_limits.ask() == plain.ask()
+    src = SourceSurface.from_function(lambda U: 80.0 - 40.0 * U[:, 0] + 5.0 * U[:, 1], 2, 32, seed=0).to_dict()
+    with_prior = _engine(2, safe_start=SAFE, outcome_priors={"max_travel_mm": src})
+    assert not with_prior.safe_start_used  # what the simulator knows of the travel chooses run 1
+    assert with_prior.ask_with_info().kind != KIND_SAFE
+
+
+def test_a_safe_start_that_breaks_a_limit_is_said_and_the_engine_retreats() -> None:
+    eng = _engine(0, safe_start={"a": 0.1, "b": 0.5})  # travel 78.5: not safe for this limit
+    p = eng.ask()
+    eng.tell(p, j_of(np.array([0.1, 0.5])), {"max_travel_mm": 78.5})
+    s = eng.ask_with_info()
+    assert "max_travel_mm <= 60 (measured 78.5)" in s.info["safe_start_broke"]
+    assert np.hypot(s.params["a"] - 0.1, s.params["b"] - 0.5) > 0.3  # away from it
+
+
+@pytest.mark.parametrize("bad", [{"a": 0.9}, {"a": 1.5, "b": 0.5}])
+def test_a_safe_start_outside_the_space_is_refused(bad: dict[str, float]) -> None:
+    with pytest.raises(ValueError):
+        _engine(0, safe_start=bad)
