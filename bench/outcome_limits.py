@@ -14,6 +14,11 @@ otherwise, rule (a)), and without the limit for comparison, on the same seeds an
   at Sobol points, its J as the transfer prior (``prior``) and its travel as the travel model's prior
   (``outcome_priors``);
 * ``limit_simout``: the limit with the simulator's travel only (no prior on J);
+* ``limit_campaign`` (added 2026-11-24, the outside review's case): the source is an earlier **15-run bac
+  campaign** of the nominal car on the same bump (its defaults, no limit, noisy runs; its runs cluster near its
+  optimum), written as a campaign journal and read by the node's own code path (``bac_agent.transfer.load_source``
+  and ``load_outcome_sources``, what ``bo_agent``'s ``prior_source: <campaign folder>`` does): its J the transfer
+  prior, its measured travel the travel model's prior;
 * ``none``: no limit.
 
 Printed per arm: the share of campaigns whose final recommendation keeps the limit (true travel), the share of
@@ -97,6 +102,49 @@ def travel_source(index: int) -> dict[str, Any]:
     return SourceSurface.from_function(f, b.shape[0], SOURCE_POINTS, label=label, seed=index).to_dict()
 
 
+CAMPAIGN_RUNS = 15  # the limit_campaign arm's source campaign
+
+
+def campaign_source(index: int) -> dict[str, Any]:
+    """The ``limit_campaign`` arm's priors: a 15-run bac campaign of the nominal car (no limit, noisy runs, seed =
+    the instance), journaled in a temporary campaign folder and read back as ``bo_agent`` reads ``prior_source``."""
+    import tempfile
+
+    from bac_agent.bo import Engine, EngineConfig
+    from bac_agent.journal import Journal
+    from bac_agent.transfer import load_outcome_sources, load_source
+    from bac_sim.families import get_family
+
+    fam = get_family(FAMILY)
+    nominal = fam.nominal(fam.instance(index))
+    definition = nominal.definition
+    eng = Engine(definition, EngineConfig(budget=CAMPAIGN_RUNS, seed=index))
+    names = list(eng.names)
+    rng = np.random.default_rng([index, 777])
+    with tempfile.TemporaryDirectory() as tmp:
+        folder = Path(tmp) / f"nominal_{index}"
+        j = Journal(folder)
+        j.append("campaign_started", campaign_id=folder.name, names=names, stamp=0.0)
+        for k in range(CAMPAIGN_RUNS):
+            q = eng.ask()
+            out = nominal.noisy(np.array([[q[n] for n in names]]), rng)
+            travel = float(out["max_travel_mm"][0])
+            eng.tell(q, float(out["j"][0]), {"max_travel_mm": travel})
+            j.append(
+                "trial_scored",
+                campaign_id=folder.name,
+                trial_id=k + 1,
+                params=q,
+                j=float(out["j"][0]),
+                outcomes={"max_travel_mm": travel},
+                stamp=float(k + 1),
+            )
+        j.close()
+        prior = load_source(folder, definition)
+        outcome = load_outcome_sources(folder, definition, ["max_travel_mm"])
+    return {"prior": prior.to_dict(), "outcome_priors": {k: v.to_dict() for k, v in outcome.items()}}
+
+
 def _task(args: tuple[int, int, str, int, str]) -> dict[str, Any]:
     index, seed, arm, budget, config = args
     from threadpoolctl import threadpool_limits
@@ -116,6 +164,8 @@ def _task(args: tuple[int, int, str, int, str]) -> dict[str, Any]:
             from transfer import source_for
 
             extra["prior"] = source_for(FAMILY, index, "sim")
+        if arm == "limit_campaign":
+            extra.update(campaign_source(index))
         cfg = EngineConfig.from_dict(
             {**json.loads(config or "{}"), "budget": budget, "seed": seed, "constraints": cons, **extra}
         )
@@ -159,7 +209,7 @@ def _task(args: tuple[int, int, str, int, str]) -> dict[str, Any]:
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--split", default="held-out", choices=sorted(pf.SPLITS))
-    ap.add_argument("--arms", default="limit,limit_sim,limit_simout,none")
+    ap.add_argument("--arms", default="limit,limit_sim,limit_simout,limit_campaign,none")
     ap.add_argument("--budget", type=int, default=20)
     ap.add_argument("--instances", type=int, default=0, help="only the first N instances of the split (0: all)")
     ap.add_argument("--seeds", type=int, default=0, help="only the first N seeds of the split (0: all)")
@@ -224,6 +274,8 @@ def main(argv: list[str] | None = None) -> int:
     print(f"\n# raw results {out}")
     if "limit_sim" in pct:
         print(f"limit_violating_runs_pct_sim {pct['limit_sim']:.1f}")
+    if "limit_campaign" in pct:
+        print(f"limit_violating_runs_pct_campaign {pct['limit_campaign']:.1f}")
     print(f"limit_violating_runs_pct {pct.get('limit', float('nan')):.1f}")
     return 0
 

@@ -354,6 +354,7 @@ class OutcomeModel:
         dmu = trend.b * ds + np.einsum("qnd,n->qd", dKq, self._alpha)
         V = Kq @ self._Kinv  # k(x, X) K⁻¹
         R = np.column_stack([np.ones(U.shape[0]), s]) - V @ self._H
+        assert self._coef_cov is not None
         RC = R @ self._coef_cov
         var = h.outputscale + self._beta2 * var_s - np.sum(V * Kq, axis=1) + np.sum(RC * R, axis=1)
         dR0 = -np.einsum("qnd,n->qd", dKq, self._Kinv_H[:, 0])
