@@ -68,13 +68,23 @@ def test_an_outcome_prior_learns_the_cars_offset_and_scale() -> None:
     assert np.median(np.abs(nominal_travel(Q) - car_travel(Q))) > 9.0  # what the source alone is off by
 
 
+def _clustered_source(seed: int = 2) -> SourceSurface:
+    """Six noisy runs of the nominal travel, all at u0 >= 0.7 (an earlier campaign near its optimum)."""
+    rng = np.random.default_rng(seed)
+    Xs = np.column_stack([0.7 + 0.3 * rng.random(6), rng.random(6)])
+    return SourceSurface.fit(Xs, nominal_travel(Xs), "six runs near the optimum", noisy=True)
+
+
 @pytest.mark.parametrize("n", [0, 2, 7])
 @pytest.mark.parametrize("measured", [True, False])
-def test_the_outcome_priors_gradient_matches_finite_differences(n: int, measured: bool) -> None:
+@pytest.mark.parametrize("clustered", [False, True])
+def test_the_outcome_priors_gradient_matches_finite_differences(n: int, measured: bool, clustered: bool) -> None:
+    """Dense: the source's variance is round-off; clustered: its variance and covariance with the runs matter."""
     rng = np.random.default_rng(n)
     X = rng.random((n, 2))
     v = car_travel(X) + 0.5 * rng.standard_normal(n)
-    m = OutcomeModel(OutcomeLimit("max_travel_mm", LIMIT), _source(nominal_travel))
+    src = _clustered_source() if clustered else _source(nominal_travel)
+    m = OutcomeModel(OutcomeLimit("max_travel_mm", LIMIT), src)
     m.fit(X, v, np.random.default_rng(0))
     assert (m._coef_cov is not None) == (n > 0)
     U = np.array([[0.45, 0.3], [0.55, 0.8], [0.35, 0.1]])  # near the limit: log P(keep) moves
@@ -304,8 +314,8 @@ def test_a_clustered_source_is_uncertain_where_it_had_no_runs() -> None:
     the prior allowed runs there (p_violation 0.004-0.045). With the source's own variance it does not; where the
     source is dense and noise-free nothing changes much (its variance is round-off)."""
     rng = np.random.default_rng(2)
-    Xs = np.column_stack([0.7 + 0.3 * rng.random(6), rng.random(6)])
-    clustered = SourceSurface.fit(Xs, nominal_travel(Xs), "six runs near the optimum", noisy=True)
+    clustered = _clustered_source()
+    rng.random((6, 2))  # (the source's draws)
     soft = np.array([[0.02, 0.1], [0.05, 0.5], [0.1, 0.9]])
     assert np.all(car_travel(soft) > LIMIT + 15.0)
     lim = OutcomeLimit("max_travel_mm", LIMIT)

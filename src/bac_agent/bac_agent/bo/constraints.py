@@ -191,18 +191,22 @@ class _SourceCov:
         dvar[var <= 0.0] = 0.0
         return np.asarray(np.maximum(var, 0.0), dtype=float), np.asarray(dvar, dtype=float)
 
-    def cross_with_grad(self, U: FloatArray, X: FloatArray) -> tuple[FloatArray, FloatArray]:
-        """C_s(U, X) (q, n) and its gradient in U (q, n, d)."""
-        A = self._at_runs(X)  # (n, m)
+    def cross(self, U: FloatArray, X: FloatArray) -> tuple[FloatArray, Any]:
+        """C_s(U, X) (q, n), and a function that contracts its gradient in U with weights (q, n) or (n,):
+        Σ_j w_j ∂C_s(x_q, X_j)/∂x_q, (q, d), without the (q, n, d) tensor (and its (q, n, m, d) sum)."""
+        A = self._at_runs(X)  # (n, m) = k_s(X, Xs) K_s⁻¹
         Kq, Fq = self._k(U, self.Xs)
         KX, FX = self._k(U, X)
         C = KX - Kq @ A.T
-        dK = -FX[:, :, None] * (U[:, None, :] - X[None, :, :]) * self.il2
-        # d/dx Σ_i k_s(x, Xs_i) A[j, i] = −Σ_i F_i A[j, i] (x − Xs_i) il2
-        T1 = Fq @ A.T  # (q, n)
-        T2 = np.einsum("qi,ji,id->qjd", Fq, A, self.Xs)
-        dC = dK + (U[:, None, :] * T1[:, :, None] - T2) * self.il2
-        return np.asarray(C, dtype=float), np.asarray(dC, dtype=float)
+
+        def contract(W: FloatArray) -> FloatArray:
+            # ∂C_s(x, X_j)/∂x = −F_X,j (x − X_j) il2 + Σ_i F_i A[j, i] (x − Xs_i) il2
+            FW = FX * W
+            B = Fq * (W @ A)  # (q, m): Σ_j w_j F_i A[j, i]
+            out = -(U * FW.sum(axis=1)[:, None] - FW @ X) + (U * B.sum(axis=1)[:, None] - B @ self.Xs)
+            return np.asarray(out * self.il2, dtype=float)
+
+        return np.asarray(C, dtype=float), contract
 
 
 class OutcomeModel:
@@ -344,24 +348,26 @@ class OutcomeModel:
         X = self.gp.X
         r2 = sq_dist(U, X, h.lengthscales)
         il2 = 1.0 / h.lengthscales**2
-        Kq = matern52_from_r2(r2, h.outputscale)
-        dKq = -matern52_dr2_factor(r2, h.outputscale)[:, :, None] * (U[:, None, :] - X[None, :, :]) * il2
-        Cq, dCq = self._source_cov().cross_with_grad(U, X)
-        Kq = Kq + self._beta2 * Cq
-        dKq = dKq + self._beta2 * dCq
+        Fr = matern52_dr2_factor(r2, h.outputscale)
+        Cq, contract_c = self._source_cov().cross(U, X)
+        Kq = matern52_from_r2(r2, h.outputscale) + self._beta2 * Cq
+
+        def contract(W: FloatArray) -> FloatArray:  # Σ_j w_j ∂k(x_q, X_j)/∂x_q, (q, d)
+            FW = Fr * W
+            out = -(U * FW.sum(axis=1)[:, None] - FW @ X) * il2 + self._beta2 * contract_c(W)
+            return np.asarray(out, dtype=float)
+
         trend = cast(PriorTrend, h.prior)
         mu = trend.a + trend.b * s + Kq @ self._alpha
-        dmu = trend.b * ds + np.einsum("qnd,n->qd", dKq, self._alpha)
+        dmu = trend.b * ds + contract(self._alpha)
         V = Kq @ self._Kinv  # k(x, X) K⁻¹
         R = np.column_stack([np.ones(U.shape[0]), s]) - V @ self._H
         assert self._coef_cov is not None
         RC = R @ self._coef_cov
         var = h.outputscale + self._beta2 * var_s - np.sum(V * Kq, axis=1) + np.sum(RC * R, axis=1)
-        dR0 = -np.einsum("qnd,n->qd", dKq, self._Kinv_H[:, 0])
-        dR1 = ds - np.einsum("qnd,n->qd", dKq, self._Kinv_H[:, 1])
-        dvar = (
-            self._beta2 * dvar_s - 2.0 * np.einsum("qn,qnd->qd", V, dKq) + 2.0 * (RC[:, 0:1] * dR0 + RC[:, 1:2] * dR1)
-        )
+        dR0 = -contract(self._Kinv_H[:, 0])
+        dR1 = ds - contract(self._Kinv_H[:, 1])
+        dvar = self._beta2 * dvar_s - 2.0 * contract(V) + 2.0 * (RC[:, 0:1] * dR0 + RC[:, 1:2] * dR1)
         floor = 1e-12 * h.outputscale
         dvar[var <= floor] = 0.0
         sd = np.sqrt(np.maximum(var, floor))
