@@ -19,6 +19,9 @@ otherwise, rule (a)), and without the limit for comparison, on the same seeds an
   optimum), written as a campaign journal and read by the node's own code path (``bac_agent.transfer.load_source``
   and ``load_outcome_sources``, what ``bo_agent``'s ``prior_source: <campaign folder>`` does): its J the transfer
   prior, its measured travel the travel model's prior;
+* ``limit_simfolder`` (added 2026-11-24): ``limit_sim``'s 64 Sobol calibrations of the nominal car, as **noisy
+  runs** of a campaign (what a user gets by running the simulated car first: the ``sim`` profile with
+  ``strategy: random``), journaled and read by the same node code path as ``limit_campaign``;
 * ``none``: no limit.
 
 Printed per arm: the share of campaigns whose final recommendation keeps the limit (true travel), the share of
@@ -37,6 +40,7 @@ and ``limit_violating_runs_pct <x>`` (the ``limit`` arm), each with the goal < 1
 from __future__ import annotations
 
 import argparse
+import functools
 import json
 import os
 import sys
@@ -46,6 +50,7 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+from scipy.stats import qmc
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 import problem_families as pf
@@ -63,6 +68,7 @@ SOURCE_POINTS = 64  # the simulator's runs a prior is fitted to (as bench/transf
 SAFE_MARGIN_MM = 2.0
 
 
+@functools.cache  # the main process's, inherited by the forked workers: 1681 runs each
 def constrained_truth(index: int) -> dict[str, Any]:
     inst = pf.instance(FAMILY, index)
     truth = pf.truth_of(FAMILY, index)
@@ -105,9 +111,11 @@ def travel_source(index: int) -> dict[str, Any]:
 CAMPAIGN_RUNS = 15  # the limit_campaign arm's source campaign
 
 
-def campaign_source(index: int) -> dict[str, Any]:
+@functools.cache  # both seeds of an instance share their source (a worker computes it once)
+def campaign_source(index: int, sobol: bool = False) -> dict[str, Any]:
     """The ``limit_campaign`` arm's priors: a 15-run bac campaign of the nominal car (no limit, noisy runs, seed =
-    the instance), journaled in a temporary campaign folder and read back as ``bo_agent`` reads ``prior_source``."""
+    the instance), journaled in a temporary campaign folder and read back as ``bo_agent`` reads ``prior_source``;
+    ``sobol``: the ``limit_simfolder`` arm's 64 noisy runs at ``limit_sim``'s Sobol points instead."""
     import tempfile
 
     from bac_agent.bo import Engine, EngineConfig
@@ -121,15 +129,18 @@ def campaign_source(index: int) -> dict[str, Any]:
     eng = Engine(definition, EngineConfig(budget=CAMPAIGN_RUNS, seed=index))
     names = list(eng.names)
     rng = np.random.default_rng([index, 777])
+    b = nominal.bounds
+    U = qmc.Sobol(b.shape[0], scramble=True, seed=index).random(SOURCE_POINTS)
     with tempfile.TemporaryDirectory() as tmp:
         folder = Path(tmp) / f"nominal_{index}"
         j = Journal(folder)
         j.append("campaign_started", campaign_id=folder.name, names=names, stamp=0.0)
-        for k in range(CAMPAIGN_RUNS):
-            q = eng.ask()
+        for k in range(SOURCE_POINTS if sobol else CAMPAIGN_RUNS):
+            q = dict(zip(names, b[:, 0] + U[k] * (b[:, 1] - b[:, 0]), strict=True)) if sobol else eng.ask()
             out = nominal.noisy(np.array([[q[n] for n in names]]), rng)
             travel = float(out["max_travel_mm"][0])
-            eng.tell(q, float(out["j"][0]), {"max_travel_mm": travel})
+            if not sobol:
+                eng.tell(q, float(out["j"][0]), {"max_travel_mm": travel})
             j.append(
                 "trial_scored",
                 campaign_id=folder.name,
@@ -164,8 +175,8 @@ def _task(args: tuple[int, int, str, int, str]) -> dict[str, Any]:
             from transfer import source_for
 
             extra["prior"] = source_for(FAMILY, index, "sim")
-        if arm == "limit_campaign":
-            extra.update(campaign_source(index))
+        if arm in ("limit_campaign", "limit_simfolder"):
+            extra.update(campaign_source(index, sobol=arm == "limit_simfolder"))
         cfg = EngineConfig.from_dict(
             {**json.loads(config or "{}"), "budget": budget, "seed": seed, "constraints": cons, **extra}
         )
@@ -209,7 +220,7 @@ def _task(args: tuple[int, int, str, int, str]) -> dict[str, Any]:
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--split", default="held-out", choices=sorted(pf.SPLITS))
-    ap.add_argument("--arms", default="limit,limit_sim,limit_simout,limit_campaign,none")
+    ap.add_argument("--arms", default="limit,limit_sim,limit_simout,limit_campaign,limit_simfolder,none")
     ap.add_argument("--budget", type=int, default=20)
     ap.add_argument("--instances", type=int, default=0, help="only the first N instances of the split (0: all)")
     ap.add_argument("--seeds", type=int, default=0, help="only the first N seeds of the split (0: all)")
@@ -274,8 +285,9 @@ def main(argv: list[str] | None = None) -> int:
     print(f"\n# raw results {out}")
     if "limit_sim" in pct:
         print(f"limit_violating_runs_pct_sim {pct['limit_sim']:.1f}")
-    if "limit_campaign" in pct:
-        print(f"limit_violating_runs_pct_campaign {pct['limit_campaign']:.1f}")
+    for arm in ("limit_campaign", "limit_simfolder"):
+        if arm in pct:
+            print(f"limit_violating_runs_pct_{arm.removeprefix('limit_')} {pct[arm]:.1f}")
     print(f"limit_violating_runs_pct {pct.get('limit', float('nan')):.1f}")
     return 0
 
