@@ -27,7 +27,11 @@ J's transfer prior, the offset matters here (a limit is a level, not a shape): `
 (variance prior median ``residual_os``) for what the source does not explain. Before the first run the model is
 the source itself with the coefficients' and the residual's prior variance: the first proposal already keeps away
 from where the simulator says a limit breaks. The coefficients' posterior variance is added to the residual's
-where the runs do not pin the outcome down (Rasmussen & Williams 2006, eq. 2.42).
+where the runs do not pin the outcome down (Rasmussen & Williams 2006, eq. 2.42). The source is itself a GP
+posterior, uncertain where it had no points (an earlier campaign's runs cluster near its optimum): its posterior
+covariance C_s, scaled by β² = E[b²], is part of the outcome's covariance, k(x, x') + σa² + σb² s(x) s(x') +
+β² C_s(x, x') (exact for a + b s(x) + β (S(x) − s(x)) + residual, S the source's unknown true outcome; since
+2026-11-24), so that a calibration where the source knew nothing is as uncertain as the source is there.
 """
 
 from __future__ import annotations
