@@ -19,6 +19,9 @@ otherwise, rule (a)), and without the limit for comparison, on the same seeds an
   optimum), written as a campaign journal and read by the node's own code path (``bac_agent.transfer.load_source``
   and ``load_outcome_sources``, what ``bo_agent``'s ``prior_source: <campaign folder>`` does): its J the transfer
   prior, its measured travel the travel model's prior;
+* ``limit_reduce`` (added 2026-11-24): the simulation phase's campaigns (``bac_reduce.campaigns``, the agent's
+  engine, 4 campaigns of 16 noisy runs of the nominal car, each run's travel recorded) written as a ``bac reduce``
+  result.json (schema 2) and read by the node's code path (J_mu and the travel surrogate through the definition);
 * ``limit_simfolder`` (added 2026-11-24): ``limit_sim``'s 64 Sobol calibrations of the nominal car, as **noisy
   runs** of a campaign (what a user gets by running the simulated car first: the ``sim`` profile with
   ``strategy: random``), journaled and read by the same node code path as ``limit_campaign``;
@@ -156,6 +159,59 @@ def campaign_source(index: int, sobol: bool = False) -> dict[str, Any]:
     return {"prior": prior.to_dict(), "outcome_priors": {k: v.to_dict() for k, v in outcome.items()}}
 
 
+REDUCE_CAMPAIGNS, REDUCE_TRIALS = 4, 16  # the limit_reduce arm's simulation phase (64 runs, as the other sources)
+
+
+@functools.cache
+def reduce_source(index: int) -> dict[str, Any]:
+    """The ``limit_reduce`` arm's priors: the simulation phase's campaigns on the nominal car, as ``bac reduce``
+    runs them, stored as its result.json and read back as ``bo_agent``'s ``prior_source: reduce_out`` reads it."""
+    import tempfile
+
+    from bac_agent.transfer import load_outcome_sources, load_source
+    from bac_reduce.campaigns import CampaignSettings, campaign_specs, run_campaigns
+    from bac_reduce.pipeline import RESULT_SCHEMA_VERSION
+    from bac_sim.families import get_family
+
+    fam = get_family(FAMILY)
+    nominal = fam.nominal(fam.instance(index))
+
+    class NominalCar:  # a bac_reduce BatchObjective with the outcomes each run reports
+        definition = nominal.definition
+        label = f"nominal car on {nominal.scenario.name}"
+
+        def evaluate_runs(self, thetas: np.ndarray, rng: Any) -> tuple[np.ndarray, dict[str, np.ndarray]]:
+            rows = [nominal.noisy(th[None, :], g) for th, g in zip(np.atleast_2d(thetas), rng, strict=True)]
+            return np.array([r["j"][0] for r in rows]), {
+                "max_travel_mm": np.array([r["max_travel_mm"][0] for r in rows])
+            }
+
+        def evaluate(self, thetas: np.ndarray, rng: Any) -> np.ndarray:
+            return self.evaluate_runs(thetas, rng)[0]
+
+        def true_j(self, thetas: np.ndarray) -> np.ndarray:
+            return np.asarray(nominal.evaluate(np.atleast_2d(thetas))["j"])
+
+        def with_definition(self, definition: Any) -> NominalCar:
+            return self
+
+    out = run_campaigns(
+        NominalCar(),  # type: ignore[arg-type]
+        CampaignSettings(trials=REDUCE_TRIALS),
+        campaign_specs(REDUCE_CAMPAIGNS, seed=index),
+        workers=1,
+        noise_seed=index,
+    )
+    with tempfile.TemporaryDirectory() as tmp:
+        folder = Path(tmp) / "reduce_out"
+        folder.mkdir()
+        data = {"schema_version": RESULT_SCHEMA_VERSION, "campaigns": [c.to_dict() for c in out.campaigns]}
+        (folder / "result.json").write_text(json.dumps(data))
+        prior = load_source(folder, nominal.definition)
+        outcome = load_outcome_sources(folder, nominal.definition, ["max_travel_mm"])
+    return {"prior": prior.to_dict(), "outcome_priors": {k: v.to_dict() for k, v in outcome.items()}}
+
+
 def _task(args: tuple[int, int, str, int, str]) -> dict[str, Any]:
     index, seed, arm, budget, config = args
     from threadpoolctl import threadpool_limits
@@ -175,6 +231,8 @@ def _task(args: tuple[int, int, str, int, str]) -> dict[str, Any]:
             from transfer import source_for
 
             extra["prior"] = source_for(FAMILY, index, "sim")
+        if arm == "limit_reduce":
+            extra.update(reduce_source(index))
         if arm in ("limit_campaign", "limit_simfolder"):
             extra.update(campaign_source(index, sobol=arm == "limit_simfolder"))
         cfg = EngineConfig.from_dict(
@@ -220,7 +278,7 @@ def _task(args: tuple[int, int, str, int, str]) -> dict[str, Any]:
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--split", default="held-out", choices=sorted(pf.SPLITS))
-    ap.add_argument("--arms", default="limit,limit_sim,limit_simout,limit_campaign,limit_simfolder,none")
+    ap.add_argument("--arms", default="limit,limit_sim,limit_simout,limit_campaign,limit_simfolder,limit_reduce,none")
     ap.add_argument("--budget", type=int, default=20)
     ap.add_argument("--instances", type=int, default=0, help="only the first N instances of the split (0: all)")
     ap.add_argument("--seeds", type=int, default=0, help="only the first N seeds of the split (0: all)")
@@ -285,7 +343,7 @@ def main(argv: list[str] | None = None) -> int:
     print(f"\n# raw results {out}")
     if "limit_sim" in pct:
         print(f"limit_violating_runs_pct_sim {pct['limit_sim']:.1f}")
-    for arm in ("limit_campaign", "limit_simfolder"):
+    for arm in ("limit_campaign", "limit_simfolder", "limit_reduce"):
         if arm in pct:
             print(f"limit_violating_runs_pct_{arm.removeprefix('limit_')} {pct[arm]:.1f}")
     print(f"limit_violating_runs_pct {pct.get('limit', float('nan')):.1f}")
