@@ -20,6 +20,17 @@ otherwise, rule (a)), and without the limit for comparison, on the same seeds an
   initial design grows from it within what the travel model allows. Whether that seed itself keeps each
   instance's limit is printed (``# the safe start's true travel``): where it does not, the engine must learn
   from that run and retreat;
+* ``limit_campaign`` (added 2026-11-24, the outside review's case): the source is an earlier **15-run bac
+  campaign** of the nominal car on the same bump (its defaults, no limit, noisy runs; its runs cluster near its
+  optimum), written as a campaign journal and read by the node's own code path (``bac_agent.transfer.load_source``
+  and ``load_outcome_sources``, what ``bo_agent``'s ``prior_source: <campaign folder>`` does): its J the transfer
+  prior, its measured travel the travel model's prior;
+* ``limit_reduce`` (added 2026-11-24): the simulation phase's campaigns (``bac_reduce.campaigns``, the agent's
+  engine, 4 campaigns of 16 noisy runs of the nominal car, each run's travel recorded) written as a ``bac reduce``
+  result.json (schema 2) and read by the node's code path (J_mu and the travel surrogate through the definition);
+* ``limit_simfolder`` (added 2026-11-24): ``limit_sim``'s 64 Sobol calibrations of the nominal car, as **noisy
+  runs** of a campaign (what a user gets by running the simulated car first: the ``sim`` profile with
+  ``strategy: random``), journaled and read by the same node code path as ``limit_campaign``;
 * ``none``: no limit.
 
 Printed per arm: the share of campaigns whose final recommendation keeps the limit (true travel), the share of
@@ -38,6 +49,7 @@ and ``limit_violating_runs_pct <x>`` (the ``limit`` arm), each with the goal < 1
 from __future__ import annotations
 
 import argparse
+import functools
 import json
 import os
 import sys
@@ -47,6 +59,7 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+from scipy.stats import qmc
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 import problem_families as pf
@@ -64,6 +77,7 @@ SOURCE_POINTS = 64  # the simulator's runs a prior is fitted to (as bench/transf
 SAFE_MARGIN_MM = 2.0
 
 
+@functools.cache  # the main process's, inherited by the forked workers: 1681 runs each
 def constrained_truth(index: int) -> dict[str, Any]:
     inst = pf.instance(FAMILY, index)
     truth = pf.truth_of(FAMILY, index)
@@ -121,6 +135,105 @@ def seed_travel(index: int) -> float:
     x = np.array([[seed["damping_front"], seed["damping_rear"]]])
     assert np.all((x >= b[:, 0]) & (x <= b[:, 1]))
     return float(inst.evaluate(x)["max_travel_mm"][0])
+CAMPAIGN_RUNS = 15  # the limit_campaign arm's source campaign
+
+
+@functools.cache  # both seeds of an instance share their source (a worker computes it once)
+def campaign_source(index: int, sobol: bool = False) -> dict[str, Any]:
+    """The ``limit_campaign`` arm's priors: a 15-run bac campaign of the nominal car (no limit, noisy runs, seed =
+    the instance), journaled in a temporary campaign folder and read back as ``bo_agent`` reads ``prior_source``;
+    ``sobol``: the ``limit_simfolder`` arm's 64 noisy runs at ``limit_sim``'s Sobol points instead."""
+    import tempfile
+
+    from bac_agent.bo import Engine, EngineConfig
+    from bac_agent.journal import Journal
+    from bac_agent.transfer import load_outcome_sources, load_source
+    from bac_sim.families import get_family
+
+    fam = get_family(FAMILY)
+    nominal = fam.nominal(fam.instance(index))
+    definition = nominal.definition
+    eng = Engine(definition, EngineConfig(budget=CAMPAIGN_RUNS, seed=index))
+    names = list(eng.names)
+    rng = np.random.default_rng([index, 777])
+    b = nominal.bounds
+    U = qmc.Sobol(b.shape[0], scramble=True, seed=index).random(SOURCE_POINTS)
+    with tempfile.TemporaryDirectory() as tmp:
+        folder = Path(tmp) / f"nominal_{index}"
+        j = Journal(folder)
+        j.append("campaign_started", campaign_id=folder.name, names=names, stamp=0.0)
+        for k in range(SOURCE_POINTS if sobol else CAMPAIGN_RUNS):
+            q = dict(zip(names, b[:, 0] + U[k] * (b[:, 1] - b[:, 0]), strict=True)) if sobol else eng.ask()
+            out = nominal.noisy(np.array([[q[n] for n in names]]), rng)
+            travel = float(out["max_travel_mm"][0])
+            if not sobol:
+                eng.tell(q, float(out["j"][0]), {"max_travel_mm": travel})
+            j.append(
+                "trial_scored",
+                campaign_id=folder.name,
+                trial_id=k + 1,
+                params=q,
+                j=float(out["j"][0]),
+                outcomes={"max_travel_mm": travel},
+                stamp=float(k + 1),
+            )
+        j.close()
+        prior = load_source(folder, definition)
+        outcome = load_outcome_sources(folder, definition, ["max_travel_mm"])
+    return {"prior": prior.to_dict(), "outcome_priors": {k: v.to_dict() for k, v in outcome.items()}}
+
+
+REDUCE_CAMPAIGNS, REDUCE_TRIALS = 4, 16  # the limit_reduce arm's simulation phase (64 runs, as the other sources)
+
+
+@functools.cache
+def reduce_source(index: int) -> dict[str, Any]:
+    """The ``limit_reduce`` arm's priors: the simulation phase's campaigns on the nominal car, as ``bac reduce``
+    runs them, stored as its result.json and read back as ``bo_agent``'s ``prior_source: reduce_out`` reads it."""
+    import tempfile
+
+    from bac_agent.transfer import load_outcome_sources, load_source
+    from bac_reduce.campaigns import CampaignSettings, campaign_specs, run_campaigns
+    from bac_reduce.pipeline import RESULT_SCHEMA_VERSION
+    from bac_sim.families import get_family
+
+    fam = get_family(FAMILY)
+    nominal = fam.nominal(fam.instance(index))
+
+    class NominalCar:  # a bac_reduce BatchObjective with the outcomes each run reports
+        definition = nominal.definition
+        label = f"nominal car on {nominal.scenario.name}"
+
+        def evaluate_runs(self, thetas: np.ndarray, rng: Any) -> tuple[np.ndarray, dict[str, np.ndarray]]:
+            rows = [nominal.noisy(th[None, :], g) for th, g in zip(np.atleast_2d(thetas), rng, strict=True)]
+            return np.array([r["j"][0] for r in rows]), {
+                "max_travel_mm": np.array([r["max_travel_mm"][0] for r in rows])
+            }
+
+        def evaluate(self, thetas: np.ndarray, rng: Any) -> np.ndarray:
+            return self.evaluate_runs(thetas, rng)[0]
+
+        def true_j(self, thetas: np.ndarray) -> np.ndarray:
+            return np.asarray(nominal.evaluate(np.atleast_2d(thetas))["j"])
+
+        def with_definition(self, definition: Any) -> NominalCar:
+            return self
+
+    out = run_campaigns(
+        NominalCar(),  # type: ignore[arg-type]
+        CampaignSettings(trials=REDUCE_TRIALS),
+        campaign_specs(REDUCE_CAMPAIGNS, seed=index),
+        workers=1,
+        noise_seed=index,
+    )
+    with tempfile.TemporaryDirectory() as tmp:
+        folder = Path(tmp) / "reduce_out"
+        folder.mkdir()
+        data = {"schema_version": RESULT_SCHEMA_VERSION, "campaigns": [c.to_dict() for c in out.campaigns]}
+        (folder / "result.json").write_text(json.dumps(data))
+        prior = load_source(folder, nominal.definition)
+        outcome = load_outcome_sources(folder, nominal.definition, ["max_travel_mm"])
+    return {"prior": prior.to_dict(), "outcome_priors": {k: v.to_dict() for k, v in outcome.items()}}
 
 
 def _task(args: tuple[int, int, str, int, str]) -> dict[str, Any]:
@@ -144,6 +257,10 @@ def _task(args: tuple[int, int, str, int, str]) -> dict[str, Any]:
             extra["prior"] = source_for(FAMILY, index, "sim")
         if arm == "limit_safe_start":
             extra["safe_start"] = safe_seed()
+        if arm == "limit_reduce":
+            extra.update(reduce_source(index))
+        if arm in ("limit_campaign", "limit_simfolder"):
+            extra.update(campaign_source(index, sobol=arm == "limit_simfolder"))
         cfg = EngineConfig.from_dict(
             {**json.loads(config or "{}"), "budget": budget, "seed": seed, "constraints": cons, **extra}
         )
@@ -187,7 +304,9 @@ def _task(args: tuple[int, int, str, int, str]) -> dict[str, Any]:
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--split", default="held-out", choices=sorted(pf.SPLITS))
-    ap.add_argument("--arms", default="limit,limit_sim,limit_simout,limit_safe_start,none")
+    ap.add_argument(
+        "--arms", default="limit,limit_sim,limit_simout,limit_campaign,limit_simfolder,limit_reduce,limit_safe_start,none"
+    )
     ap.add_argument("--budget", type=int, default=20)
     ap.add_argument("--instances", type=int, default=0, help="only the first N instances of the split (0: all)")
     ap.add_argument("--seeds", type=int, default=0, help="only the first N seeds of the split (0: all)")
@@ -263,6 +382,9 @@ def main(argv: list[str] | None = None) -> int:
         print(f"limit_violating_runs_pct_safe_start {pct['limit_safe_start']:.1f}")
     if "limit_sim" in pct:
         print(f"limit_violating_runs_pct_sim {pct['limit_sim']:.1f}")
+    for arm in ("limit_campaign", "limit_simfolder", "limit_reduce"):
+        if arm in pct:
+            print(f"limit_violating_runs_pct_{arm.removeprefix('limit_')} {pct[arm]:.1f}")
     print(f"limit_violating_runs_pct {pct.get('limit', float('nan')):.1f}")
     return 0
 

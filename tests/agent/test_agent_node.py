@@ -371,5 +371,58 @@ def test_a_safe_start_drives_the_baseline_first_and_grows_within_the_limit(procs
     assert "cannot resume" not in procs.log("agent2")
 
 
+def test_a_simulation_phase_output_gives_the_limited_outcomes_priors_through_the_node(
+    procs: Any, tmp_path: Path
+) -> None:
+    """issue 23: prior_source names a bac reduce output whose runs reported the simulator's travel (result.json
+    schema 2): the agent builds the travel limit's prior from them, logs and journals it, and trial 1 is the
+    phase's best calibration whose travel keeps the limit (its J optimum, soft front dampers, does not)."""
+    import numpy as np
+    from standins import known_j
+
+    from bac_agent.bo import Engine, EngineConfig
+    from bac_common.paramspace import CalibrationDefinition
+
+    def travel(u: np.ndarray) -> np.ndarray:  # the simulator's: soft front dampers travel far (80 mm at 0)
+        u = np.atleast_2d(u)
+        return np.asarray(80.0 - 40.0 * u[:, 0])
+
+    definition = CalibrationDefinition.load(DEFN)
+    campaigns = []
+    for seed in (0, 1):
+        eng = Engine(definition, EngineConfig(budget=10, seed=seed))
+        X, y = [], []
+        for _ in range(10):
+            q = eng.ask()
+            x = [q["damping_front"], q["damping_rear"]]
+            eng.tell(q, known_j(x))
+            X.append(x)
+            y.append(known_j(x))
+        eng.recommend()
+        state = json.loads(eng.to_json())
+        assert state.get("hyper")
+        campaigns.append(
+            {"X": X, "y": y, "engine_state": eng.to_json(), "outcomes": {"max_travel_mm": travel(np.array(X)).tolist()}}
+        )
+    out = tmp_path / "reduce_out"
+    out.mkdir()
+    (out / "result.json").write_text(json.dumps({"schema_version": 2, "campaigns": campaigns}))
+    cdir = tmp_path / "camp"
+    start_standins(procs, tmp_path)
+    agent = start_agent(
+        procs, "agent", cdir, "budget:=2", "seed:=1", f"prior_source:={out}", "constraints:=['max_travel_mm<=60']"
+    )
+    assert wait_exit(agent, 120, "bo_agent to finish") == 0, procs.log("agent")
+    ev = jsonl(cdir / "journal.jsonl")
+    start = next(e for e in ev if e["event"] == "campaign_started")
+    label = start["config"]["outcome_priors"]["max_travel_mm"]["label"]
+    assert label.startswith("max_travel_mm: bac reduce") and "20 runs of 2 campaigns" in label
+    assert "outcome priors: max_travel_mm: bac reduce" in procs.log("agent")
+    first = next(e for e in ev if e["event"] == "trial_proposed")
+    assert first["reason"] == "prior"
+    # the J optimum (0.3, 0.6) travels 68 mm: trial 1 is where the phase's travel keeps the limit
+    assert first["params"]["damping_front"] > 0.5
+
+
 if __name__ == "__main__":
     sys.exit(pytest.main([__file__, "-q"]))

@@ -177,7 +177,8 @@ class BoAgentNode(BacNode):
             "",
             "bo: a transfer prior: a bac reduce output (its folder or result.json: the simulation phase's surrogate "
             "through this definition) or an earlier campaign's folder (its runs); its optimum is the first trial and "
-            "its shape the model's prior mean while the runs support it ('' = none)",
+            "its shape the model's prior mean while the runs support it; with constraints, what its runs reported "
+            "of each limited outcome is that outcome's prior ('' = none)",
             read_only=True,
         )
         prior_weight = self.declare_float(
@@ -290,7 +291,7 @@ class BoAgentNode(BacNode):
         source = load_source(prior_source, self.definition) if prior_source and self.strategy == "bo" else None
         prior_info = source_summary(source, SearchSpace.from_definition(self.definition)) if source else {}
         # what the same source knows of the limited outcomes (an earlier campaign's measured outcomes; a reduce
-        # output has none): each outcome's model starts from it
+        # output's simulated runs' outcomes, result.json schema 2): each outcome's model starts from it
         started = journal.events[0] if len(journal) else {}
         started_config = started.get("config") if started.get("event") == "campaign_started" else None
         outcome_sources = (

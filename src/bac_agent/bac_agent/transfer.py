@@ -15,8 +15,11 @@
 What the source knows of a **limited outcome** (``load_outcome_sources``; issue 23): an earlier campaign's runs
 carry their measured outcomes (``max_travel_mm``, ``peak_accel_z``, ...); each outcome this campaign limits and
 at least 3 of those runs measured becomes a source surface of that outcome, the prior of its model
-(``EngineConfig.outcome_priors``). A ``bac reduce`` output holds J only (the simulation phase scores J): it gives
-no outcome prior, and the car's outcome models start from their first runs as without a source.
+(``EngineConfig.outcome_priors``). A ``bac reduce`` output (``result.json`` schema 2, since 2026-11-24) stores
+what each simulated run reported besides J (``max_travel_mm``, ``lift_off_ms``): each limited outcome that at
+least 3 runs of a campaign reported becomes a surrogate built as J_mu is (a GP per campaign over its own runs, the
+precision-weighted average of their posterior means, taken through this campaign's definition at Sobol points).
+An older result.json (J only) gives none, and the car's outcome models then start from their first runs.
 
 Either becomes a :class:`~bac_agent.bo.prior.SourceSurface` over this campaign's unit cube (a GP fitted to
 ``points`` Sobol samples of J_mu, or to the runs themselves), which the engine uses as its transfer prior
@@ -79,7 +82,13 @@ def load_outcome_sources(
     folder's runs of each outcome that at least 3 runs within the bounds measured, fitted over ``definition``'s
     tuned space; a ``bac reduce`` output scores J only and gives none (an empty mapping)."""
     p = Path(path).expanduser()
-    if not (p.is_dir() and (p / JOURNAL_NAME).is_file()) or not names:
+    if not names:
+        return {}
+    if not (p.is_dir() and (p / JOURNAL_NAME).is_file()):
+        result = p / REDUCE_RESULT if p.is_dir() else p
+        if result.is_file() and result.suffix == ".json":
+            with _one_blas_thread():
+                return outcome_sources_from_reduce_result(result, definition, names)
         return {}
     out = {}
     with _one_blas_thread():
@@ -171,12 +180,7 @@ def from_reduce_result(
     result: Path, definition: CalibrationDefinition, points: int = 0, seed: int = 0
 ) -> SourceSurface:
     """The simulation phase's J_mu through ``definition``, sampled at Sobol points and fitted."""
-    try:
-        data = json.loads(result.read_text())
-    except (OSError, json.JSONDecodeError) as exc:
-        raise TransferError(f"cannot read {result}: {exc}") from exc
-    if not isinstance(data, dict) or "campaigns" not in data:
-        raise TransferError(f"{result} is not a bac reduce result.json (no campaigns)")
+    data = _read_reduce_result(result)
     names, j_mu = reduce_surrogate(data)
     space = SearchSpace.from_definition(definition)
     probe = definition.expand(space.to_params(space.from_unit(np.full(space.dim, 0.5))))
@@ -194,6 +198,103 @@ def from_reduce_result(
         raise TransferError(f"the surrogate of {result} is not finite everywhere in this campaign's space")
     m = len(data["campaigns"])
     return SourceSurface.fit(U, y, label=f"bac reduce {result} (J_mu of {m} campaigns, {n} points)")
+
+
+def reduce_outcome_surrogate(
+    data: dict[str, Any], name: str, seed: int = 0
+) -> tuple[list[str], Callable[[FloatArray], FloatArray], int] | None:
+    """The raw parameter names, the surrogate of outcome ``name`` over raw calibrations (n, P) and the runs it
+    rests on: per campaign a GP (``NOISY_SOURCE_GP``: the runs are noisy) fitted to the runs that reported the
+    outcome (at least 3), combined as J_mu is (precision-weighted posterior means); None when no campaign has one."""
+    from bac_agent.bo.prior import NOISY_SOURCE_GP
+
+    models = []
+    names: list[str] | None = None
+    runs = 0
+    rng = np.random.default_rng(seed)
+    for c in data.get("campaigns") or []:
+        values = np.array([np.nan if v is None else float(v) for v in (c.get("outcomes") or {}).get(name, [])])
+        X = np.asarray(c.get("X") or [], dtype=float)
+        if values.size != X.shape[0] or int(np.sum(np.isfinite(values))) < 3:
+            continue
+        state = json.loads(c["engine_state"]) if isinstance(c["engine_state"], str) else dict(c["engine_state"])
+        space = SearchSpace.from_dict(state["space"])
+        ok = np.isfinite(values)
+        gp = GP(NOISY_SOURCE_GP).fit(space.to_unit(X[ok]), values[ok], rng)
+        models.append((space, gp))
+        runs += int(np.sum(ok))
+        names = list(space.names) if names is None else names
+        if list(space.names) != names:
+            raise TransferError("the campaigns of the reduce output tune different parameters")
+    if not models or names is None:
+        return None
+
+    def surrogate(R: FloatArray) -> FloatArray:
+        means, precisions = [], []
+        for space, gp in models:
+            m, sd = gp.predict(space.to_unit(R))
+            means.append(m)
+            precisions.append(1.0 / np.maximum(np.asarray(sd), 1e-12) ** 2)
+        w = np.array(precisions)
+        return np.asarray(np.sum(w * np.array(means), axis=0) / np.sum(w, axis=0), dtype=float)
+
+    return names, surrogate, runs
+
+
+def outcome_sources_from_reduce_result(
+    result: Path, definition: CalibrationDefinition, outcomes: Sequence[str], points: int = 0, seed: int = 0
+) -> dict[str, SourceSurface]:
+    """What the simulation phase's runs reported of the ``outcomes`` (``reduce_outcome_surrogate``), each taken
+    through ``definition`` at the Sobol points J_mu is taken at and fitted; an outcome no campaign reported on 3
+    runs (or a result.json from before outcomes, schema 1) is left out."""
+    data = _read_reduce_result(result)
+    space = SearchSpace.from_definition(definition)
+    n = points or int(min(512, max(128, 64 * space.dim)))
+    U = qmc.Sobol(space.dim, scramble=True, seed=seed).random(n)
+    out: dict[str, SourceSurface] = {}
+    R_cache: dict[tuple[str, ...], FloatArray] = {}
+    for name in dict.fromkeys(outcomes):
+        got = reduce_outcome_surrogate(data, name, seed)
+        if got is None:
+            continue
+        raw_names, f, runs = got
+        key = tuple(raw_names)
+        if key not in R_cache:
+            _check_raw_names(result, definition, space, raw_names)
+            R_cache[key] = np.array(
+                [[definition.expand(space.to_params(space.from_unit(u)))[k] for k in raw_names] for u in U]
+            )
+        y = f(R_cache[key])
+        if not np.all(np.isfinite(y)):
+            raise TransferError(f"the {name} surrogate of {result} is not finite everywhere in this campaign's space")
+        m = len(data["campaigns"])
+        out[name] = SourceSurface.fit(
+            U, y, label=f"{name}: bac reduce {result} ({runs} runs of {m} campaigns, {n} points)"
+        )
+    return out
+
+
+def _read_reduce_result(result: Path) -> dict[str, Any]:
+    try:
+        data = json.loads(result.read_text())
+    except (OSError, json.JSONDecodeError) as exc:
+        raise TransferError(f"cannot read {result}: {exc}") from exc
+    if not isinstance(data, dict) or "campaigns" not in data:
+        raise TransferError(f"{result} is not a bac reduce result.json (no campaigns)")
+    version = int(data.get("schema_version", 1))
+    if version > 2:
+        raise TransferError(f"{result} has schema_version {version}: written by a newer bac (this one reads 1 and 2)")
+    return data
+
+
+def _check_raw_names(result: Path, definition: CalibrationDefinition, space: SearchSpace, names: list[str]) -> None:
+    probe = definition.expand(space.to_params(space.from_unit(np.full(space.dim, 0.5))))
+    missing = [n for n in names if n not in probe]
+    if missing:
+        raise TransferError(
+            f"the simulation phase in {result} calibrated {missing[:5]}..., which definition '{definition.name}' "
+            "does not have: the prior must come from the same controller"
+        )
 
 
 def summary(source: SourceSurface, space: SearchSpace) -> dict[str, Any]:
@@ -217,5 +318,6 @@ __all__ = [
     "from_reduce_result",
     "load_outcome_sources",
     "load_source",
+    "outcome_sources_from_reduce_result",
     "summary",
 ]

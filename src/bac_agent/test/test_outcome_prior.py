@@ -68,13 +68,23 @@ def test_an_outcome_prior_learns_the_cars_offset_and_scale() -> None:
     assert np.median(np.abs(nominal_travel(Q) - car_travel(Q))) > 9.0  # what the source alone is off by
 
 
+def _clustered_source(seed: int = 2) -> SourceSurface:
+    """Six noisy runs of the nominal travel, all at u0 >= 0.7 (an earlier campaign near its optimum)."""
+    rng = np.random.default_rng(seed)
+    Xs = np.column_stack([0.7 + 0.3 * rng.random(6), rng.random(6)])
+    return SourceSurface.fit(Xs, nominal_travel(Xs), "six runs near the optimum", noisy=True)
+
+
 @pytest.mark.parametrize("n", [0, 2, 7])
 @pytest.mark.parametrize("measured", [True, False])
-def test_the_outcome_priors_gradient_matches_finite_differences(n: int, measured: bool) -> None:
+@pytest.mark.parametrize("clustered", [False, True])
+def test_the_outcome_priors_gradient_matches_finite_differences(n: int, measured: bool, clustered: bool) -> None:
+    """Dense: the source's variance is round-off; clustered: its variance and covariance with the runs matter."""
     rng = np.random.default_rng(n)
     X = rng.random((n, 2))
     v = car_travel(X) + 0.5 * rng.standard_normal(n)
-    m = OutcomeModel(OutcomeLimit("max_travel_mm", LIMIT), _source(nominal_travel))
+    src = _clustered_source() if clustered else _source(nominal_travel)
+    m = OutcomeModel(OutcomeLimit("max_travel_mm", LIMIT), src)
     m.fit(X, v, np.random.default_rng(0))
     assert (m._coef_cov is not None) == (n > 0)
     U = np.array([[0.45, 0.3], [0.55, 0.8], [0.35, 0.1]])  # near the limit: log P(keep) moves
@@ -217,35 +227,115 @@ def test_an_earlier_campaigns_measured_outcomes_are_the_outcome_priors(tmp_path:
     EngineConfig.from_dict({**options, "budget": 5})  # what a refit builds from the journal
 
 
-def test_the_outcome_priors_posterior_is_that_of_a_gp_with_the_coefficients_integrated_out() -> None:
-    """a ~ N(0, σa²), b ~ N(1, σb²) and the residual GP are one GP of prior mean s(x) and covariance
-    k(x, x') + σa² + σb² s(x) s(x'): the model's mean and latent variance are that GP's (R&W 2006, eq. 2.42)."""
+def _brute_force(m: OutcomeModel, X: np.ndarray, v: np.ndarray, Q: np.ndarray, beta2: float) -> tuple[np.ndarray, ...]:
+    """The model's latent mean and variance at Q as one joint Gaussian: prior mean s(x), covariance
+    k_res(x, x') + σa² + σb² s(x) s(x') + β² C_s(x, x') (C_s: the source GP's own posterior covariance, computed
+    here from its points by plain linear algebra), conditioned on the runs."""
     from bac_agent.bo import constraints as c
     from bac_agent.bo.kernel import matern52_from_r2, sq_dist
 
+    src = m.source
+    assert src is not None
+    h = m.gp.hyper
+    assert h is not None
+    g = src._gp  # type: ignore[attr-defined]
+    hs = g.hyper
+    Ks_s = matern52_from_r2(sq_dist(g.X, g.X, hs.lengthscales), hs.outputscale)
+    Ks_s += (hs.noise + 1e-10 * hs.outputscale) * np.eye(g.X.shape[0])
+
+    def cs(A: np.ndarray, B: np.ndarray) -> np.ndarray:
+        kAB = matern52_from_r2(sq_dist(A, B, hs.lengthscales), hs.outputscale)
+        kA = matern52_from_r2(sq_dist(A, g.X, hs.lengthscales), hs.outputscale)
+        kB = matern52_from_r2(sq_dist(B, g.X, hs.lengthscales), hs.outputscale)
+        return np.asarray(kAB - kA @ np.linalg.solve(Ks_s, kB.T))
+
+    def k(A: np.ndarray, B: np.ndarray, diag: bool) -> np.ndarray:
+        sa, sb = src.standardized(A), src.standardized(B)
+        base = matern52_from_r2(sq_dist(A, B, h.lengthscales), h.outputscale)
+        C = cs(A, B)
+        if diag:  # a variance below the round-off floor is 0 (c.SOURCE_VAR_FLOOR)
+            np.fill_diagonal(C, np.maximum(np.diag(C) - c.SOURCE_VAR_FLOOR, 0.0))
+        return np.asarray(
+            base + c.OUTCOME_PRIOR_OFFSET_SD**2 + c.OUTCOME_PRIOR_SCALE_SD**2 * np.outer(sa, sb) + beta2 * C
+        )
+
+    z = (v - src.loc) / src.scale
+    sX, sQ = src.standardized(X), src.standardized(Q)
+    K = k(X, X, True) + (h.noise + 1e-10 * h.outputscale) * np.eye(X.shape[0])
+    Ks = k(Q, X, False)
+    mean = sQ + Ks @ np.linalg.solve(K, z - sX)
+    var = np.diag(k(Q, Q, True)) - np.sum(Ks * np.linalg.solve(K, Ks.T).T, axis=1)
+    return mean, var
+
+
+def test_the_outcome_priors_posterior_is_that_of_a_gp_with_the_coefficients_integrated_out() -> None:
+    """a ~ N(0, σa²), b ~ N(1, σb²), the source's own uncertainty (scaled by β² = E[b²]) and the residual GP are
+    one GP of prior mean s(x) and covariance k(x, x') + σa² + σb² s(x) s(x') + β² C_s(x, x'): the model's mean and
+    latent variance are that GP's (R&W 2006, eq. 2.42), with a dense source and with a clustered one."""
     rng = np.random.default_rng(5)
     X = rng.random((9, 2))
     v = car_travel(X) + 0.5 * rng.standard_normal(9)
-    src = _source(nominal_travel)
-    m = OutcomeModel(OutcomeLimit("max_travel_mm", LIMIT), src)
-    m.fit(X, v, np.random.default_rng(0))
-    h = m.gp.hyper
-    assert h is not None
     Q = np.vstack([X[:2] + 0.01, rng.random((6, 2))])  # near runs and far from them
-    z = (v - src.loc) / src.scale
-    sX, sQ = src.standardized(X), src.standardized(Q)
+    clustered = SourceSurface.fit(
+        np.column_stack([0.7 + 0.3 * rng.random(6), rng.random(6)]), nominal_travel(X[:6]), "six runs", noisy=True
+    )
+    for src in (_source(nominal_travel), clustered):
+        m = OutcomeModel(OutcomeLimit("max_travel_mm", LIMIT), src)
+        m.fit(X, v, np.random.default_rng(0))
+        assert m._coef_cov is not None
+        beta2 = m._beta2
+        # β² = E[b²]: the scale's posterior second moment under the residual kernel alone
+        assert 0.5 < beta2 < 3.0
+        mean, var = _brute_force(m, X, v, Q, beta2)
+        mu, sd, _, _ = m._moments(Q)
+        np.testing.assert_allclose(mu, mean, rtol=1e-6, atol=1e-8)
+        np.testing.assert_allclose(sd**2, var, rtol=1e-5, atol=1e-9)
+    # before the first run: the source with its prior spread and its own variance, β² = E[b²] = 1 + σb²
+    from bac_agent.bo import constraints as c
 
-    def k(A: np.ndarray, B: np.ndarray, sa: np.ndarray, sb: np.ndarray) -> np.ndarray:
-        base = matern52_from_r2(sq_dist(A, B, h.lengthscales), h.outputscale)
-        return np.asarray(base + c.OUTCOME_PRIOR_OFFSET_SD**2 + c.OUTCOME_PRIOR_SCALE_SD**2 * np.outer(sa, sb))
+    m0 = OutcomeModel(OutcomeLimit("max_travel_mm", LIMIT), clustered)
+    m0.fit(np.zeros((0, 2)), np.zeros(0), np.random.default_rng(0))
+    mu0, sd0, _, _ = m0._moments(Q)
+    s = clustered.standardized(Q)
+    var_s = np.array([clustered._gp.predict_std_units(q[None, :])[1][0] for q in Q])  # type: ignore[attr-defined]
+    want = (
+        np.exp(c._SOURCE_OUTCOME_GP.os_loc)
+        + c.OUTCOME_PRIOR_OFFSET_SD**2
+        + c.OUTCOME_PRIOR_SCALE_SD**2 * s**2
+        + (1.0 + c.OUTCOME_PRIOR_SCALE_SD**2) * np.maximum(var_s - c.SOURCE_VAR_FLOOR, 0.0)
+    )
+    np.testing.assert_allclose(mu0, s)
+    np.testing.assert_allclose(sd0**2, want, rtol=1e-6)
 
-    K = k(X, X, sX, sX) + (h.noise + 1e-10 * h.outputscale) * np.eye(9)
-    Ks = k(Q, X, sQ, sX)
-    mean = sQ + Ks @ np.linalg.solve(K, z - sX)
-    var = np.diag(k(Q, Q, sQ, sQ)) - np.sum(Ks * np.linalg.solve(K, Ks.T).T, axis=1)
-    mu, sd, _, _ = m._moments(Q)
-    np.testing.assert_allclose(mu, mean, rtol=1e-6, atol=1e-8)
-    np.testing.assert_allclose(sd**2, var, rtol=1e-5, atol=1e-9)
+
+def test_a_clustered_source_is_uncertain_where_it_had_no_runs() -> None:
+    """The outside review's case (issue 23): a source whose runs all sit at u0 ≥ 0.7 (an earlier campaign near its
+    optimum) knows nothing of the soft end, where the car breaks the limit by 20 mm; taken as known everywhere,
+    the prior allowed runs there (p_violation 0.004-0.045). With the source's own variance it does not; where the
+    source is dense and noise-free nothing changes much (its variance is round-off)."""
+    rng = np.random.default_rng(2)
+    clustered = _clustered_source()
+    rng.random((6, 2))  # (the source's draws)
+    soft = np.array([[0.02, 0.1], [0.05, 0.5], [0.1, 0.9]])
+    assert np.all(car_travel(soft) > LIMIT + 15.0)
+    lim = OutcomeLimit("max_travel_mm", LIMIT)
+    m = OutcomeModel(lim, clustered)
+    m.fit(np.zeros((0, 2)), np.zeros(0), np.random.default_rng(0))
+    assert np.all(m.prob_violation(soft) > 0.05)  # before: 0.0003-0.002 (the source's mean reverts to 51 mm there)
+    # after a few runs near the source's runs, still: the runs say nothing of the soft end either
+    X = np.column_stack([0.75 + 0.2 * rng.random(4), rng.random(4)])
+    m.fit(X, car_travel(X) + 0.5 * rng.standard_normal(4), np.random.default_rng(0))
+    assert np.all(m.prob_violation(soft) > 0.05)
+    # the dense noise-free source (64 Sobol runs): the same as without the source's variance, to 1e-3
+    dense = OutcomeModel(lim, _source(nominal_travel))
+    X = rng.random((7, 2))
+    v = car_travel(X) + 0.5 * rng.standard_normal(7)
+    dense.fit(X, v, np.random.default_rng(0))
+    Q = rng.random((32, 2))
+    mean0, var0 = _brute_force(dense, X, v, Q, 0.0)
+    mu, sd, _, _ = dense._moments(Q)
+    np.testing.assert_allclose(mu, mean0, atol=1e-3)
+    np.testing.assert_allclose(sd, np.sqrt(var0), rtol=1e-3)
 
 
 def test_a_source_evaluated_twice_at_the_same_points_computes_once(monkeypatch: pytest.MonkeyPatch) -> None:

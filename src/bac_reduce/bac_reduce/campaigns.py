@@ -130,6 +130,10 @@ class CampaignResult:
     j_true: float = math.nan  # noise-free J of theta (when the campaign measured it: the polish)
     j_true_bo: float = math.nan  # noise-free J of theta_bo
     polish_runs: int = 0  # noise-free runs of the polish
+    # what each run of X reported besides J (outcome name -> (N,), NaN where a run did not report it; issue 23):
+    # the simulator's max_travel_mm, lift_off_ms; empty for an objective without outcomes or a result.json
+    # written before them (schema 1)
+    outcomes: dict[str, FloatArray] = field(default_factory=dict)
 
     @property
     def best_so_far(self) -> FloatArray:
@@ -153,6 +157,7 @@ class CampaignResult:
             "j_true": self.j_true,
             "j_true_bo": self.j_true_bo,
             "polish_runs": self.polish_runs,
+            "outcomes": {k: [None if not math.isfinite(x) else float(x) for x in v] for k, v in self.outcomes.items()},
         }
 
     @classmethod
@@ -172,9 +177,21 @@ class CampaignResult:
                 j_true=_float_or_nan(d.get("j_true")),
                 j_true_bo=_float_or_nan(d.get("j_true_bo")),
                 polish_runs=int(d.get("polish_runs") or 0),
+                outcomes={
+                    str(k): np.array([math.nan if x is None else float(x) for x in v], dtype=float)
+                    for k, v in (d.get("outcomes") or {}).items()
+                },
             )
         except (KeyError, TypeError, ValueError) as exc:
             raise ReductionError(f"a stored campaign is incomplete ({exc}); re-run the campaigns") from exc
+
+
+def _observed_outcomes(eng: Engine) -> dict[str, FloatArray]:
+    """Outcome name -> its value at each of the engine's observations (NaN where a run did not report it)."""
+    names = sorted({k for o in eng.observations for k in (o.outcomes or {})})
+    return {
+        n: np.array([float((o.outcomes or {}).get(n, math.nan)) for o in eng.observations], dtype=float) for n in names
+    }
 
 
 def _float_or_nan(x: Any) -> float:
@@ -295,16 +312,23 @@ def run_group(
             break
         t1 = time.perf_counter()
         thetas = np.array([[p[n] for n in names] for _, p in asks])
-        values = np.asarray(objective.evaluate(thetas, [rngs[k] for k, _ in asks]), dtype=float).ravel()
+        run_rngs = [rngs[k] for k, _ in asks]
+        evaluate_runs = getattr(objective, "evaluate_runs", None)
+        if evaluate_runs is not None:  # the runs' outcomes too (the simulator's travel; issue 23)
+            values, outs = evaluate_runs(thetas, run_rngs)
+            values = np.asarray(values, dtype=float).ravel()
+        else:
+            values, outs = np.asarray(objective.evaluate(thetas, run_rngs), dtype=float).ravel(), {}
         sim_s += time.perf_counter() - t1
         c2 = time.process_time()
         sim_cpu += c2 - c1
         if values.shape != (len(asks),):
             raise ReductionError(f"the objective returned {values.shape} values for {len(asks)} calibrations")
         t2 = time.perf_counter()
-        for (k, p), v in zip(asks, values, strict=True):
+        for i, ((k, p), v) in enumerate(zip(asks, values, strict=True)):
             if math.isfinite(v):
-                engines[k].tell(p, float(v))
+                run_out = {name: float(o[i]) for name, o in outs.items() if math.isfinite(float(o[i]))}
+                engines[k].tell(p, float(v), run_out or None)
             else:
                 engines[k].tell_failed(p, "the simulation returned a non-finite J")
         gp_s += time.perf_counter() - t2
@@ -331,6 +355,7 @@ def run_group(
                 j_pred=float(rec.predicted_j),
                 j_std=float(rec.predicted_std),
                 engine_state=eng.to_json(),
+                outcomes=_observed_outcomes(eng),
             )
         )
     gp_s += time.perf_counter() - t3

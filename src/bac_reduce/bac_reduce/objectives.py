@@ -9,6 +9,11 @@ the validation table; a real car has no such thing).
   the 1.5 km test road), optionally through a reduced definition;
 * :class:`SyntheticObjective`: a cheap analytic J whose important parameters and groups are
   known (tests, demos, trying the options in seconds).
+
+An objective may also have ``evaluate_runs(thetas, rng) -> (J, {outcome: (n,)})``: the same runs' J and the
+outcomes they report besides it (the simulator's suspension travel; issue 23). The campaigns then record them
+and tell them to the engine, and ``result.json`` stores them per run (what a car campaign's outcome limits take
+as their prior: ``bac_agent.transfer.load_outcome_sources``).
 """
 
 from __future__ import annotations
@@ -93,6 +98,14 @@ class SimulatedCar:
         if not self.noisy:
             return self.true_j(thetas)
         return np.asarray(self._problem().noisy_j(np.atleast_2d(thetas), rng), dtype=float)
+
+    def evaluate_runs(self, thetas: FloatArray, rng: Rng) -> tuple[FloatArray, dict[str, FloatArray]]:
+        """``evaluate`` and the outcomes each run reports (``bac_sim.problems.Problem.noisy_runs``:
+        ``max_travel_mm``, ``lift_off_ms``; issue 23). Noise-free (``noisy`` False): J noise-free, no outcomes."""
+        if not self.noisy:
+            return self.true_j(thetas), {}
+        j, outcomes = self._problem().noisy_runs(np.atleast_2d(thetas), rng)
+        return np.asarray(j, dtype=float), {k: np.asarray(v, dtype=float) for k, v in outcomes.items()}
 
     def true_j(self, thetas: FloatArray) -> FloatArray:
         return np.asarray(self._problem().true_j(np.atleast_2d(thetas)), dtype=float)

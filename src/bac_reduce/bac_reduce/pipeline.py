@@ -62,6 +62,9 @@ from bac_reduce.global_sensitivity import GlobalSensitivity, global_sensitivity
 from bac_reduce.objectives import BatchObjective, make_objective
 
 FloatArray = NDArray[np.float64]
+# result.json's layout: 2 (2026-11-24, issue 23): every campaign carries "outcomes", what each run reported besides J
+# (the simulator's max_travel_mm, lift_off_ms); 1 (no "schema_version"): J only. Both load (outcomes then empty)
+RESULT_SCHEMA_VERSION = 2
 
 # The GP settings of the simulation phase's campaigns (20 dimensions, 100 noisy runs): the engine's model and
 # acquisition with (a) the lengthscale prior scaled with the dimension, median sqrt(2 d) on the unit cube (Hvarfner
@@ -372,6 +375,7 @@ class ReductionResult:
 
     def to_dict(self) -> dict[str, Any]:
         return {
+            "schema_version": RESULT_SCHEMA_VERSION,
             "config": self.config.to_dict(),
             "base": self.base.to_dict(),
             "campaigns": [c.to_dict() for c in self.campaigns],

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import re
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -215,3 +216,65 @@ def test_the_phase_output_is_a_transfer_prior_for_the_agent(tmp_path: Path) -> N
     assert load_source(files["result"], d, points=64).X.shape == src.X.shape
     with pytest.raises(TransferError, match="neither a bac reduce output"):
         load_source(tmp_path, d)
+
+
+@dataclass(frozen=True)
+class WithTravel(SyntheticObjective):
+    """The synthetic J, and a travel each run reports: 80 mm soft (r1 = 0) to 40 mm firm, + 10 r4 (issue 23)."""
+
+    @staticmethod
+    def travel(raw: np.ndarray) -> np.ndarray:
+        r = np.atleast_2d(raw) / 1000.0
+        return np.asarray(80.0 - 40.0 * r[:, 0] + 10.0 * r[:, 3])
+
+    def evaluate_runs(self, thetas: np.ndarray, rng: object) -> tuple[np.ndarray, dict[str, np.ndarray]]:
+        return self.evaluate(thetas, rng), {"max_travel_mm": self.travel(self._raw(thetas))}  # type: ignore[arg-type]
+
+    def with_definition(self, definition: CalibrationDefinition) -> WithTravel:
+        s = super().with_definition(definition)
+        return WithTravel(s.terms, s.j0, s.coupling, s.noise_rel, s.lower, s.upper, s.tuned, s.meta, s.fixed)
+
+
+def test_the_phase_records_the_runs_outcomes_and_they_are_the_cars_outcome_priors(tmp_path: Path) -> None:
+    """issue 23: the simulation phase keeps what each run reports besides J (result.json schema 2), and bo_agent's
+    prior_source builds the limited outcomes' priors from them through the meta-parameter file; a result.json from
+    before (schema 1, no outcomes) still loads and gives none."""
+    from bac_agent.bo import SearchSpace
+    from bac_agent.transfer import TransferError, load_outcome_sources, load_source
+    from bac_reduce.campaigns import CampaignResult
+
+    obj = WithTravel()
+    res = run_reduction(tiny(verify_points=0, validate_repeats=0), obj)
+    for c in res.campaigns:  # every run's travel, in the order of its runs
+        assert set(c.outcomes) == {"max_travel_mm"}
+        np.testing.assert_allclose(c.outcomes["max_travel_mm"], obj.travel(c.X))
+        again = CampaignResult.from_dict(json.loads(json.dumps(c.to_dict())))
+        np.testing.assert_array_equal(again.outcomes["max_travel_mm"], c.outcomes["max_travel_mm"])
+    files = write_outputs(res, tmp_path / "out", plots=False)
+    data = json.loads(files["result"].read_text())
+    assert data["schema_version"] == 2 and len(data["campaigns"][0]["outcomes"]["max_travel_mm"]) == 16
+    d = CalibrationDefinition.load(files["definition"])
+    got = load_outcome_sources(tmp_path / "out", d, ["max_travel_mm", "lift_off_ms"])
+    assert set(got) == {"max_travel_mm"}  # lift_off_ms: no run reported it
+    assert (
+        got["max_travel_mm"].label.startswith("max_travel_mm: bac reduce")
+        and "32 runs of 2 campaigns" in got["max_travel_mm"].label
+    )
+    space = SearchSpace.from_definition(d)
+    U = np.random.default_rng(0).random((20, space.dim))
+    names = list(res.campaigns[0].names)
+    R = np.array([[d.expand(space.to_params(space.from_unit(u)))[n] for n in names] for u in U])
+    # the surrogate through the meta-parameter file: within a few mm of the travel (a 40 mm range)
+    assert np.median(np.abs(got["max_travel_mm"].predict_j(U) - obj.travel(R))) < 3.0
+    # the same from the result.json path; a result.json from before outcomes (schema 1) gives none, J still loads
+    assert set(load_outcome_sources(files["result"], d, ["max_travel_mm"])) == {"max_travel_mm"}
+    old = dict(data)
+    del old["schema_version"]
+    old["campaigns"] = [{k: v for k, v in c.items() if k != "outcomes"} for c in data["campaigns"]]
+    (tmp_path / "old.json").write_text(json.dumps(old))
+    assert load_outcome_sources(tmp_path / "old.json", d, ["max_travel_mm"]) == {}
+    assert load_source(tmp_path / "old.json", d, points=64).dim == space.dim
+    assert CampaignResult.from_dict(old["campaigns"][0]).outcomes == {}
+    (tmp_path / "new.json").write_text(json.dumps({**data, "schema_version": 3}))
+    with pytest.raises(TransferError, match="newer bac"):
+        load_outcome_sources(tmp_path / "new.json", d, ["max_travel_mm"])

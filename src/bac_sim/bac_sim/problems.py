@@ -7,6 +7,7 @@
     p.names, p.dim, p.bounds          # tuned dimensions, d, (d, 2) [lower, upper]
     p.true_j(thetas)                  # (n, d) -> (n,) noise-free J
     p.noisy_j(thetas, rng)            # (n, d) -> (n,) J of real simulated runs with run-to-run noise
+    p.noisy_runs(thetas, rng)         # the same runs' J and their outcomes {"max_travel_mm": (n,), "lift_off_ms": (n,)}
     p.j_star, p.theta_star, p.j_med   # true optimum and median J over random parameters
     p.gap(j)                          # (j - j_star) / (j_med - j_star)
 
@@ -22,6 +23,12 @@ scattered start), cut with a residual
 alignment error (0.2 m on the road, 2 ms at the bump) and measured by an IMU with white noise
 (0.02 m/s^2 and 0.002 rad/s per sample at 500 Hz). The resulting J noise is about 0.5-1 % of J; the
 figures measured at the optimum are stored in ``data/ground_truth.json`` (``noise_rel``).
+
+Outcomes (``noisy_runs``, issue 23): what each of those runs reports besides J, under the names the car
+campaign's limits use (``bac_sim.families.OUTCOMES``): ``max_travel_mm``, the largest suspension travel from
+static of any corner during the run, and ``lift_off_ms``, how long a wheel left the road. They are the simulated
+run's own values (its driver's speed and start), with no sensor noise added: drawing one would change the
+random stream, and so J, of every later run.
 """
 
 from __future__ import annotations
@@ -76,14 +83,14 @@ def _evaluate(
     drive: Drive,
     duration: float,
     window_shift: FloatArray | None,
-) -> tuple[FloatArray, FloatArray, FloatArray]:
-    """Worker: simulate a slice of a batch; returns (sum a_z^2, sum q^2, count)."""
+) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray, FloatArray]:
+    """Worker: simulate a slice of a batch; returns (sum a_z^2, sum q^2, count, max travel m, lift-off steps)."""
     sc = get_scenario(scenario_name)
     definition = CalibrationDefinition.from_dict(definition_dict)
     model = make_model(dt=sc.dt)
     ctrl = make_controller(definition, raw)
     res = simulate(model, sc.road, ctrl, drive, duration, sc.window, window_shift=window_shift)
-    return res.sum_az2, res.sum_q2, res.count
+    return res.sum_az2, res.sum_q2, res.count, res.max_travel, res.lift_off
 
 
 def _slice_drive(drive: Drive, sl: slice) -> Drive:
@@ -140,11 +147,18 @@ class Problem:
         raw = self.raw(thetas)
         start, duration = self.scenario.batch_timing()
         drive = constant_drive(self.scenario.speed, start, duration + 0.1)
-        az2, q2, cnt = self._run(raw, drive, duration, None)
+        az2, q2, cnt, _, _ = self._run(raw, drive, duration, None)
         return np.asarray(np.sqrt(az2 / cnt) + np.sqrt(q2 / cnt))
 
     def noisy_j(self, thetas: FloatArray, rng: np.random.Generator | Sequence[np.random.Generator]) -> FloatArray:
-        """J (n,) of simulated runs with run-to-run noise (driver, alignment, IMU).
+        """J (n,) of simulated runs with run-to-run noise (driver, alignment, IMU); see ``noisy_runs``."""
+        return self.noisy_runs(thetas, rng)[0]
+
+    def noisy_runs(
+        self, thetas: FloatArray, rng: np.random.Generator | Sequence[np.random.Generator]
+    ) -> tuple[FloatArray, dict[str, FloatArray]]:
+        """J (n,) of simulated runs with run-to-run noise (driver, alignment, IMU), and the outcomes each run
+        reports (``max_travel_mm``, ``lift_off_ms``: the module doc); the same J as ``noisy_j``.
 
         ``rng``: one generator for the whole batch, or one per run (a sequence of n, the same generator may
         appear several times): then each run's noise comes from its own generator, in the order of the rows,
@@ -170,7 +184,7 @@ class Problem:
             drives = [driver.draw(sc.speed, start, run_s + 0.2, 1, g)[0] for g in rngs]
             drive = Drive(drives[0].t, np.hstack([d.v for d in drives]), np.hstack([d.s for d in drives]))
             shift = align * np.array([g.standard_normal() for g in rngs])
-        az2, q2, cnt = self._run(raw, drive, run_s, shift)
+        az2, q2, cnt, travel, lift = self._run(raw, drive, run_s, shift)
         ms_a = az2 / cnt
         ms_q = q2 / cnt
         # IMU white noise: exact distribution of the measured mean square over cnt samples
@@ -187,11 +201,16 @@ class Problem:
             cross = 2 * sigma * np.sqrt(mean_square / cnt) * z
             power = sigma**2 * chi / cnt
             np.add(mean_square, cross + power, out=mean_square)
-        return np.asarray(np.sqrt(np.maximum(ms_a, 0)) + np.sqrt(np.maximum(ms_q, 0)))
+        j = np.asarray(np.sqrt(np.maximum(ms_a, 0)) + np.sqrt(np.maximum(ms_q, 0)))
+        outcomes = {
+            "max_travel_mm": np.asarray(1000.0 * travel, dtype=float),
+            "lift_off_ms": np.asarray(1000.0 * sc.dt * lift, dtype=float),
+        }
+        return j, outcomes
 
     def _run(
         self, raw: FloatArray, drive: Drive, duration: float, shift: FloatArray | None
-    ) -> tuple[FloatArray, FloatArray, FloatArray]:
+    ) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray, FloatArray]:
         n = raw.shape[0]
         workers = worker_count()
         parallel = workers > 1 and n * duration >= PARALLEL_MIN_RUN_SECONDS
@@ -218,7 +237,9 @@ class Problem:
         cnt = np.concatenate([r[2] for r in results])
         if np.any(cnt <= 0):
             raise SimError(f"{self.name}: a run has no sample in its KPI window")
-        return az2, q2, cnt
+        travel = np.concatenate([r[3] for r in results])
+        lift = np.concatenate([r[4] for r in results])
+        return az2, q2, cnt, travel, lift
 
     def simulate(self, thetas: FloatArray, record: bool = False) -> BatchResult:
         """One nominal batch in this process, with every KPI part (and the recording if asked)."""

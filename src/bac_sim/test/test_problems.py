@@ -163,3 +163,20 @@ def test_out_of_range_parameters_are_rejected() -> None:
         simulate_run({"damping_front": 1.5, "damping_rear": 0.5}, "bump")
     with pytest.raises(ControllerError, match="neither"):
         simulate_run({"damping_front": 0.5}, "bump")
+
+
+def test_noisy_runs_report_the_travel_of_the_same_runs() -> None:
+    """issue 23: besides J a run reports its largest suspension travel and wheel lift-off (the names the car
+    campaign's limits use); the same J as noisy_j from the same generators, and the soft car travels farther."""
+    from bac_sim.families import OUTCOMES
+
+    p = get_problem("bump_c1")
+    th = np.array([[0.0, 0.0], [1.0, 1.0], [0.2, 0.3]])
+    j1 = p.noisy_j(th, [np.random.default_rng(k) for k in range(3)])
+    j2, out = p.noisy_runs(th, [np.random.default_rng(k) for k in range(3)])
+    np.testing.assert_array_equal(j1, j2)
+    assert set(out) == set(OUTCOMES)
+    travel = out["max_travel_mm"]
+    assert np.all((travel > 10.0) & (travel < 120.0))
+    assert travel[0] > travel[1] + 5.0  # soft dampers let the wheels travel farther over the bump
+    assert np.all(out["lift_off_ms"] >= 0.0)

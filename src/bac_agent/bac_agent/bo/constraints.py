@@ -27,7 +27,11 @@ J's transfer prior, the offset matters here (a limit is a level, not a shape): `
 (variance prior median ``residual_os``) for what the source does not explain. Before the first run the model is
 the source itself with the coefficients' and the residual's prior variance: the first proposal already keeps away
 from where the simulator says a limit breaks. The coefficients' posterior variance is added to the residual's
-where the runs do not pin the outcome down (Rasmussen & Williams 2006, eq. 2.42).
+where the runs do not pin the outcome down (Rasmussen & Williams 2006, eq. 2.42). The source is itself a GP
+posterior, uncertain where it had no points (an earlier campaign's runs cluster near its optimum): its posterior
+covariance C_s, scaled by β² = E[b²], is part of the outcome's covariance, k(x, x') + σa² + σb² s(x) s(x') +
+β² C_s(x, x') (exact for a + b s(x) + β (S(x) − s(x)) + residual, S the source's unknown true outcome; since
+2026-11-24), so that a calibration where the source knew nothing is as uncertain as the source is there.
 """
 
 from __future__ import annotations
@@ -36,14 +40,15 @@ import math
 import re
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, replace
-from typing import Any
+from typing import Any, cast
 
 import numpy as np
 import scipy.linalg as sla
 from numpy.typing import NDArray
 from scipy.special import log_ndtr, ndtr
 
-from bac_agent.bo.gp import GP, GPConfig, GPError, Hyper, latent_sd_with_grad
+from bac_agent.bo.gp import GP, GPConfig, GPError, Hyper
+from bac_agent.bo.kernel import matern52_dr2_factor, matern52_from_r2, sq_dist
 from bac_agent.bo.prior import PriorTrend, SourceSurface
 from bac_common.errors import BacError
 
@@ -69,6 +74,12 @@ OUTCOME_PRIOR_RESIDUAL_OS = 0.1
 # the residual's GP under a source: the same kernel priors, its variance around OUTCOME_PRIOR_RESIDUAL_OS of the
 # source's spread (the noise prior is relative to the source's spread too)
 _SOURCE_OUTCOME_GP = replace(OUTCOME_GP, os_loc=math.log(OUTCOME_PRIOR_RESIDUAL_OS))
+# a source's own posterior variance below this (its standardized units: a hundredth of its spread in sd) is taken
+# as 0: a dense noise-free source's variance is round-off there (k(x, x) − k K⁻¹ k of two numbers ~ its outputscale,
+# with K's condition number up to ~1e10), which would only add noise to the model and its gradient
+SOURCE_VAR_FLOOR = 1e-4
+# E[b²] under b's prior: before the first run, the factor of the source's own posterior covariance
+_PRIOR_B2 = 1.0 + OUTCOME_PRIOR_SCALE_SD**2
 _LIMIT_RE = re.compile(r"^\s*([A-Za-z_][A-Za-z0-9_.]*)\s*(<=|>=)\s*([-+0-9.eE]+)\s*$")
 
 
@@ -140,6 +151,68 @@ def parse_limits(specs: Sequence[Any]) -> tuple[OutcomeLimit, ...]:
     return limits
 
 
+class _SourceCov:
+    """The source surface's own posterior covariance C_s (its GP's latent covariance given its points, in its
+    standardized units) and its gradients: what the source does not know, e.g. far from a clustered campaign's
+    runs (issue 23: such a source was taken as if known everywhere)."""
+
+    def __init__(self, source: SourceSurface) -> None:
+        g = source._gp  # type: ignore[attr-defined]
+        h = g.hyper
+        self.Xs = np.asarray(g.X, dtype=float)
+        self.ls = np.asarray(h.lengthscales, dtype=float)
+        self.os = float(h.outputscale)
+        self.il2 = 1.0 / self.ls**2
+        self.L = np.asarray(g._L, dtype=float)
+        self.Kinv = np.asarray(sla.cho_solve((self.L, True), np.eye(self.Xs.shape[0]), check_finite=False))
+        self._runs: tuple[FloatArray, FloatArray] | None = None  # (X, k_s(X, Xs) K_s⁻¹) of the last runs
+
+    def _k(self, A: FloatArray, B: FloatArray) -> tuple[FloatArray, FloatArray]:
+        r2 = sq_dist(A, B, self.ls)
+        return matern52_from_r2(r2, self.os), matern52_dr2_factor(r2, self.os)
+
+    def _at_runs(self, X: FloatArray) -> FloatArray:
+        if self._runs is None or self._runs[0].shape != X.shape or not np.array_equal(self._runs[0], X):
+            kX = self._k(X, self.Xs)[0]
+            self._runs = (X.copy(), np.asarray(sla.cho_solve((self.L, True), kX.T, check_finite=False).T, dtype=float))
+        return self._runs[1]
+
+    def cov_runs(self, X: FloatArray) -> FloatArray:
+        """C_s(X, X) (its diagonal less the round-off floor, as ``var_with_grad``)."""
+        A = self._at_runs(X)
+        C = self._k(X, X)[0] - A @ self._k(self.Xs, X)[0]
+        C = 0.5 * (C + C.T)
+        np.fill_diagonal(C, np.maximum(np.diag(C) - SOURCE_VAR_FLOOR, 0.0))
+        return np.asarray(C, dtype=float)
+
+    def var_with_grad(self, U: FloatArray) -> tuple[FloatArray, FloatArray]:
+        """C_s(x, x) − SOURCE_VAR_FLOOR, at least 0, at the rows of ``U`` and its gradient: (q,), (q, d)."""
+        Kq, F = self._k(U, self.Xs)
+        V = Kq @ self.Kinv
+        var = self.os - np.sum(V * Kq, axis=1) - SOURCE_VAR_FLOOR
+        FV = F * V
+        dvar = 2.0 * (U * FV.sum(axis=1)[:, None] - FV @ self.Xs) * self.il2
+        dvar[var <= 0.0] = 0.0
+        return np.asarray(np.maximum(var, 0.0), dtype=float), np.asarray(dvar, dtype=float)
+
+    def cross(self, U: FloatArray, X: FloatArray) -> tuple[FloatArray, Any]:
+        """C_s(U, X) (q, n), and a function that contracts its gradient in U with weights (q, n) or (n,):
+        Σ_j w_j ∂C_s(x_q, X_j)/∂x_q, (q, d), without the (q, n, d) tensor (and its (q, n, m, d) sum)."""
+        A = self._at_runs(X)  # (n, m) = k_s(X, Xs) K_s⁻¹
+        Kq, Fq = self._k(U, self.Xs)
+        KX, FX = self._k(U, X)
+        C = KX - Kq @ A.T
+
+        def contract(W: FloatArray) -> FloatArray:
+            # ∂C_s(x, X_j)/∂x = −F_X,j (x − X_j) il2 + Σ_i F_i A[j, i] (x − Xs_i) il2
+            FW = FX * W
+            B = Fq * (W @ A)  # (q, m): Σ_j w_j F_i A[j, i]
+            out = -(U * FW.sum(axis=1)[:, None] - FW @ X) + (U * B.sum(axis=1)[:, None] - B @ self.Xs)
+            return np.asarray(out * self.il2, dtype=float)
+
+        return np.asarray(C, dtype=float), contract
+
+
 class OutcomeModel:
     """The GP of one constrained outcome (see the module doc); ``source``: what the simulator knows of it."""
 
@@ -150,6 +223,17 @@ class OutcomeModel:
         self.n = 0
         self._coef_cov: FloatArray | None = None  # posterior covariance of (a, b) with a source
         self._Kinv_H = np.zeros((0, 2))  # K⁻¹ H, H = (1, s) at the runs
+        self._H = np.zeros((0, 2))
+        self._Kinv = np.zeros((0, 0))  # K⁻¹ of the runs' covariance (residual + β² C_s + noise)
+        self._alpha = np.zeros(0)  # K⁻¹ (z − H β̂)
+        self._beta2 = _PRIOR_B2  # E[b²]: the factor of the source's own covariance
+        self._src_cov: _SourceCov | None = None
+
+    def _source_cov(self) -> _SourceCov:
+        assert self.source is not None
+        if self._src_cov is None:
+            self._src_cov = _SourceCov(self.source)
+        return self._src_cov
 
     def fit(self, X: FloatArray, values: FloatArray, rng: np.random.Generator) -> None:
         ok = np.isfinite(values)
@@ -169,7 +253,11 @@ class OutcomeModel:
         self.gp = GP(OUTCOME_GP).condition(X, v, Hyper.from_vector(loc), scaling=(mean, spread))
 
     def _fit_with_source(self, X: FloatArray, v: FloatArray, rng: np.random.Generator) -> None:
-        """The residual's kernel (MAP from 3 values, the prior's mode before) and the posterior of (a, b)."""
+        """The residual's kernel (MAP from 3 values, the prior's mode before) and the posterior of (a, b).
+
+        The covariance of the car's values is the residual's kernel plus the source's own posterior covariance
+        scaled by β² = E[b²] (``_SourceCov``): where the source had no runs (a clustered campaign) its value is
+        uncertain, and so is the trend built on it."""
         src = self.source
         assert src is not None
         self._coef_cov = None
@@ -189,15 +277,33 @@ class OutcomeModel:
         H = np.column_stack([np.ones(n), s])
         gp.hyper = replace(h, mean=0.0, bowl=None, prior=None)
         gp._factorize(refit_mean=False)  # the residual kernel's Cholesky factor (the trend is set below)
-        Kinv_H = sla.cho_solve((gp._L, True), H, check_finite=False)
         prior_prec = np.diag([1.0 / OUTCOME_PRIOR_OFFSET_SD**2, 1.0 / OUTCOME_PRIOR_SCALE_SD**2])
+        b0 = prior_prec @ np.array([0.0, 1.0])
+        # first the scale's posterior without the source's uncertainty: β² = E[b²] = b̄² + var(b), then the
+        # coefficients' posterior under the residual kernel + β² C_s (the source's posterior covariance)
+        Kinv_H = sla.cho_solve((gp._L, True), H, check_finite=False)
         cov = np.linalg.inv(H.T @ Kinv_H + prior_prec)
-        beta = cov @ (Kinv_H.T @ gp._z + prior_prec @ np.array([0.0, 1.0]))
+        beta = cov @ (Kinv_H.T @ gp._z + b0)
+        self._beta2 = float(beta[1] ** 2 + cov[1, 1])
+        K = matern52_from_r2(sq_dist(gp.X, gp.X, h.lengthscales), h.outputscale)
+        K += self._beta2 * self._source_cov().cov_runs(gp.X)
+        K.flat[:: n + 1] += h.noise + 1e-10 * h.outputscale
+        try:
+            L = np.linalg.cholesky(K)
+        except np.linalg.LinAlgError as exc:
+            raise GPError(f"the outcome model's covariance is not positive definite: {exc}") from exc
+        Kinv = sla.cho_solve((L, True), np.eye(n), check_finite=False)
+        Kinv_H = Kinv @ H
+        cov = np.linalg.inv(H.T @ Kinv_H + prior_prec)
+        beta = cov @ (Kinv_H.T @ gp._z + b0)
         gp.hyper = replace(h, mean=0.0, bowl=None, prior=PriorTrend(src, float(beta[0]), float(beta[1])))
         gp._factorize(refit_mean=False)
         self.gp = gp
         self._coef_cov = np.asarray(cov, dtype=float)
         self._Kinv_H = np.asarray(Kinv_H, dtype=float)
+        self._H = H
+        self._Kinv = np.asarray(Kinv, dtype=float)
+        self._alpha = np.asarray(Kinv @ (gp._z - H @ beta), dtype=float)
 
     @property
     def fitted(self) -> bool:
@@ -224,32 +330,52 @@ class OutcomeModel:
         """Latent mean, standard deviation and their gradients (standardized units of ``_scaling``)."""
         U = np.atleast_2d(U)
         src = self.source
-        if src is not None and self.n == 0:  # the source alone: a = 0, b = 1 with their prior spread
-            s, ds = src.standardized_and_grad(U)
-            var = math.exp(_SOURCE_OUTCOME_GP.os_loc) + OUTCOME_PRIOR_OFFSET_SD**2 + OUTCOME_PRIOR_SCALE_SD**2 * s * s
+        if src is None or (self._coef_cov is None and self.n > 0):
+            return self.gp.predict_with_grad(U)
+        s, ds = src.standardized_and_grad(U)
+        var_s, dvar_s = self._source_cov().var_with_grad(U)
+        if self.n == 0:  # the source alone: a = 0, b = 1 with their prior spread, and the source's own variance
+            var = (
+                math.exp(_SOURCE_OUTCOME_GP.os_loc)
+                + OUTCOME_PRIOR_OFFSET_SD**2
+                + OUTCOME_PRIOR_SCALE_SD**2 * s * s
+                + _PRIOR_B2 * var_s
+            )
             sd = np.sqrt(var)
-            return s, sd, ds, (OUTCOME_PRIOR_SCALE_SD**2 * s / sd)[:, None] * ds
-        gp = self.gp
-        if src is None or self._coef_cov is None:
-            return gp.predict_with_grad(U)
-        # the coefficients' uncertainty (Rasmussen & Williams 2006, eq. 2.42): + Rᵀ Σ R, R = h(x) − Hᵀ K⁻¹ k(X, x),
-        # h(x) = (1, s(x)); near the runs the residual's mean takes up most of an error of (a, b), and R is small
-        Xq, mu, dmu, Ks, F, il2 = gp._mean_with_grad(U)
-        assert gp.hyper is not None
-        sd, dsd = latent_sd_with_grad(Xq, gp.X, gp._L, Ks, F, il2, gp.hyper.outputscale)
-        s, ds = src.standardized_and_grad(Xq)
-        W = self._Kinv_H
-        R = np.column_stack([np.ones(Xq.shape[0]), s]) - Ks @ W
-        dR = []
-        for j in range(2):  # d(k(X, x)ᵀ w_j)/dx, as the GP's mean gradient with w_j for α, with its sign turned
-            Fw = F * W[:, j][None, :]
-            dR.append((Xq * Fw.sum(axis=1)[:, None] - Fw @ gp.X) * il2)
-        dR[1] = dR[1] + ds
+            dvar = 2.0 * OUTCOME_PRIOR_SCALE_SD**2 * s[:, None] * ds + _PRIOR_B2 * dvar_s
+            return s, sd, ds, dvar / (2.0 * sd[:, None])
+        # the GP of prior mean h(x)ᵀ b̄ and covariance k_res + β² C_s with the coefficients integrated out
+        # (Rasmussen & Williams 2006, eq. 2.42): mean h(x)ᵀβ̂ + k(x, X) α; variance k(x, x) − k(x, X) K⁻¹ k(X, x)
+        # + Rᵀ Σ R, R = h(x) − Hᵀ K⁻¹ k(X, x), h(x) = (1, s(x))
+        h = self.gp.hyper
+        assert h is not None and h.prior is not None
+        X = self.gp.X
+        r2 = sq_dist(U, X, h.lengthscales)
+        il2 = 1.0 / h.lengthscales**2
+        Fr = matern52_dr2_factor(r2, h.outputscale)
+        Cq, contract_c = self._source_cov().cross(U, X)
+        Kq = matern52_from_r2(r2, h.outputscale) + self._beta2 * Cq
+
+        def contract(W: FloatArray) -> FloatArray:  # Σ_j w_j ∂k(x_q, X_j)/∂x_q, (q, d)
+            FW = Fr * W
+            out = -(U * FW.sum(axis=1)[:, None] - FW @ X) * il2 + self._beta2 * contract_c(W)
+            return np.asarray(out, dtype=float)
+
+        trend = cast(PriorTrend, h.prior)
+        mu = trend.a + trend.b * s + Kq @ self._alpha
+        dmu = trend.b * ds + contract(self._alpha)
+        V = Kq @ self._Kinv  # k(x, X) K⁻¹
+        R = np.column_stack([np.ones(U.shape[0]), s]) - V @ self._H
+        assert self._coef_cov is not None
         RC = R @ self._coef_cov
-        extra = np.maximum(np.sum(RC * R, axis=1), 0.0)
-        sd2 = np.sqrt(sd * sd + extra)
-        dsd2 = (sd[:, None] * dsd + RC[:, 0:1] * dR[0] + RC[:, 1:2] * dR[1]) / sd2[:, None]
-        return mu, sd2, dmu, dsd2
+        var = h.outputscale + self._beta2 * var_s - np.sum(V * Kq, axis=1) + np.sum(RC * R, axis=1)
+        dR0 = -contract(self._Kinv_H[:, 0])
+        dR1 = ds - contract(self._Kinv_H[:, 1])
+        dvar = self._beta2 * dvar_s - 2.0 * contract(V) + 2.0 * (RC[:, 0:1] * dR0 + RC[:, 1:2] * dR1)
+        floor = 1e-12 * h.outputscale
+        dvar[var <= floor] = 0.0
+        sd = np.sqrt(np.maximum(var, floor))
+        return mu, sd, dmu, dvar / (2.0 * sd[:, None])
 
     def prob_violation(self, U: FloatArray, measured: bool = True) -> FloatArray:
         """The probability that a run here *measures* the outcome beyond the limit (latent and noise variance);
