@@ -304,9 +304,8 @@ def _task(args: tuple[int, int, str, int, str]) -> dict[str, Any]:
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--split", default="held-out", choices=sorted(pf.SPLITS))
-    ap.add_argument(
-        "--arms", default="limit,limit_sim,limit_simout,limit_campaign,limit_simfolder,limit_reduce,limit_safe_start,none"
-    )
+    arms = "limit,limit_sim,limit_simout,limit_campaign,limit_simfolder,limit_reduce,limit_safe_start,none"
+    ap.add_argument("--arms", default=arms)
     ap.add_argument("--budget", type=int, default=20)
     ap.add_argument("--instances", type=int, default=0, help="only the first N instances of the split (0: all)")
     ap.add_argument("--seeds", type=int, default=0, help="only the first N seeds of the split (0: all)")
