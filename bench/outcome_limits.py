@@ -135,6 +135,8 @@ def seed_travel(index: int) -> float:
     x = np.array([[seed["damping_front"], seed["damping_rear"]]])
     assert np.all((x >= b[:, 0]) & (x <= b[:, 1]))
     return float(inst.evaluate(x)["max_travel_mm"][0])
+
+
 CAMPAIGN_RUNS = 15  # the limit_campaign arm's source campaign
 
 
