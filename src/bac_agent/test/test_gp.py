@@ -190,3 +190,70 @@ def test_gp_config_refuses_unknown_mean() -> None:
         GPConfig(mean="cone")
     with pytest.raises(GPError, match="bowl_tip"):
         GPConfig(bowl_tip=0.0)
+
+
+def test_bowl_probability_is_the_bayes_factor_against_a_constant_mean() -> None:
+    """GPConfig.bowl_slope_sd: the bowl's probability against a constant mean equals the evidence integrated
+    numerically (flat b0, half-normal b1, the centres averaged), and the data decide it."""
+    from scipy.integrate import simpson
+    from scipy.stats import qmc
+
+    from bac_agent.bo.gp import cone_radius
+    from bac_agent.bo.kernel import matern52_from_r2, sq_dist
+
+    X = qmc.LatinHypercube(2, seed=2).random(7)
+    z = _cone(X) + 0.02 * np.random.default_rng(2).standard_normal(7)
+    z = (z - z.mean()) / z.std()
+    tau = 1.5
+    gp = GP(GPConfig(bowl_slope_sd=tau, bowl_centres=4))
+    gp._set_data(X, z, (0.0, 1.0))
+    h = Hyper(np.array([0.4, 0.7]), 1.0, 0.05)
+    K = matern52_from_r2(sq_dist(X, X, h.lengthscales), 1.0) + (0.05 + 1e-10) * np.eye(7)
+    Kinv = np.linalg.inv(K)
+    scale = np.ones(2)
+    bowl = gp._fit_bowl(h, scale)
+    assert bowl is not None
+    p_bowl = float(bowl.weights.sum())
+    # numerically: the likelihood of z with mean b0 + b1 r_c, over a grid of b0 (flat) and b1 (half-normal)
+    from scipy.stats import qmc as q2
+
+    C = q2.Sobol(2, scramble=True, seed=7).random(4)
+    R = cone_radius(X, C, scale, 0.05)
+    b0 = np.linspace(-10, 10, 801)
+    b1 = np.linspace(0, 10, 801)
+
+    def lik(mean: np.ndarray) -> np.ndarray:  # (..., n) -> (...)
+        r = z - mean
+        return np.exp(-0.5 * np.einsum("...i,ij,...j->...", r, Kinv, r))
+
+    const = simpson(lik(b0[:, None] * np.ones(7)), x=b0)
+    bfs = []
+    for c in range(4):
+        m = b0[:, None, None] + b1[None, :, None] * R[None, None, :, c]
+        inner = simpson(lik(m), x=b0, axis=0)
+        prior = 2.0 * np.exp(-0.5 * (b1 / tau) ** 2) / (tau * np.sqrt(2 * np.pi))
+        bfs.append(simpson(inner * prior, x=b1) / const)
+    bf = float(np.mean(bfs))
+    assert p_bowl == pytest.approx(bf / (1.0 + bf), rel=1e-3)
+    # a cone is a bowl, a flat landscape with noise is not
+    rng = np.random.default_rng(5)
+    Xs = qmc.LatinHypercube(2, seed=5).random(8)
+    cone = GP(GPConfig(bowl_slope_sd=2.0)).fit(Xs, _cone(Xs) + 0.01 * rng.standard_normal(8))
+    flat = GP(GPConfig(bowl_slope_sd=2.0)).fit(Xs, 0.01 * rng.standard_normal(8))
+    assert cone.hyper is not None and cone.hyper.bowl is not None and cone.hyper.bowl.weights.sum() > 0.9
+    assert flat.hyper is not None and (flat.hyper.bowl is None or flat.hyper.bowl.weights.sum() < 0.5)
+    # off (the default): the bowl's weights sum to 1
+    on = GP(GPConfig()).fit(Xs, 0.01 * rng.standard_normal(8))
+    assert on.hyper is not None and (on.hyper.bowl is None or on.hyper.bowl.weights.sum() == pytest.approx(1.0))
+
+
+def test_boundary_centres_lie_on_the_faces_and_corners() -> None:
+    from bac_agent.bo.gp import boundary_centres
+
+    F = boundary_centres(3, 512, 0)
+    on_face = np.any((F == 0.0) | (F == 1.0), axis=1)
+    assert np.all(on_face)
+    corners = {tuple(r) for r in F if np.all((r == 0.0) | (r == 1.0))}
+    assert len(corners) == 8
+    for j in range(3):
+        assert np.sum(F[:, j] == 0.0) >= 64

@@ -26,6 +26,7 @@ vectorized numpy; no Python loop over samples.
 
 from __future__ import annotations
 
+import itertools
 import math
 from dataclasses import dataclass, field, replace
 from typing import Any, Protocol
@@ -35,6 +36,7 @@ import scipy.linalg as sla
 from numpy.typing import NDArray
 from scipy.linalg import lapack
 from scipy.optimize import minimize
+from scipy.special import log_ndtr, logsumexp
 from scipy.stats import qmc
 
 from bac_agent.bo.kernel import SQRT5, matern52_dr2_factor, matern52_from_r2, sq_dist
@@ -78,6 +80,14 @@ class GPConfig:
     # the centres are drawn over [-bowl_reach, 1 + bowl_reach] on every axis: a centre outside the box is a
     # trend that falls towards a face or a corner, where many a calibration's optimum lies (issue 23)
     bowl_reach: float = 0.0
+    # > 0: the bowl is weighed against a constant mean by their marginal likelihoods (the bowl's slope b1 with a
+    # half-normal prior of this sd, standardized units; its centre uniform over the centres), from a prior
+    # probability of 0.5, and the prior mean is the two models' average (issue 23: an optimum at a corner of the
+    # box is better found with a constant mean, one inside with the bowl); 0: always the bowl
+    bowl_slope_sd: float = 0.0
+    # prior probability that the bowl's centre lies on the box's boundary (centres on every face and at the
+    # corners, besides the Sobol centres inside): a calibration's optimum often lies at a bound; 0: inside only
+    bowl_faces: float = 0.0
     draws: int = 8  # draws from the prior, screened by their objective
     restarts: int = 1  # best draws optimized, besides the prior mode and the previous fit
     maxiter: int = 200
@@ -85,11 +95,31 @@ class GPConfig:
     def __post_init__(self) -> None:
         if self.mean not in MEANS:
             raise GPError(f"GP mean must be one of {', '.join(MEANS)}, got {self.mean!r}")
+        if not (self.bowl_slope_sd >= 0.0 and 0.0 <= self.bowl_faces < 1.0):
+            raise GPError(
+                f"bowl_slope_sd must be >= 0 and bowl_faces in [0, 1), got {self.bowl_slope_sd}, {self.bowl_faces}"
+            )
         if self.bowl_centres < 1 or not self.bowl_tip > 0.0 or not self.bowl_temper > 0.0:
             raise GPError(
                 f"bowl_centres must be >= 1 and bowl_tip, bowl_temper > 0, got {self.bowl_centres}, "
                 f"{self.bowl_tip}, {self.bowl_temper}"
             )
+
+
+def boundary_centres(d: int, m: int, seed: int) -> FloatArray:
+    """Candidate centres on the unit cube's boundary: ``m`` scrambled Sobol points projected onto each of the
+    2d faces (the power of two nearest to m // (2d) each, at least 8) and, up to 8 dimensions, the 2^d corners."""
+    k = max(3, round(math.log2(max(m // (2 * d), 1))))
+    S = qmc.Sobol(d, scramble=True, seed=seed + 1).random_base2(k)
+    faces = []
+    for j in range(d):
+        for side in (0.0, 1.0):
+            F = S.copy()
+            F[:, j] = side
+            faces.append(F)
+    if d <= 8:
+        faces.append(np.array(list(itertools.product((0.0, 1.0), repeat=d)), dtype=float))
+    return np.asarray(np.vstack(faces), dtype=float)
 
 
 def cone_radius(X: FloatArray, centres: FloatArray, scale: FloatArray, tip: float) -> FloatArray:
@@ -113,7 +143,7 @@ class Bowl:
     centres: FloatArray  # (m, d) unit cube
     b0: FloatArray  # (m,) standardized units
     b1: FloatArray  # (m,) > 0
-    weights: FloatArray  # (m,) sum 1
+    weights: FloatArray  # (m,) sum 1 (with GPConfig.bowl_slope_sd: the bowl's probability against a constant)
     scale: FloatArray  # (d,) anisotropy, geometric mean 1
     tip: float
 
@@ -360,7 +390,15 @@ class GP:
                 self._offset = 0.0
                 bowl = self._fit_bowl(Hyper.from_vector(v), scale)
         self.hyper = Hyper.from_vector(v)
-        if bowl is not None:
+        if bowl is not None and self.config.bowl_slope_sd > 0.0:
+            # the bowl's weights carry its probability against a constant mean: the constant given that trend
+            self.hyper = replace(self.hyper, bowl=bowl)
+            self._factorize(refit_mean=False)
+            ones = sla.cho_solve((self._L, True), np.ones(self.X.shape[0]), check_finite=False)
+            c = float(ones @ (self._z - bowl.value(self.X)) / max(float(ones.sum()), 1e-300))
+            self.hyper = replace(self.hyper, mean=c)
+            self._factorize(refit_mean=False)
+        elif bowl is not None:
             self.hyper = replace(self.hyper, bowl=bowl)  # its constants b0 carry the mean
             self._factorize(refit_mean=False)
         else:
@@ -384,6 +422,13 @@ class GP:
         except np.linalg.LinAlgError:
             return None
         C = qmc.Sobol(d, scramble=True, seed=n).random(c.bowl_centres) * (1.0 + 2.0 * c.bowl_reach) - c.bowl_reach
+        log_prior = np.full(C.shape[0], -math.log(C.shape[0]))
+        if c.bowl_faces > 0.0:
+            F = boundary_centres(d, c.bowl_centres, n)
+            C = np.vstack([C, F])
+            log_prior = np.concatenate(
+                [log_prior + math.log1p(-c.bowl_faces), np.full(F.shape[0], math.log(c.bowl_faces / F.shape[0]))]
+            )
         R = cone_radius(X, C, scale, c.bowl_tip)  # (n, m)
         k1 = Kinv.sum(axis=0)
         a11 = float(k1.sum())
@@ -400,9 +445,40 @@ class GP:
         if not np.any(ok):
             return None
         logw = np.where(ok, c.bowl_temper * (0.5 * (beta0 * b1 + beta1 * b2) - 0.5 * np.log(safe)), -np.inf)
+        if c.bowl_faces > 0.0:
+            logw = logw + log_prior  # (else uniform: the weights as before, to the bit)
         w = np.exp(logw - np.max(logw))
         keep = w > 1e-6
-        return Bowl(C[keep], beta0[keep], beta1[keep], w[keep] / w[keep].sum(), scale, c.bowl_tip)
+        p_bowl = 1.0
+        if c.bowl_slope_sd > 0.0:
+            p_bowl = self._bowl_probability(a11, b1, a12, a22, b2, log_prior)
+        return Bowl(C[keep], beta0[keep], beta1[keep], p_bowl * w[keep] / w[keep].sum(), scale, c.bowl_tip)
+
+    def _bowl_probability(
+        self, a11: float, b1: float, a12: FloatArray, a22: FloatArray, b2: FloatArray, log_prior: FloatArray
+    ) -> float:
+        """Posterior probability of the bowl against a constant mean (prior 0.5 each), under the current kernel.
+
+        Both models share the constant b0 (flat prior: it cancels); the bowl adds the slope b1 with a
+        half-normal prior of sd τ = ``bowl_slope_sd`` and its centre c with the prior ``log_prior``. With
+        A = HᵀK⁻¹H, b = HᵀK⁻¹z and P = diag(0, 1/τ²), the Bayes factor of centre c is
+        ``2 Φ(m₁/√S₁₁) · √(a11 / det(A + P)) / τ · exp(½ bᵀ(A + P)⁻¹b − b₁²/(2 a11))`` (m, S: the posterior mean
+        and covariance (A + P)⁻¹b, (A + P)⁻¹; the truncation to b1 > 0); the bowl's is their prior average."""
+        tau2 = self.config.bowl_slope_sd**2
+        p22 = a22 + 1.0 / tau2
+        det = a11 * p22 - a12**2
+        det = np.maximum(det, 1e-300)
+        m1 = (a11 * b2 - a12 * b1) / det  # posterior mean of the slope
+        s11 = a11 / det  # its posterior variance
+        quad = (p22 * b1 * b1 - 2.0 * a12 * b1 * b2 + a11 * b2 * b2) / det
+        log_bf = (
+            math.log(2.0)
+            + log_ndtr(m1 / np.sqrt(s11))
+            + 0.5 * (math.log(a11) - np.log(det) - math.log(tau2))
+            + 0.5 * (quad - b1 * b1 / a11)
+        )
+        lb = float(logsumexp(log_bf + log_prior))
+        return float(1.0 / (1.0 + math.exp(-lb))) if lb > -700 else 0.0
 
     def _map_hyper(self, rng: np.random.Generator, warm_only: bool = False) -> FloatArray:
         """MAP log-hyperparameters of the data minus ``_offset`` (multi-start L-BFGS-B).
