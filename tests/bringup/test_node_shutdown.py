@@ -64,6 +64,72 @@ def test_a_hung_clean_up_ends_the_process_with_its_code(ros_env: dict[str, str],
     assert waited < 8.0, f"the process took {waited:.1f} s to end after its clean-up hung (launcher grace 8 s)"
 
 
+def test_a_repeated_sigint_does_not_cut_the_clean_up_short(ros_env: dict[str, str], tmp_path: Path) -> None:
+    """The launcher repeats SIGINT during its grace (a node may lose one): a node already cleaning up (the bridge
+    restoring the baseline) must take it as a no-op. It raised KeyboardInterrupt in the clean-up before."""
+    p = start_reporter(ros_env, tmp_path, slow_destroy_s=2.0)
+    try:
+        wait_for(lambda: (tmp_path / "reporter.start.json").exists(), 60, what="the node started")
+        p.send_signal(signal.SIGINT)
+        wait_for(lambda: (tmp_path / "reporter.destroying.json").exists(), 30, what="clean-up began")
+        p.send_signal(signal.SIGINT)
+        out, _ = p.communicate(timeout=30)
+    finally:
+        if p.poll() is None:
+            os.killpg(p.pid, signal.SIGKILL)
+    text = out.decode(errors="replace")
+    assert p.returncode == 0 and "Traceback" not in text, text
+    assert (tmp_path / "reporter.clean.json").exists(), text
+
+
+STUCK = """
+import sys
+import time
+from pathlib import Path
+from bac_common.rosnode import BacNode, run_node
+
+class Stuck(BacNode):
+    def __init__(self, **kwargs):
+        super().__init__("stuck", **kwargs)
+        Path(sys.argv[1]).write_text("constructing")
+        while True:  # a constructor that never returns (a C call that hangs; the interrupt swallowed)
+            try:
+                time.sleep(0.05)
+            except KeyboardInterrupt:
+                pass
+
+sys.exit(run_node(Stuck, sys.argv[:1]))
+"""
+
+
+@pytest.mark.parametrize("sig", [signal.SIGINT, signal.SIGTERM], ids=["SIGINT", "SIGTERM"])
+def test_a_stop_signal_ends_a_node_whatever_hangs(ros_env: dict[str, str], tmp_path: Path, sig: int) -> None:
+    """After SIGINT or SIGTERM the process ends within the clean-up time + 2 s (7 s, the launcher's grace is 8 s)
+    even if its main thread never comes back (here: a constructor that never returns), with every thread's
+    stack in its output, instead of lingering until the launcher's SIGKILL."""
+    marker = tmp_path / "constructing"
+    p = subprocess.Popen(
+        [sys.executable, "-c", STUCK, str(marker)],
+        env=ros_env,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.STDOUT,
+        start_new_session=True,
+    )
+    try:
+        wait_for(marker.exists, 60, what="the constructor running")
+        t0 = time.monotonic()
+        p.send_signal(sig)
+        out, _ = p.communicate(timeout=30)
+        waited = time.monotonic() - t0
+    finally:
+        if p.poll() is None:
+            os.killpg(p.pid, signal.SIGKILL)
+    text = out.decode(errors="replace")
+    assert p.returncode == 1, text
+    assert waited < 8.0, f"the process took {waited:.1f} s to end (launcher grace 8 s)\n{text}"
+    assert "most recent call first" in text and "__init__" in text, text  # where it hung, for the log
+
+
 STARTING = """
 import sys
 import rclpy

@@ -83,11 +83,14 @@ def run_nodes(
     linger_s: float = 1.0,
     timeout_s: float | None = None,
     cleanup_timeout_s: float | None = None,
+    restore_signals: bool = True,
 ) -> int:
     """Create the nodes in this process, spin them on one executor until one finishes or a signal arrives.
 
     ``cleanup_timeout_s``: when given (a process's main), the process is ended by a watchdog if stopping
     takes longer than this (plus the nodes' own :meth:`BacNode.cleanup_time_s`) once spinning has stopped.
+    ``restore_signals``: give SIGINT and SIGTERM back to their previous handlers at the end (False for a
+    process's main: the launcher repeats SIGINT until the process is gone, and it must stay a no-op).
     """
     import rclpy
     from rclpy.executors import ExternalShutdownException, MultiThreadedExecutor
@@ -158,8 +161,9 @@ def run_nodes(
             except Exception:
                 LOG.exception("destroying a node failed")
         try_shutdown()
-        for s, h in old_handlers.items():
-            signal.signal(s, h)
+        if restore_signals:
+            for s, h in old_handlers.items():
+                signal.signal(s, h)
     return code
 
 
@@ -172,7 +176,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     args = ap.parse_args(list(sys.argv[1:] if argv is None else argv))
     process, nodes, linger_s = read_spec(args.spec)
     LOG.info("process %s: %s", process, ", ".join(n.name for n in nodes))
-    return run_nodes(nodes, linger_s=linger_s, cleanup_timeout_s=CLEANUP_TIMEOUT_S)
+    return run_nodes(nodes, linger_s=linger_s, cleanup_timeout_s=CLEANUP_TIMEOUT_S, restore_signals=False)
 
 
 if __name__ == "__main__":

@@ -51,6 +51,10 @@ from bac_common.contracts import ROS_ENV_DEFAULTS
 
 LOG = logging.getLogger("bac.launch")
 STOP_GRACE_S = 8.0  # SIGINT, then this long before SIGTERM, then as long before SIGKILL
+# SIGINT is sent again this often during its grace: a node process can lose one (Python swallows the
+# KeyboardInterrupt of a SIGINT that lands in a finalizer, e.g. while the node still imports its modules;
+# bac_common.rosnode.StopSignals), and a repeated SIGINT is harmless to a node that is already stopping
+SIGINT_REPEAT_S = 1.0
 PR_SET_PDEATHSIG = 1
 
 
@@ -238,7 +242,8 @@ class ProcessGraph:
         return code if code is not None else stop_rc
 
     def stop(self) -> int:
-        """Stop the nodes in waves of ``stop_order`` (SIGINT, then SIGTERM, then SIGKILL per wave).
+        """Stop the nodes in waves of ``stop_order`` (SIGINT, repeated every :data:`SIGINT_REPEAT_S`, then SIGTERM,
+        then SIGKILL per wave).
 
         Returns 0 if every node ended cleanly on SIGINT. Waves let a node that still needs another at its
         shutdown (the ECU bridge restoring the baseline calibration on the simulated vehicle's ECU) go first.
@@ -265,8 +270,16 @@ class ProcessGraph:
                 unclean += len(live)
                 LOG.warning("sent %s to %s", sig.name, ", ".join(c.name for c in live))
             deadline = time.monotonic() + grace
+            repeat_at = time.monotonic() + SIGINT_REPEAT_S
             while live and time.monotonic() < deadline:
                 live = [c for c in live if c.proc.poll() is None]
+                if sig == signal.SIGINT and live and time.monotonic() >= repeat_at:
+                    repeat_at += SIGINT_REPEAT_S
+                    for c in live:
+                        try:
+                            os.killpg(c.proc.pid, sig)
+                        except ProcessLookupError:
+                            pass
                 time.sleep(0.02)
         return unclean
 
