@@ -82,6 +82,21 @@ def test_a_repeated_sigint_does_not_cut_the_clean_up_short(ros_env: dict[str, st
     assert (tmp_path / "reporter.clean.json").exists(), text
 
 
+def test_a_node_runs_on_without_a_stop_signal(ros_env: dict[str, str], tmp_path: Path) -> None:
+    """The hard deadline is for a stop that was asked for only: a node with a clean-up time of its own (armed
+    after its constructor by mistake once, the deadline ended the cockpit 10 s into a campaign) runs until it
+    finishes, past the 7 s a stop would allow it."""
+    p = start_reporter(ros_env, tmp_path, finish_after_s=9.0, slow_destroy_s=0.2)
+    try:
+        out, _ = p.communicate(timeout=60)
+    finally:
+        if p.poll() is None:
+            os.killpg(p.pid, signal.SIGKILL)
+    text = out.decode(errors="replace")
+    assert p.returncode == 0 and "most recent call first" not in text, text
+    assert (tmp_path / "reporter.clean.json").exists(), text
+
+
 STUCK = """
 import sys
 import time

@@ -325,8 +325,8 @@ class StopSignals:
         self._armed = False
         self._arm_lock = threading.Lock()
 
-    @property
     def requested(self) -> bool:
+        """True once SIGINT or SIGTERM came (a method: it changes under the caller's feet)."""
         return self.signum is not None
 
     def install(self) -> StopSignals:
@@ -363,7 +363,10 @@ class StopSignals:
                 self.arm()
 
     def arm(self, rearm: bool = False) -> None:
-        """Start the hard deadline (``rearm``: start it again from now with the current ``deadline_s``)."""
+        """Start the hard deadline, once (``rearm``: again from now, with the current ``deadline_s``).
+
+        Only for a stop that was asked for: the process ends ``deadline_s`` after this call.
+        """
         if not self._arm_lock.acquire(blocking=False):  # the other of the handler and the watcher is at it
             return
         try:
@@ -396,7 +399,7 @@ def run_node(
     code = 0
     log_name = getattr(node_cls, "__name__", "bac")
     try:
-        if not stop.requested:
+        if not stop.requested():
             stop.interrupt = True
             try:
                 node = node_cls()
@@ -404,20 +407,21 @@ def run_node(
                 stop.interrupt = False
             if isinstance(node, BacNode) and node.cleanup_time_s() > 0:
                 stop.deadline_s += node.cleanup_time_s()
-                stop.arm(rearm=stop.requested)
-        if node is None or stop.requested:
+                if stop.requested():  # armed with the shorter deadline while the constructor ran
+                    stop.arm(rearm=True)
+        if node is None or stop.requested():
             rclpy.logging.get_logger(log_name).info("interrupted while starting")
         else:
             executor = MultiThreadedExecutor()
             executor.add_node(node)
-            code = spin_until_done(executor, [node], stop=lambda: stop.requested)
+            code = spin_until_done(executor, [node], stop=stop.requested)
     except (KeyboardInterrupt, ExternalShutdownException):
         if node is None or executor is None:
             rclpy.logging.get_logger(log_name).info("interrupted while starting")
         code = 0
     except Exception:
         msg = traceback.format_exc()
-        if not rclpy_ok() or stop.requested:
+        if not rclpy_ok() or stop.requested():
             # SIGINT (Ctrl-C, the launcher's stop) while the node was still starting: rclpy's handler shut the
             # context down under the constructor, whose next rcl call then fails. An interrupted start, not a crash.
             rclpy.logging.get_logger(log_name).info("interrupted while starting")
