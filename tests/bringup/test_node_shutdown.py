@@ -97,6 +97,69 @@ def test_a_node_runs_on_without_a_stop_signal(ros_env: dict[str, str], tmp_path:
     assert (tmp_path / "reporter.clean.json").exists(), text
 
 
+EXIT_HANG = """
+import ctypes
+import sys
+import time
+from pathlib import Path
+from bac_common.rosnode import BacNode, run_node
+
+class HangsInAFinalizer:
+    def __del__(self):  # runs while the interpreter finalizes (module teardown)
+        while True:
+            time.sleep(0.05)
+
+class Up(BacNode):
+    def __init__(self, **kwargs):
+        super().__init__("up", **kwargs)
+        Path(sys.argv[1]).write_text("up")
+
+if sys.argv[2] == "finalizer":
+    _hangs = HangsInAFinalizer()
+else:  # a C function run by exit() after the interpreter has finalized (as a library's static destructor)
+    libc = ctypes.CDLL("libc.so.6")
+    libc.__cxa_atexit(ctypes.cast(libc.getchar, ctypes.c_void_p), None, None)  # stdin stays open: blocks
+sys.exit(run_node(Up, sys.argv[:1]))
+"""
+
+
+@pytest.mark.parametrize("where", ["finalizer", "after_finalize"])
+def test_a_hang_while_the_interpreter_exits_ends_within_the_grace(
+    ros_env: dict[str, str], tmp_path: Path, where: str
+) -> None:
+    """The CI hang of 54c04f0 (imu_ingest ignored SIGINT and then SIGTERM, its log ending with its start line)
+    has this shape: run_node returned after a clean stop and the process hung in the interpreter's exit, where
+    the watchdog thread can no longer run (daemon threads stop once the interpreter finalizes) and rclpy's
+    SIGTERM handler, still installed, keeps SIGTERM from ending it. The exit now has a deadline too: in Python
+    code, faulthandler writes the stacks and exits with 1; after the interpreter has finalized, SIGALRM."""
+    marker = tmp_path / "up"
+    p = subprocess.Popen(
+        [sys.executable, "-c", EXIT_HANG, str(marker), where],
+        env=ros_env,
+        stdin=subprocess.PIPE,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.STDOUT,
+        start_new_session=True,
+    )
+    try:
+        wait_for(marker.exists, 60, what="the node started")
+        t0 = time.monotonic()
+        p.send_signal(signal.SIGINT)
+        wait_for(lambda: p.poll() is not None, 20, what="the process ending without SIGTERM")
+        waited = time.monotonic() - t0
+        out = p.stdout.read() if p.stdout else b""
+    finally:
+        if p.poll() is None:
+            os.killpg(p.pid, signal.SIGKILL)
+            p.wait()
+    text = out.decode(errors="replace")
+    assert waited < 8.0, f"the process took {waited:.1f} s to end (launcher grace 8 s)\n{text}"
+    if where == "finalizer":
+        assert p.returncode == 1 and "most recent call first" in text and "__del__" in text, text
+    else:
+        assert p.returncode == -signal.SIGALRM, (p.returncode, text)
+
+
 STUCK = """
 import sys
 import time

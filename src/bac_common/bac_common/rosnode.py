@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import faulthandler
 import io
+import math
 import os
 import signal
 import sys
@@ -308,12 +309,14 @@ class StopSignals:
     loop. While ``interrupt`` is true (the constructor runs) the handler also raises ``KeyboardInterrupt`` to
     cut a waiting constructor short; if that one is swallowed, the flag still stops the node.
 
-    The first stop signal arms a hard deadline (``faulthandler.dump_traceback_later(exit=True)``: a C thread
-    that needs neither the main thread nor the GIL): a process still alive ``deadline_s`` later writes every
-    thread's stack to stderr (the node's log) and exits with code 1, instead of waiting for the launcher's
-    SIGKILL. A signal is noticed without the main thread too: its byte on the signal wakeup fd wakes a
-    watcher thread, which arms the deadline when the main thread is stuck in C code. SIGTERM (the launcher's
-    second step, when SIGINT was not enough) also writes the stacks at once (``faulthandler.register``).
+    The first stop signal arms a hard deadline (:meth:`arm`): a process still alive ``deadline_s`` later
+    writes every thread's stack to stderr (the node's log) and exits with code 1
+    (``faulthandler.dump_traceback_later(exit=True)``: a C thread that needs neither the main thread nor the
+    GIL), and up to a second later the kernel ends it with SIGALRM (``signal.alarm``: for a hang after the
+    interpreter has finalized, where faulthandler is gone). A signal is noticed without the main thread too:
+    its byte on the signal wakeup fd wakes a watcher thread, which arms the deadline when the main thread is
+    stuck in C code. SIGTERM (the launcher's second step, when SIGINT was not enough) also writes the stacks
+    at once (``faulthandler.register``). :func:`run_node` arms the same deadline for the interpreter's exit.
     """
 
     SIGNALS = (signal.SIGINT, signal.SIGTERM)
@@ -322,7 +325,7 @@ class StopSignals:
         self.deadline_s = deadline_s
         self.signum: int | None = None
         self.interrupt = False
-        self._armed = False
+        self._deadline_at: float | None = None  # time.monotonic() of the armed deadline
         self._arm_lock = threading.Lock()
 
     def requested(self) -> bool:
@@ -350,7 +353,7 @@ class StopSignals:
     def _on_signal(self, signum: int, _frame: Any) -> None:
         if self.signum is None:
             self.signum = signum
-        self.arm()
+        self.arm(self.deadline_s)
         if self.interrupt:
             raise KeyboardInterrupt
 
@@ -360,23 +363,24 @@ class StopSignals:
             if not data:
                 return
             if any(b in self.SIGNALS for b in data):
-                self.arm()
+                self.arm(self.deadline_s)
 
-    def arm(self, rearm: bool = False) -> None:
-        """Start the hard deadline, once (``rearm``: again from now, with the current ``deadline_s``).
-
-        Only for a stop that was asked for: the process ends ``deadline_s`` after this call.
-        """
+    def arm(self, seconds: float, later: bool = False) -> None:
+        """End the process ``seconds`` from now if it still lives (the earlier of this and an armed deadline;
+        ``later``: this one even if later, e.g. once the node's own clean-up time is known)."""
         if not self._arm_lock.acquire(blocking=False):  # the other of the handler and the watcher is at it
             return
         try:
-            if self._armed and not rearm:
+            at = time.monotonic() + seconds
+            if self._deadline_at is not None and at >= self._deadline_at and not later:
                 return
-            self._armed = True
+            self._deadline_at = at
             try:
-                faulthandler.dump_traceback_later(self.deadline_s, exit=True, file=sys.stderr)
+                faulthandler.dump_traceback_later(seconds, exit=True, file=sys.stderr)
             except (ValueError, OSError, AttributeError, io.UnsupportedOperation):  # no file descriptor
                 pass
+            if signal.getsignal(signal.SIGALRM) in (signal.SIG_DFL, None):  # nobody else's alarm
+                signal.alarm(math.ceil(seconds + 0.5))
         finally:
             self._arm_lock.release()
 
@@ -408,7 +412,7 @@ def run_node(
             if isinstance(node, BacNode) and node.cleanup_time_s() > 0:
                 stop.deadline_s += node.cleanup_time_s()
                 if stop.requested():  # armed with the shorter deadline while the constructor ran
-                    stop.arm(rearm=True)
+                    stop.arm(stop.deadline_s, later=True)
         if node is None or stop.requested():
             rclpy.logging.get_logger(log_name).info("interrupted while starting")
         else:
@@ -433,12 +437,17 @@ def run_node(
             rclpy.logging.get_logger(log_name).fatal(f"node failed to start:\n{msg}")
             code = 1
     finally:
+        stopped_at = time.monotonic()
         name = node.get_name() if node is not None else log_name
         own = node.cleanup_time_s() if isinstance(node, BacNode) else 0.0
-        start_exit_watchdog(name, cleanup_timeout_s + own, code)  # also covers the interpreter's exit
+        start_exit_watchdog(name, cleanup_timeout_s + own, code)  # and the interpreter's exit until it finalizes
         if executor is not None and not drain_executor(executor, cleanup_timeout_s / 2):
             sys.stderr.write(f"[{name}] a callback was still running at shutdown\n")
         if node is not None:
             node.destroy_node()
         try_shutdown()
+        # the interpreter's exit (finalizers, the libraries' static destructors) within what is left: the
+        # watchdog thread above cannot run once the interpreter finalizes, and rclpy's SIGTERM handler keeps
+        # SIGTERM from ending the process then (an old CI hang: neither SIGINT nor SIGTERM ended imu_ingest)
+        stop.arm(max(0.0, cleanup_timeout_s + own - (time.monotonic() - stopped_at)) + 0.5)  # the watchdog first
     return code
