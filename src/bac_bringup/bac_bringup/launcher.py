@@ -255,7 +255,7 @@ class ProcessGraph:
         return 1 if unclean else 0
 
     def _stop_wave(self, wave: list[NodeProcess]) -> int:
-        live = [c for c in wave if c.proc.poll() is None]
+        live = stopping = [c for c in wave if c.proc.poll() is None]
         unclean = 0
         first = max([STOP_GRACE_S, *(c.spec.stop_grace_s for c in live)])  # a node may need longer (stop_grace_s)
         for sig, grace in ((signal.SIGINT, first), (signal.SIGTERM, STOP_GRACE_S), (signal.SIGKILL, 5.0)):
@@ -281,6 +281,10 @@ class ProcessGraph:
                         except ProcessLookupError:
                             pass
                 time.sleep(0.02)
+        for c in stopping:  # a node that ended by its hard deadline (1, or SIGALRM) stopped in time but not cleanly
+            rc = c.proc.poll()
+            if rc is not None and rc not in (0, -signal.SIGKILL, -signal.SIGTERM):
+                LOG.warning("%s ended with code %s while stopping: see its log", c.name, rc)
         return unclean
 
 
