@@ -114,24 +114,30 @@ class Up(BacNode):
         super().__init__("up", **kwargs)
         Path(sys.argv[1]).write_text("up")
 
+    def destroy_node(self):
+        if sys.argv[2] == "gil_held":  # C code that blocks with the GIL held (an rcl/DDS fini that hangs)
+            ctypes.PyDLL("libc.so.6").sleep(60)
+        super().destroy_node()
+
 if sys.argv[2] == "finalizer":
     _hangs = HangsInAFinalizer()
-else:  # a C function run by exit() after the interpreter has finalized (as a library's static destructor)
+elif sys.argv[2] == "after_finalize":  # a C function run by exit() after the interpreter has finalized
     libc = ctypes.CDLL("libc.so.6")
     libc.__cxa_atexit(ctypes.cast(libc.getchar, ctypes.c_void_p), None, None)  # stdin stays open: blocks
 sys.exit(run_node(Up, sys.argv[:1]))
 """
 
 
-@pytest.mark.parametrize("where", ["finalizer", "after_finalize"])
-def test_a_hang_while_the_interpreter_exits_ends_within_the_grace(
+@pytest.mark.parametrize("where", ["gil_held", "finalizer", "after_finalize"])
+def test_a_hang_in_the_clean_up_or_the_exit_ends_within_the_grace(
     ros_env: dict[str, str], tmp_path: Path, where: str
 ) -> None:
     """The CI hang of 54c04f0 (imu_ingest ignored SIGINT and then SIGTERM, its log ending with its start line)
     has this shape: run_node returned after a clean stop and the process hung in the interpreter's exit, where
     the watchdog thread can no longer run (daemon threads stop once the interpreter finalizes) and rclpy's
-    SIGTERM handler, still installed, keeps SIGTERM from ending it. The exit now has a deadline too: in Python
-    code, faulthandler writes the stacks and exits with 1; after the interpreter has finalized, SIGALRM."""
+    SIGTERM handler, still installed, keeps SIGTERM from ending it. The same when the clean-up blocks in C code
+    that holds the GIL (no Python thread runs). The clean-up and the exit now have a hard deadline: faulthandler
+    writes the stacks and exits with 1; after the interpreter has finalized, SIGALRM."""
     marker = tmp_path / "up"
     p = subprocess.Popen(
         [sys.executable, "-c", EXIT_HANG, str(marker), where],
@@ -156,6 +162,8 @@ def test_a_hang_while_the_interpreter_exits_ends_within_the_grace(
     assert waited < 8.0, f"the process took {waited:.1f} s to end (launcher grace 8 s)\n{text}"
     if where == "finalizer":
         assert p.returncode == 1 and "most recent call first" in text and "__del__" in text, text
+    elif where == "gil_held":
+        assert p.returncode == 1 and "most recent call first" in text and "destroy_node" in text, text
     else:
         assert p.returncode == -signal.SIGALRM, (p.returncode, text)
 

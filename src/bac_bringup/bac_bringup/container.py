@@ -157,10 +157,11 @@ def run_nodes(
         else:  # SIGINT/SIGTERM shut the context down while the executor built its wait set (an RCLError)
             code = 0
     finally:
-        stopped_at = time.monotonic()
         own = sum(n.cleanup_time_s() for _, n in created if isinstance(n, BacNode))
         if cleanup_timeout_s is not None:
             start_exit_watchdog("+".join(s.name for s in nodes), cleanup_timeout_s + own, code)
+        if hard is not None and cleanup_timeout_s is not None:  # the clean-up and the interpreter's exit (run_node's)
+            hard.arm(cleanup_timeout_s + own + 0.5)
         drain_s = 4.0 if cleanup_timeout_s is None else cleanup_timeout_s / 2
         if executor is not None and not drain_executor(executor, drain_s):
             LOG.warning("a callback was still running at shutdown")
@@ -171,8 +172,6 @@ def run_nodes(
             except Exception:
                 LOG.exception("destroying a node failed")
         try_shutdown()
-        if hard is not None and cleanup_timeout_s is not None:  # the interpreter's exit (see run_node)
-            hard.arm(max(0.0, cleanup_timeout_s + own - (time.monotonic() - stopped_at)) + 0.5)
         if restore_signals:
             for s, h in old_handlers.items():
                 signal.signal(s, h)

@@ -316,7 +316,7 @@ class StopSignals:
     interpreter has finalized, where faulthandler is gone). A signal is noticed without the main thread too:
     its byte on the signal wakeup fd wakes a watcher thread, which arms the deadline when the main thread is
     stuck in C code. SIGTERM (the launcher's second step, when SIGINT was not enough) also writes the stacks
-    at once (``faulthandler.register``). :func:`run_node` arms the same deadline for the interpreter's exit.
+    at once (``faulthandler.register``). :func:`run_node` arms the same deadline for its clean-up and exit.
     """
 
     SIGNALS = (signal.SIGINT, signal.SIGTERM)
@@ -437,17 +437,17 @@ def run_node(
             rclpy.logging.get_logger(log_name).fatal(f"node failed to start:\n{msg}")
             code = 1
     finally:
-        stopped_at = time.monotonic()
         name = node.get_name() if node is not None else log_name
         own = node.cleanup_time_s() if isinstance(node, BacNode) else 0.0
         start_exit_watchdog(name, cleanup_timeout_s + own, code)  # and the interpreter's exit until it finalizes
+        # the hard deadline 0.5 s after the watchdog's (whose exit code wins when it can run): for a clean-up
+        # stuck in C code that holds the GIL (no Python thread runs then) and for the interpreter's exit once it
+        # finalizes (the watchdog thread is gone then, and rclpy's SIGTERM handler, still installed, keeps SIGTERM
+        # from ending the process: the CI hang of 54c04f0, neither SIGINT nor SIGTERM ended imu_ingest)
+        stop.arm(cleanup_timeout_s + own + 0.5)
         if executor is not None and not drain_executor(executor, cleanup_timeout_s / 2):
             sys.stderr.write(f"[{name}] a callback was still running at shutdown\n")
         if node is not None:
             node.destroy_node()
         try_shutdown()
-        # the interpreter's exit (finalizers, the libraries' static destructors) within what is left: the
-        # watchdog thread above cannot run once the interpreter finalizes, and rclpy's SIGTERM handler keeps
-        # SIGTERM from ending the process then (an old CI hang: neither SIGINT nor SIGTERM ended imu_ingest)
-        stop.arm(max(0.0, cleanup_timeout_s + own - (time.monotonic() - stopped_at)) + 0.5)  # the watchdog first
     return code
