@@ -85,7 +85,7 @@ def test_a_repeated_sigint_does_not_cut_the_clean_up_short(ros_env: dict[str, st
 def test_a_node_runs_on_without_a_stop_signal(ros_env: dict[str, str], tmp_path: Path) -> None:
     """The hard deadline is for a stop that was asked for only: a node with a clean-up time of its own (armed
     after its constructor by mistake once, the deadline ended the cockpit 10 s into a campaign) runs until it
-    finishes, past the 7 s a stop would allow it."""
+    finishes, past the 6 s a stop would allow it."""
     p = start_reporter(ros_env, tmp_path, finish_after_s=9.0, slow_destroy_s=0.2)
     try:
         out, _ = p.communicate(timeout=60)
@@ -190,7 +190,7 @@ sys.exit(run_node(Stuck, sys.argv[:1]))
 
 @pytest.mark.parametrize("sig", [signal.SIGINT, signal.SIGTERM], ids=["SIGINT", "SIGTERM"])
 def test_a_stop_signal_ends_a_node_whatever_hangs(ros_env: dict[str, str], tmp_path: Path, sig: int) -> None:
-    """After SIGINT or SIGTERM the process ends within the clean-up time + 2 s (7 s, the launcher's grace is 8 s)
+    """After SIGINT or SIGTERM the process ends within the clean-up time + 1 s (6 s, the launcher's grace is 8 s)
     even if its main thread never comes back (here: a constructor that never returns), with every thread's
     stack in its output, instead of lingering until the launcher's SIGKILL."""
     marker = tmp_path / "constructing"

@@ -293,7 +293,8 @@ def start_exit_watchdog(name: str, timeout_s: float, code: int) -> None:
     threading.Thread(target=watch, name="bac-exit-watchdog", daemon=True).start()
 
 
-STOP_NOTICE_S = 2.0  # a stop signal -> spinning stopped (the loop polls every 0.1 s; a loaded machine's margin)
+STOP_NOTICE_S = 1.0  # a stop signal -> spinning stopped (the loop polls every 0.1 s): 6 s in all, 2 s inside the
+# launcher's grace (8 s) on a loaded machine
 
 
 class StopSignals:
