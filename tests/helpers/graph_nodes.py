@@ -72,6 +72,7 @@ class Reporter(BacNode):
         return self.slow_destroy_s  # the clean-up it takes beyond the default watchdog time
 
     def destroy_node(self) -> None:
+        _write_atomically(self.out_dir / f"{self.get_name()}.destroying.json", "{}")
         time.sleep(self.slow_destroy_s)  # e.g. the ECU bridge retrying a baseline restore the ECU refuses
         report = {"callback_done": self._callback_done}
         _write_atomically(self.out_dir / f"{self.get_name()}.clean.json", json.dumps(report))

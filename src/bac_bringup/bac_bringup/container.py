@@ -17,7 +17,8 @@ or SIGTERM it ends with 0 after a clean stop: the callbacks in flight finish, th
 in waves of increasing ``stop_order`` (the bridge restores the baseline on the simulated ECU before the
 simulated vehicle goes) while the ROS context is still valid (the signals are handled here, not by rclpy,
 which would shut the context down first and leave the nodes still running publishing into it), and only
-then is the context shut down; a watchdog ends the process if that clean-up hangs.
+then is the context shut down; a watchdog ends the process if that clean-up hangs, and a hard deadline
+(:class:`bac_common.rosnode.StopSignals`) if anything hangs after a stop signal or in the interpreter's exit.
 """
 
 from __future__ import annotations
@@ -83,25 +84,32 @@ def run_nodes(
     linger_s: float = 1.0,
     timeout_s: float | None = None,
     cleanup_timeout_s: float | None = None,
+    restore_signals: bool = True,
 ) -> int:
     """Create the nodes in this process, spin them on one executor until one finishes or a signal arrives.
 
     ``cleanup_timeout_s``: when given (a process's main), the process is ended by a watchdog if stopping
     takes longer than this (plus the nodes' own :meth:`BacNode.cleanup_time_s`) once spinning has stopped.
+    ``restore_signals``: give SIGINT and SIGTERM back to their previous handlers at the end (False for a
+    process's main: the launcher repeats SIGINT until the process is gone, and it must stay a no-op).
     """
     import rclpy
     from rclpy.executors import ExternalShutdownException, MultiThreadedExecutor
     from rclpy.signals import SignalHandlerOptions
     from rclpy.utilities import ok, try_shutdown
 
-    from bac_common.rosnode import BacNode, drain_executor, start_exit_watchdog
+    from bac_common.rosnode import STOP_NOTICE_S, BacNode, StopSignals, drain_executor, start_exit_watchdog
 
     stop = threading.Event()
+    # a process's main: after a stop signal, and for the interpreter's exit, a hard deadline (run_node's)
+    hard = None if cleanup_timeout_s is None else StopSignals(cleanup_timeout_s + STOP_NOTICE_S)
 
     def on_signal(signum: int, _frame: Any) -> None:
         if not stop.is_set():
             LOG.info("received %s: stopping", signal.Signals(signum).name)
         stop.set()
+        if hard is not None:
+            hard.arm(hard.deadline_s)
 
     old_handlers = {s: signal.signal(s, on_signal) for s in (signal.SIGINT, signal.SIGTERM)}
     rclpy.init(args=["bac_container"], signal_handler_options=SignalHandlerOptions.NO)
@@ -113,6 +121,10 @@ def run_nodes(
             module, class_name = spec.entry.split(":", 1)
             cls = getattr(importlib.import_module(module), class_name)
             created.append((spec, cls(cli_args=list(spec.args))))
+        if hard is not None:
+            hard.deadline_s += sum(n.cleanup_time_s() for _, n in created if isinstance(n, BacNode))
+            if stop.is_set():  # armed with the shorter deadline while the nodes were made
+                hard.arm(hard.deadline_s, later=True)
         executor = MultiThreadedExecutor(num_threads=max(4, len(created) + 2))
         for _, n in created:
             executor.add_node(n)
@@ -145,9 +157,11 @@ def run_nodes(
         else:  # SIGINT/SIGTERM shut the context down while the executor built its wait set (an RCLError)
             code = 0
     finally:
+        own = sum(n.cleanup_time_s() for _, n in created if isinstance(n, BacNode))
         if cleanup_timeout_s is not None:
-            own = sum(n.cleanup_time_s() for _, n in created if isinstance(n, BacNode))
             start_exit_watchdog("+".join(s.name for s in nodes), cleanup_timeout_s + own, code)
+        if hard is not None and cleanup_timeout_s is not None:  # the clean-up and the interpreter's exit (run_node's)
+            hard.arm(cleanup_timeout_s + own + 0.5)
         drain_s = 4.0 if cleanup_timeout_s is None else cleanup_timeout_s / 2
         if executor is not None and not drain_executor(executor, drain_s):
             LOG.warning("a callback was still running at shutdown")
@@ -158,8 +172,9 @@ def run_nodes(
             except Exception:
                 LOG.exception("destroying a node failed")
         try_shutdown()
-        for s, h in old_handlers.items():
-            signal.signal(s, h)
+        if restore_signals:
+            for s, h in old_handlers.items():
+                signal.signal(s, h)
     return code
 
 
@@ -172,7 +187,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     args = ap.parse_args(list(sys.argv[1:] if argv is None else argv))
     process, nodes, linger_s = read_spec(args.spec)
     LOG.info("process %s: %s", process, ", ".join(n.name for n in nodes))
-    return run_nodes(nodes, linger_s=linger_s, cleanup_timeout_s=CLEANUP_TIMEOUT_S)
+    return run_nodes(nodes, linger_s=linger_s, cleanup_timeout_s=CLEANUP_TIMEOUT_S, restore_signals=False)
 
 
 if __name__ == "__main__":

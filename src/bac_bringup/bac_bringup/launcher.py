@@ -51,6 +51,10 @@ from bac_common.contracts import ROS_ENV_DEFAULTS
 
 LOG = logging.getLogger("bac.launch")
 STOP_GRACE_S = 8.0  # SIGINT, then this long before SIGTERM, then as long before SIGKILL
+# SIGINT is sent again this often during its grace: a node process can lose one (Python swallows the
+# KeyboardInterrupt of a SIGINT that lands in a finalizer, e.g. while the node still imports its modules;
+# bac_common.rosnode.StopSignals), and a repeated SIGINT is harmless to a node that is already stopping
+SIGINT_REPEAT_S = 1.0
 PR_SET_PDEATHSIG = 1
 
 
@@ -238,7 +242,8 @@ class ProcessGraph:
         return code if code is not None else stop_rc
 
     def stop(self) -> int:
-        """Stop the nodes in waves of ``stop_order`` (SIGINT, then SIGTERM, then SIGKILL per wave).
+        """Stop the nodes in waves of ``stop_order`` (SIGINT, repeated every :data:`SIGINT_REPEAT_S`, then SIGTERM,
+        then SIGKILL per wave).
 
         Returns 0 if every node ended cleanly on SIGINT. Waves let a node that still needs another at its
         shutdown (the ECU bridge restoring the baseline calibration on the simulated vehicle's ECU) go first.
@@ -250,7 +255,7 @@ class ProcessGraph:
         return 1 if unclean else 0
 
     def _stop_wave(self, wave: list[NodeProcess]) -> int:
-        live = [c for c in wave if c.proc.poll() is None]
+        live = stopping = [c for c in wave if c.proc.poll() is None]
         unclean = 0
         first = max([STOP_GRACE_S, *(c.spec.stop_grace_s for c in live)])  # a node may need longer (stop_grace_s)
         for sig, grace in ((signal.SIGINT, first), (signal.SIGTERM, STOP_GRACE_S), (signal.SIGKILL, 5.0)):
@@ -265,9 +270,21 @@ class ProcessGraph:
                 unclean += len(live)
                 LOG.warning("sent %s to %s", sig.name, ", ".join(c.name for c in live))
             deadline = time.monotonic() + grace
+            repeat_at = time.monotonic() + SIGINT_REPEAT_S
             while live and time.monotonic() < deadline:
                 live = [c for c in live if c.proc.poll() is None]
+                if sig == signal.SIGINT and live and time.monotonic() >= repeat_at:
+                    repeat_at += SIGINT_REPEAT_S
+                    for c in live:
+                        try:
+                            os.killpg(c.proc.pid, sig)
+                        except ProcessLookupError:
+                            pass
                 time.sleep(0.02)
+        for c in stopping:  # a node that ended by its hard deadline (1, or SIGALRM) stopped in time but not cleanly
+            rc = c.proc.poll()
+            if rc is not None and rc not in (0, -signal.SIGKILL, -signal.SIGTERM):
+                LOG.warning("%s ended with code %s while stopping: see its log", c.name, rc)
         return unclean
 
 

@@ -9,11 +9,18 @@
   multi-threaded executor, handle Ctrl-C / SIGTERM / external shutdown, let
   the callbacks in flight finish (:func:`drain_executor`), destroy the node,
   ``try_shutdown``; a watchdog ends the process if that clean-up hangs.
+* :class:`StopSignals`: SIGINT and SIGTERM as a flag that cannot be lost (a
+  ``KeyboardInterrupt`` can be: CPython swallows one raised in a finalizer or a
+  weakref callback), with a hard deadline once a stop is asked for.
 """
 
 from __future__ import annotations
 
+import faulthandler
+import io
+import math
 import os
+import signal
 import sys
 import threading
 import time
@@ -225,9 +232,14 @@ class BacNode(Node):
 N = TypeVar("N", bound=Node)
 
 
-def spin_until_done(executor: MultiThreadedExecutor, nodes: Sequence[Node], poll_s: float = 0.1) -> int:
-    """Spin until a node sets ``exit_code`` or the context shuts down; return the code."""
-    while executor.context.ok():
+def spin_until_done(
+    executor: MultiThreadedExecutor,
+    nodes: Sequence[Node],
+    poll_s: float = 0.1,
+    stop: Callable[[], bool] | None = None,
+) -> int:
+    """Spin until a node sets ``exit_code``, the context shuts down or ``stop()`` is true; return the code."""
+    while executor.context.ok() and not (stop is not None and stop()):
         executor.spin_once(timeout_sec=poll_s)
         for node in nodes:
             code = getattr(node, "exit_code", None)
@@ -281,6 +293,99 @@ def start_exit_watchdog(name: str, timeout_s: float, code: int) -> None:
     threading.Thread(target=watch, name="bac-exit-watchdog", daemon=True).start()
 
 
+STOP_NOTICE_S = 1.0  # a stop signal -> spinning stopped (the loop polls every 0.1 s): 6 s in all, 2 s inside the
+# launcher's grace (8 s) on a loaded machine
+
+
+class StopSignals:
+    """SIGINT and SIGTERM of a node process as a flag that cannot be lost, and a hard deadline once one came.
+
+    Python runs a signal's handler in the main thread between two bytecodes, wherever that is. A
+    ``KeyboardInterrupt`` raised there is swallowed when the place is a finalizer (``__del__``) or a weakref
+    callback ("Exception ignored in ...", e.g. importlib's module-lock callback while a node imports numpy),
+    or C code that clears errors: the signal is lost. Found by hammering a node's start and stop (2026-11-24:
+    2 of about 400 SIGINTs in the first second of a node's life, on a loaded 2-core machine); the node then
+    spun until the launcher's SIGTERM. The handler here sets a flag, which nothing can swallow:
+    :func:`run_node` checks it before creating the node, after its constructor and in every turn of the spin
+    loop. While ``interrupt`` is true (the constructor runs) the handler also raises ``KeyboardInterrupt`` to
+    cut a waiting constructor short; if that one is swallowed, the flag still stops the node.
+
+    The first stop signal arms a hard deadline (:meth:`arm`): a process still alive ``deadline_s`` later
+    writes every thread's stack to stderr (the node's log) and exits with code 1
+    (``faulthandler.dump_traceback_later(exit=True)``: a C thread that needs neither the main thread nor the
+    GIL), and up to a second later the kernel ends it with SIGALRM (``signal.alarm``: for a hang after the
+    interpreter has finalized, where faulthandler is gone). A signal is noticed without the main thread too:
+    its byte on the signal wakeup fd wakes a watcher thread, which arms the deadline when the main thread is
+    stuck in C code. SIGTERM (the launcher's second step, when SIGINT was not enough) also writes the stacks
+    at once (``faulthandler.register``). :func:`run_node` arms the same deadline for its clean-up and exit.
+    """
+
+    SIGNALS = (signal.SIGINT, signal.SIGTERM)
+
+    def __init__(self, deadline_s: float) -> None:
+        self.deadline_s = deadline_s
+        self.signum: int | None = None
+        self.interrupt = False
+        self._deadline_at: float | None = None  # time.monotonic() of the armed deadline
+        self._arm_lock = threading.Lock()
+
+    def requested(self) -> bool:
+        """True once SIGINT or SIGTERM came (a method: it changes under the caller's feet)."""
+        return self.signum is not None
+
+    def install(self) -> StopSignals:
+        """Take SIGINT and SIGTERM (call from the main thread, before ``rclpy.init``, whose handlers chain here)."""
+        for s in self.SIGNALS:
+            signal.signal(s, self._on_signal)
+        try:
+            faulthandler.register(signal.SIGTERM, file=sys.stderr, all_threads=True, chain=True)
+        except (ValueError, OSError, AttributeError, io.UnsupportedOperation):  # no file descriptor (a test's capture)
+            pass
+        read_fd, write_fd = os.pipe()
+        os.set_blocking(write_fd, False)
+        if signal.set_wakeup_fd(write_fd, warn_on_full_buffer=False) != -1:  # someone else's: give it back
+            signal.set_wakeup_fd(signal.set_wakeup_fd(-1), warn_on_full_buffer=False)  # pragma: no cover
+            os.close(read_fd)
+            os.close(write_fd)
+        else:
+            threading.Thread(target=self._watch, args=(read_fd,), name="bac-stop-signals", daemon=True).start()
+        return self
+
+    def _on_signal(self, signum: int, _frame: Any) -> None:
+        if self.signum is None:
+            self.signum = signum
+        self.arm(self.deadline_s)
+        if self.interrupt:
+            raise KeyboardInterrupt
+
+    def _watch(self, read_fd: int) -> None:
+        while True:
+            data = os.read(read_fd, 64)
+            if not data:
+                return
+            if any(b in self.SIGNALS for b in data):
+                self.arm(self.deadline_s)
+
+    def arm(self, seconds: float, later: bool = False) -> None:
+        """End the process ``seconds`` from now if it still lives (the earlier of this and an armed deadline;
+        ``later``: this one even if later, e.g. once the node's own clean-up time is known)."""
+        if not self._arm_lock.acquire(blocking=False):  # the other of the handler and the watcher is at it
+            return
+        try:
+            at = time.monotonic() + seconds
+            if self._deadline_at is not None and at >= self._deadline_at and not later:
+                return
+            self._deadline_at = at
+            try:
+                faulthandler.dump_traceback_later(seconds, exit=True, file=sys.stderr)
+            except (ValueError, OSError, AttributeError, io.UnsupportedOperation):  # no file descriptor
+                pass
+            if signal.getsignal(signal.SIGALRM) in (signal.SIG_DFL, None):  # nobody else's alarm
+                signal.alarm(math.ceil(seconds + 0.5))
+        finally:
+            self._arm_lock.release()
+
+
 def run_node(
     node_cls: Callable[..., N], args: Sequence[str] | None = None, cleanup_timeout_s: float = CLEANUP_TIMEOUT_S
 ) -> int:
@@ -288,38 +393,59 @@ def run_node(
 
     The returned code is final: once spinning stops, the process ends within ``cleanup_timeout_s`` (plus the
     node's own :meth:`BacNode.cleanup_time_s`) even if rclpy's clean-up, or the interpreter's exit that joins
-    the executor's threads, hangs.
+    the executor's threads, hangs. SIGINT and SIGTERM are taken by :class:`StopSignals` (a flag, never lost;
+    rclpy's own handlers still shut the context down); after the first one the process ends within
+    ``cleanup_timeout_s`` + :data:`STOP_NOTICE_S` (plus the node's own clean-up time) whatever hangs.
     """
+    stop = StopSignals(cleanup_timeout_s + STOP_NOTICE_S).install()
     rclpy.init(args=list(args) if args is not None else sys.argv)
     node: N | None = None
     executor: MultiThreadedExecutor | None = None
     code = 0
+    log_name = getattr(node_cls, "__name__", "bac")
     try:
-        node = node_cls()
-        executor = MultiThreadedExecutor()
-        executor.add_node(node)
-        code = spin_until_done(executor, [node])
+        if not stop.requested():
+            stop.interrupt = True
+            try:
+                node = node_cls()
+            finally:
+                stop.interrupt = False
+            if isinstance(node, BacNode) and node.cleanup_time_s() > 0:
+                stop.deadline_s += node.cleanup_time_s()
+                if stop.requested():  # armed with the shorter deadline while the constructor ran
+                    stop.arm(stop.deadline_s, later=True)
+        if node is None or stop.requested():
+            rclpy.logging.get_logger(log_name).info("interrupted while starting")
+        else:
+            executor = MultiThreadedExecutor()
+            executor.add_node(node)
+            code = spin_until_done(executor, [node], stop=stop.requested)
     except (KeyboardInterrupt, ExternalShutdownException):
         if node is None or executor is None:
-            rclpy.logging.get_logger(getattr(node_cls, "__name__", "bac")).info("interrupted while starting")
+            rclpy.logging.get_logger(log_name).info("interrupted while starting")
         code = 0
     except Exception:
         msg = traceback.format_exc()
-        if not rclpy_ok():
+        if not rclpy_ok() or stop.requested():
             # SIGINT (Ctrl-C, the launcher's stop) while the node was still starting: rclpy's handler shut the
             # context down under the constructor, whose next rcl call then fails. An interrupted start, not a crash.
-            rclpy.logging.get_logger(getattr(node_cls, "__name__", "bac")).info("interrupted while starting")
+            rclpy.logging.get_logger(log_name).info("interrupted while starting")
             code = 0
         elif node is not None:
             node.get_logger().fatal(f"node crashed:\n{msg}")
             code = 1
         else:
-            rclpy.logging.get_logger(getattr(node_cls, "__name__", "bac")).fatal(f"node failed to start:\n{msg}")
+            rclpy.logging.get_logger(log_name).fatal(f"node failed to start:\n{msg}")
             code = 1
     finally:
-        name = node.get_name() if node is not None else getattr(node_cls, "__name__", "bac")
+        name = node.get_name() if node is not None else log_name
         own = node.cleanup_time_s() if isinstance(node, BacNode) else 0.0
-        start_exit_watchdog(name, cleanup_timeout_s + own, code)  # also covers the interpreter's exit
+        start_exit_watchdog(name, cleanup_timeout_s + own, code)  # and the interpreter's exit until it finalizes
+        # the hard deadline 0.5 s after the watchdog's (whose exit code wins when it can run): for a clean-up
+        # stuck in C code that holds the GIL (no Python thread runs then) and for the interpreter's exit once it
+        # finalizes (the watchdog thread is gone then, and rclpy's SIGTERM handler, still installed, keeps SIGTERM
+        # from ending the process: the CI hang of 54c04f0, neither SIGINT nor SIGTERM ended imu_ingest)
+        stop.arm(cleanup_timeout_s + own + 0.5)
         if executor is not None and not drain_executor(executor, cleanup_timeout_s / 2):
             sys.stderr.write(f"[{name}] a callback was still running at shutdown\n")
         if node is not None:
