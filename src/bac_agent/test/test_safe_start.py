@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 from bac_agent.bo import Engine, EngineConfig
-from bac_agent.bo.engine import KIND_SAFE
+from bac_agent.bo.engine import KIND_SAFE, SAFE_MIN_STEP, SAFE_STEP
 from bac_agent.bo.prior import SourceSurface
 
 LIMIT = "max_travel_mm<=60"
@@ -90,3 +90,62 @@ def test_a_safe_start_that_breaks_a_limit_is_said_and_the_engine_retreats() -> N
 def test_a_safe_start_outside_the_space_is_refused(bad: dict[str, float]) -> None:
     with pytest.raises(ValueError):
         _engine(0, safe_start=bad)
+
+
+def _grown_design(
+    dim: int, seed: int, travel_offset: float = 0.0, noise: float = 0.5
+) -> tuple[list[float], list[dict[str, object]]]:
+    """A safe start's design phase in ``dim`` dimensions (travel as above in the first two, the rest inert): for
+    each proposal after run 1, its distance to the nearest run that kept the limit before it, and its info."""
+    names = [f"x{i}" for i in range(dim)]
+    cfg = EngineConfig.from_dict(
+        {
+            "budget": 3 * dim + 6,
+            "seed": seed,
+            "constraints": [LIMIT],
+            "safe_start": {n: (0.9 if i == 0 else 0.5) for i, n in enumerate(names)},
+        }
+    )
+    eng = Engine({n: (0.0, 1.0) for n in names}, cfg)
+    rng = np.random.default_rng(seed)
+    dists: list[float] = []
+    infos: list[dict[str, object]] = []
+    kept: list[np.ndarray] = []
+    for k in range(eng.n_initial):
+        s = eng.ask_with_info()
+        u = np.array([s.params[n] for n in names])
+        if k:
+            dists.append(float(np.min(np.linalg.norm(np.array(kept) - u, axis=1))))
+            infos.append(dict(s.info))
+        t = travel_of(u) + travel_offset + noise * rng.standard_normal()
+        if t <= 60.0:
+            kept.append(u)
+        eng.tell(s.params, float(np.sum((u - 0.3) ** 2)), {"max_travel_mm": t})
+    return dists, infos
+
+
+@pytest.mark.parametrize("dim", [8, 20])
+def test_in_many_dimensions_every_design_proposal_stays_within_a_step_of_a_kept_run(dim: int) -> None:
+    # before (2026-11-24) the candidates were Sobol points over the whole box: in 8-D about one in ten fell within
+    # a step of a kept run, in 20-D none, and the least risky calibration anywhere was taken (jumps of 1.0)
+    for seed in range(2):
+        dists, infos = _grown_design(dim, seed)
+        assert max(dists) <= SAFE_STEP + 1e-9, (seed, np.round(dists, 3))
+        assert not any("no_safe_candidate" in i for i in infos), seed
+        assert min(dists) > 0.01  # it moves: no kept run repeated
+
+
+def test_a_kept_run_on_the_limit_grows_by_small_steps_neither_jumping_nor_stalling() -> None:
+    # the safe start measures 60.0 on a limit of 60 and run 2 breaks it: the only run that kept the limit has a
+    # margin 0, its Lipschitz step is 0; the next proposal is a small step from it (SAFE_MIN_STEP at most, where
+    # the model allows it), not the calibration least likely to break the limit anywhere (before: a jump across the
+    # box) nor the same calibration again (a stall)
+    for seed in range(4):
+        eng = _engine(seed, safe_start=SAFE)
+        eng.tell(eng.ask(), j_of(np.array([0.9, 0.5])), {"max_travel_mm": 60.0})
+        p = eng.ask()
+        eng.tell(p, j_of(np.array([p["a"], p["b"]])), {"max_travel_mm": 70.0})
+        assert eng._safe_radii()[0] == 0.0
+        s = eng.ask_with_info()
+        step = float(np.hypot(s.params["a"] - 0.9, s.params["b"] - 0.5))
+        assert 0.01 <= step <= SAFE_MIN_STEP + 1e-9, (seed, s.params, s.info)
