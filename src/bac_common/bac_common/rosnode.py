@@ -313,7 +313,8 @@ class StopSignals:
     spun until the launcher's SIGTERM. The handler here sets a flag, which nothing can swallow:
     :func:`run_node` checks it before creating the node, after its constructor and in every turn of the spin
     loop. While ``interrupt`` is true (the constructor runs) the handler also raises ``KeyboardInterrupt`` to
-    cut a waiting constructor short; if that one is swallowed, the flag still stops the node.
+    cut a waiting constructor short, once (it clears ``interrupt``: a repeated SIGINT must not cut short the
+    constructor's own clean-up); if that one is swallowed, the flag still stops the node.
 
     The first stop signal arms a hard deadline (:meth:`arm`): a process still alive ``deadline_s`` later
     writes every thread's stack to stderr (the node's log) and exits with code 1
@@ -322,7 +323,8 @@ class StopSignals:
     interpreter has finalized, where faulthandler is gone). A signal is noticed without the main thread too:
     its byte on the signal wakeup fd wakes a watcher thread, which arms the deadline when the main thread is
     stuck in C code. SIGTERM (the launcher's second step, when SIGINT was not enough) also writes the stacks
-    at once (``faulthandler.register``). :func:`run_node` arms the same deadline for its clean-up and exit.
+    at once (``faulthandler.register``; on a first, normal SIGTERM stop too: a conditional dump would need the
+    main thread, which a hung node does not give). :func:`run_node` arms the same deadline for its clean-up and exit.
     """
 
     SIGNALS = (signal.SIGINT, signal.SIGTERM)
@@ -441,6 +443,10 @@ def run_node(
     the executor's threads, hangs. SIGINT and SIGTERM are taken by :class:`StopSignals` (a flag, never lost;
     rclpy's own handlers still shut the context down); after the first one the process ends within
     ``cleanup_timeout_s`` + :data:`STOP_NOTICE_S` (plus the node's own clean-up time) whatever hangs.
+
+    It must not be called in a process that goes on after it returns: it leaves the process-wide exit watchdog,
+    the armed hard deadline (faulthandler's exit timer and ``SIGALRM``) and SIGINT ignored behind, which end the
+    process a few seconds later by design (tests run it in a subprocess).
     """
     stop = StopSignals(cleanup_timeout_s + STOP_NOTICE_S).install()
     rclpy.init(args=list(args) if args is not None else sys.argv)
