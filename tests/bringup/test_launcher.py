@@ -294,3 +294,18 @@ def test_bad_profiles_are_refused(tmp_path: Path) -> None:
     bad.write_text("nodes: [{name: a, entry: 'm:A', process: b}, {name: b, entry: 'm:B', process: c}]\n")
     with pytest.raises(ProfileError, match="name the shared process differently"):
         load_profile(bad)
+
+
+def test_a_node_ended_by_its_hard_deadline_makes_the_stop_unclean(ros_env: dict[str, str], tmp_path: Path) -> None:
+    """A node that ends with a non-zero code while stopping (its hard deadline: 1, or SIGALRM; the bridge cut short
+    in its baseline restore) ended in time but not cleanly: the launcher stopped by Ctrl-C says so with its exit
+    code, not only in a warning (it exited 0)."""
+    nodes = [reporter("cut", tmp_path, stop_exit_code=1), reporter("fine", tmp_path)]
+    p = launch(ros_env, str(make_profile(tmp_path, nodes)))
+    wait_for(lambda: report(tmp_path, "cut") and report(tmp_path, "fine"), 60, what="both nodes started")
+    p.send_signal(signal.SIGINT)
+    out, _ = p.communicate(timeout=60)
+    text = out.decode(errors="replace")
+    assert p.returncode == 1 and "cut ended with code 1 while stopping" in text, text
+    assert "sent SIGTERM" not in text, text
+    assert report(tmp_path, "fine", "clean") is not None

@@ -251,3 +251,289 @@ def test_a_stop_while_a_node_is_starting_is_not_a_crash(ros_env: dict[str, str],
     else:
         assert p.returncode == 1, text
         assert "node failed to start" in text and "a real fault while starting" in text, text
+
+
+WAKEUP_OWNER = """
+import os, signal, sys, time
+from bac_common.rosnode import StopSignals
+r0, w0 = os.pipe()
+os.set_blocking(w0, False)
+os.set_blocking(r0, False)
+signal.set_wakeup_fd(w0)  # someone else's wakeup fd (an asyncio loop)
+StopSignals(100).install()
+installed = signal.set_wakeup_fd(w0)
+f = open(sys.argv[1], "wb")  # takes the lowest free descriptor: the one StopSignals closed
+os.kill(os.getpid(), signal.SIGINT)
+time.sleep(0.2)
+f.close()
+print("installed", installed == w0, "owner got", os.read(r0, 10).hex())
+"""
+
+
+def test_install_gives_a_wakeup_fd_back_to_its_owner(ros_env: dict[str, str], tmp_path: Path) -> None:
+    """A wakeup fd someone else installed stays theirs: install() set its own write end back after closing it
+    (it dropped the old one), so a later signal wrote its byte into whatever file reused that number (a
+    journal opened after start-up got b'\\x02', the review's wakeup2.py)."""
+    journal = tmp_path / "journal.bin"
+    p = subprocess.run(
+        [sys.executable, "-c", WAKEUP_OWNER, str(journal)],
+        env=ros_env,
+        capture_output=True,
+        text=True,
+        timeout=60,
+        check=False,
+    )
+    assert p.returncode == 0, p.stdout + p.stderr
+    assert journal.read_bytes() == b"", p.stdout
+    assert "installed True owner got 02" in p.stdout, p.stdout + p.stderr
+
+
+CONSTRUCTOR_CLEAN_UP = """
+import sys
+import time
+from pathlib import Path
+from bac_common.rosnode import BacNode, run_node
+
+class Opening(BacNode):
+    def __init__(self, **kwargs):
+        super().__init__("opening", **kwargs)
+        try:
+            Path(sys.argv[1]).write_text("waiting")
+            time.sleep(60)  # waiting for the ECU
+        finally:  # its own clean-up when interrupted (a journal repaired, a connection closed): 2 s
+            Path(sys.argv[1] + ".cleaning").write_text("")
+            for _ in range(20):
+                time.sleep(0.1)
+            Path(sys.argv[1] + ".cleaned").write_text("")
+
+sys.exit(run_node(Opening, sys.argv[:1]))
+"""
+
+
+def test_a_repeated_sigint_does_not_cut_a_constructors_clean_up_short(ros_env: dict[str, str], tmp_path: Path) -> None:
+    """While the constructor runs, the first SIGINT raises KeyboardInterrupt to cut its wait short; the launcher's
+    repeated SIGINT (every second) raised it again in the constructor's own except/finally clean-up (the review's
+    twice.py). Only the first raises now."""
+    marker = tmp_path / "opening"
+    p = subprocess.Popen(
+        [sys.executable, "-c", CONSTRUCTOR_CLEAN_UP, str(marker)],
+        env=ros_env,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.STDOUT,
+        start_new_session=True,
+    )
+    try:
+        wait_for(marker.exists, 60, what="the constructor waiting")
+        p.send_signal(signal.SIGINT)
+        wait_for(Path(f"{marker}.cleaning").exists, 30, what="the constructor's clean-up began")
+        while p.poll() is None:  # the launcher's repeats
+            p.send_signal(signal.SIGINT)
+            time.sleep(0.3)
+        out = p.stdout.read() if p.stdout else b""
+    finally:
+        if p.poll() is None:
+            os.killpg(p.pid, signal.SIGKILL)
+            p.wait()
+    text = out.decode(errors="replace")
+    assert Path(f"{marker}.cleaned").exists(), text
+    assert p.returncode == 0 and "interrupted while starting" in text, text
+
+
+ARM_CONTENDED = """
+import faulthandler, os, signal, sys, threading, time
+import bac_common.rosnode as rosnode
+from bac_common.rosnode import StopSignals
+
+stop = StopSignals(50.0)
+signal.signal(signal.SIGINT, stop._on_signal)
+real = faulthandler.dump_traceback_later
+holding = threading.Event()
+
+def slow(*args, **kwargs):  # the watcher thread inside arm(), holding its lock for a moment
+    if threading.current_thread().name == "watcher":
+        holding.set()
+        time.sleep(0.5)
+    real(*args, **kwargs)
+
+rosnode.faulthandler.dump_traceback_later = slow
+t = threading.Thread(target=stop.arm, args=(100.0,), name="watcher")
+t.start()
+holding.wait(10)
+t0 = time.monotonic()
+if sys.argv[1] == "later":
+    stop.arm(200.0, later=True)  # the main thread: must wait for the watcher, not be dropped
+    want = 200.0
+else:
+    os.kill(os.getpid(), signal.SIGINT)  # the handler: must not block, and must not be dropped either
+    time.sleep(0.05)
+    want = 50.0
+blocked = time.monotonic() - t0
+t.join()
+left = stop._deadline_at - time.monotonic()
+faulthandler.cancel_dump_traceback_later()
+signal.alarm(0)
+print(f"left {left:.1f} blocked {blocked:.2f}")
+assert abs(left - want) < 5.0, (left, want)
+if sys.argv[1] == "signal":
+    assert blocked < 0.3, blocked
+"""
+
+
+@pytest.mark.parametrize("caller", ["later", "signal"])
+def test_an_arm_is_never_dropped_while_another_holds_the_lock(ros_env: dict[str, str], caller: str) -> None:
+    """arm() took its lock without blocking from every caller: a later=True arm from the main thread (or the
+    signal handler's arm) was dropped silently when the watcher thread held it (the repeated SIGINT wakes the
+    watcher every second). Now a thread waits for it; the handler, which must not block (the main thread may
+    hold the lock itself), queues its request and the holder applies it."""
+    p = subprocess.run(
+        [sys.executable, "-c", ARM_CONTENDED, caller],
+        env=ros_env,
+        capture_output=True,
+        text=True,
+        timeout=60,
+        check=False,
+    )
+    assert p.returncode == 0, p.stdout + p.stderr
+
+
+GROWN_CLEAN_UP = """
+import sys
+import time
+from pathlib import Path
+from bac_common.rosnode import BacNode, run_node
+
+class Restoring(BacNode):
+    def __init__(self, **kwargs):
+        super().__init__("restoring", **kwargs)
+        self.restore_s = 0.0
+        self.create_timer(0.1, self.up)
+
+    def up(self):  # a runtime parameter raised (the bridge's restore_timeout_s): a longer clean-up
+        self.restore_s = 3.0
+        Path(sys.argv[1]).write_text("up")
+
+    def cleanup_time_s(self):
+        return self.restore_s
+
+    def destroy_node(self):
+        time.sleep(2.5)  # the baseline restore: longer than the stop deadline armed before (1 + 1 s)
+        Path(sys.argv[1] + ".restored").write_text("")
+        super().destroy_node()
+
+sys.exit(run_node(Restoring, sys.argv[:1], cleanup_timeout_s=1.0))
+"""
+
+
+def test_a_clean_up_time_raised_at_runtime_extends_the_stop_deadline(ros_env: dict[str, str], tmp_path: Path) -> None:
+    """A node's cleanup_time_s was read once after its constructor: the bridge's comes from runtime parameters,
+    and raising one let the hard deadline end the bridge in the middle of the baseline restore (exit 1). The
+    clean-up reads it again and extends the deadline when it grew."""
+    marker = tmp_path / "up"
+    p = subprocess.Popen(
+        [sys.executable, "-c", GROWN_CLEAN_UP, str(marker)],
+        env=ros_env,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.STDOUT,
+        start_new_session=True,
+    )
+    try:
+        wait_for(marker.exists, 60, what="the node up")
+        p.send_signal(signal.SIGINT)
+        out, _ = p.communicate(timeout=30)
+    finally:
+        if p.poll() is None:
+            os.killpg(p.pid, signal.SIGKILL)
+    text = out.decode(errors="replace")
+    assert p.returncode == 0 and "most recent call first" not in text, text
+    assert Path(f"{marker}.restored").exists(), text
+
+
+STUCK_IN_C = """
+import ctypes
+import sys
+from pathlib import Path
+from bac_common.rosnode import BacNode
+
+class StuckInC(BacNode):
+    def __init__(self, **kwargs):
+        super().__init__("stuck_in_c", **kwargs)
+        Path(MARKER).write_text("constructing")
+        libc = ctypes.CDLL("libc.so.6")  # releases the GIL; a futex wait that signals do not interrupt
+        mutex = ctypes.create_string_buffer(64)
+        libc.pthread_mutex_lock(mutex)
+        libc.pthread_mutex_lock(mutex)  # a C call that never returns to Python (an rcl/DDS wait)
+"""
+
+
+@pytest.mark.parametrize("host", ["run_node", "container"])
+def test_a_stop_signal_ends_a_process_whose_main_thread_is_stuck_in_c(
+    ros_env: dict[str, str], tmp_path: Path, host: str
+) -> None:
+    """The main thread in C code that never returns to Python never runs a signal's Python handler: the watcher
+    thread on the signal wakeup fd arms the hard deadline. The container's process had no watcher (and no SIGTERM
+    stack dump): it lived on after SIGINT."""
+    marker = tmp_path / "constructing"
+    (tmp_path / "stuck_node.py").write_text(f"MARKER = {str(marker)!r}\n" + STUCK_IN_C)
+    env = {**ros_env, "PYTHONPATH": f"{tmp_path}:{ros_env.get('PYTHONPATH', '')}"}
+    if host == "run_node":
+        cmd = [
+            sys.executable,
+            "-c",
+            "import sys, stuck_node, bac_common.rosnode as r; sys.exit(r.run_node(stuck_node.StuckInC, sys.argv[:1]))",
+        ]
+    else:
+        from bac_bringup.container import ContainedNode, write_spec
+
+        node = ContainedNode("stuck_in_c", "stuck_node:StuckInC", ("--ros-args", "-r", "__node:=stuck_in_c"))
+        spec = write_spec(tmp_path / "spec.json", "stuck", [node], 1.0)
+        cmd = [sys.executable, "-m", "bac_bringup.container", str(spec)]
+    p = subprocess.Popen(cmd, env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, start_new_session=True)
+    try:
+        wait_for(marker.exists, 60, what="the constructor running")
+        time.sleep(0.3)  # into the C call
+        t0 = time.monotonic()
+        p.send_signal(signal.SIGINT)
+        try:
+            out, _ = p.communicate(timeout=15)
+        except subprocess.TimeoutExpired:
+            out = b""
+        waited = time.monotonic() - t0
+    finally:
+        if p.poll() is None:
+            os.killpg(p.pid, signal.SIGKILL)
+            p.wait()
+    text = out.decode(errors="replace")
+    assert p.returncode == 1, (p.returncode, text)
+    assert waited < 8.0, f"the process took {waited:.1f} s to end (launcher grace 8 s)\n{text}"
+    assert "most recent call first" in text and "__init__" in text, text
+
+
+def test_spin_until_done_keeps_a_code_set_just_before_the_stop() -> None:
+    """A worker thread sets exit_code, then the stop becomes true before the loop looks at the node again: the
+    code was lost (0)."""
+    from bac_common.rosnode import spin_until_done
+
+    class Node:
+        exit_code: int | None = None
+
+    node = Node()
+    stopped = []
+
+    class Context:
+        def ok(self) -> bool:
+            return True
+
+    class Executor:
+        context = Context()
+
+        def spin_once(self, timeout_sec: float) -> None:
+            # the node's code and the stop land together; the first look at the node comes after the stop check
+            stopped.append(True)
+
+    def stop() -> bool:
+        if stopped:
+            node.exit_code = 3
+            return True
+        return False
+
+    assert spin_until_done(Executor(), [node], stop=stop) == 3  # type: ignore[arg-type]

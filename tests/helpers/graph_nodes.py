@@ -31,6 +31,9 @@ class Reporter(BacNode):
         busy = self.declare_float("busy_callback_s", -1.0, "a callback 0.1 s after start that runs this long")
         self.hang_on_destroy = self.declare_bool("hang_on_destroy", False, "destroy_node never returns")
         self.slow_destroy_s = self.declare_float("slow_destroy_s", 0.0, "destroy_node takes this long (a clean-up)")
+        self.stop_exit_code = self.declare_int(
+            "stop_exit_code", 0, "destroy_node ends the process with this code (a hard deadline's 1), 0 = no"
+        )
         self._callback_done = False
         report = {
             "name": self.get_name(),
@@ -76,6 +79,8 @@ class Reporter(BacNode):
         time.sleep(self.slow_destroy_s)  # e.g. the ECU bridge retrying a baseline restore the ECU refuses
         report = {"callback_done": self._callback_done}
         _write_atomically(self.out_dir / f"{self.get_name()}.clean.json", json.dumps(report))
+        if self.stop_exit_code:  # the process ended by its hard deadline while stopping (StopSignals: exit 1)
+            os._exit(self.stop_exit_code)
         while self.hang_on_destroy:  # an rclpy clean-up that never returns
             time.sleep(0.05)
         super().destroy_node()

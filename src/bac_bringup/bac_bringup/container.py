@@ -109,20 +109,24 @@ def run_nodes(
             LOG.info("received %s: stopping", signal.Signals(signum).name)
         stop.set()
         if hard is not None:
-            hard.arm(hard.deadline_s)
+            hard.notice(signum)  # never blocks (the main thread may be inside hard.arm())
 
     old_handlers = {s: signal.signal(s, on_signal) for s in (signal.SIGINT, signal.SIGTERM)}
+    if hard is not None:  # after our handlers: the SIGTERM stack dump chains to them; the wakeup-fd watcher
+        hard.install(handlers=False)
     rclpy.init(args=["bac_container"], signal_handler_options=SignalHandlerOptions.NO)
     created: list[tuple[ContainedNode, Any]] = []
     executor: MultiThreadedExecutor | None = None
     code = 0
+    own_at_start = 0.0  # the nodes' clean-up time when the stop deadline was set (after their constructors)
     try:
         for spec in nodes:
             module, class_name = spec.entry.split(":", 1)
             cls = getattr(importlib.import_module(module), class_name)
             created.append((spec, cls(cli_args=list(spec.args))))
         if hard is not None:
-            hard.deadline_s += sum(n.cleanup_time_s() for _, n in created if isinstance(n, BacNode))
+            own_at_start = sum(n.cleanup_time_s() for _, n in created if isinstance(n, BacNode))
+            hard.deadline_s += own_at_start
             if stop.is_set():  # armed with the shorter deadline while the nodes were made
                 hard.arm(hard.deadline_s, later=True)
         executor = MultiThreadedExecutor(num_threads=max(4, len(created) + 2))
@@ -161,7 +165,10 @@ def run_nodes(
         if cleanup_timeout_s is not None:
             start_exit_watchdog("+".join(s.name for s in nodes), cleanup_timeout_s + own, code)
         if hard is not None and cleanup_timeout_s is not None:  # the clean-up and the interpreter's exit (run_node's)
-            hard.arm(cleanup_timeout_s + own + 0.5)
+            grown = own > own_at_start  # a clean-up time raised at runtime (the bridge's timeouts) extends it
+            if grown:
+                hard.deadline_s += own - own_at_start
+            hard.arm(cleanup_timeout_s + own + 0.5, later=grown)
         drain_s = 4.0 if cleanup_timeout_s is None else cleanup_timeout_s / 2
         if executor is not None and not drain_executor(executor, drain_s):
             LOG.warning("a callback was still running at shutdown")
@@ -187,7 +194,11 @@ def main(argv: Sequence[str] | None = None) -> int:
     args = ap.parse_args(list(sys.argv[1:] if argv is None else argv))
     process, nodes, linger_s = read_spec(args.spec)
     LOG.info("process %s: %s", process, ", ".join(n.name for n in nodes))
-    return run_nodes(nodes, linger_s=linger_s, cleanup_timeout_s=CLEANUP_TIMEOUT_S, restore_signals=False)
+    code = run_nodes(nodes, linger_s=linger_s, cleanup_timeout_s=CLEANUP_TIMEOUT_S, restore_signals=False)
+    # the interpreter's exit resets Python-handled signals to SIG_DFL: the launcher's repeated SIGINT would then
+    # kill a process that stopped cleanly (-2); an ignored one is left as it is (run_node does the same)
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    return code
 
 
 if __name__ == "__main__":

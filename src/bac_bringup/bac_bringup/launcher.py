@@ -245,7 +245,8 @@ class ProcessGraph:
         """Stop the nodes in waves of ``stop_order`` (SIGINT, repeated every :data:`SIGINT_REPEAT_S`, then SIGTERM,
         then SIGKILL per wave).
 
-        Returns 0 if every node ended cleanly on SIGINT. Waves let a node that still needs another at its
+        Returns 0 if every node ended on SIGINT with code 0 (a node ended by its hard deadline, code 1 or
+        SIGALRM, or failing in its clean-up is unclean: 1). Waves let a node that still needs another at its
         shutdown (the ECU bridge restoring the baseline calibration on the simulated vehicle's ECU) go first.
         """
         unclean = 0
@@ -284,7 +285,9 @@ class ProcessGraph:
         for c in stopping:  # a node that ended by its hard deadline (1, or SIGALRM) stopped in time but not cleanly
             rc = c.proc.poll()
             if rc is not None and rc not in (0, -signal.SIGKILL, -signal.SIGTERM):
+                # unclean: its clean-up was cut short (the bridge in the middle of its baseline restore) or failed
                 LOG.warning("%s ended with code %s while stopping: see its log", c.name, rc)
+                unclean += 1
         return unclean
 
 

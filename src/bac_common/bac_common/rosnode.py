@@ -16,6 +16,7 @@
 
 from __future__ import annotations
 
+import collections
 import faulthandler
 import io
 import math
@@ -26,7 +27,7 @@ import threading
 import time
 import traceback
 from collections.abc import Callable, Sequence
-from typing import Any, TypeVar
+from typing import Any, ClassVar, TypeVar
 
 import rclpy
 from rcl_interfaces.msg import (
@@ -245,6 +246,10 @@ def spin_until_done(
             code = getattr(node, "exit_code", None)
             if code is not None:
                 return int(code)
+    for node in nodes:  # a worker thread may have set it just before the stop or the shutdown: not lost
+        code = getattr(node, "exit_code", None)
+        if code is not None:
+            return int(code)
     return 0
 
 
@@ -308,7 +313,8 @@ class StopSignals:
     spun until the launcher's SIGTERM. The handler here sets a flag, which nothing can swallow:
     :func:`run_node` checks it before creating the node, after its constructor and in every turn of the spin
     loop. While ``interrupt`` is true (the constructor runs) the handler also raises ``KeyboardInterrupt`` to
-    cut a waiting constructor short; if that one is swallowed, the flag still stops the node.
+    cut a waiting constructor short, once (it clears ``interrupt``: a repeated SIGINT must not cut short the
+    constructor's own clean-up); if that one is swallowed, the flag still stops the node.
 
     The first stop signal arms a hard deadline (:meth:`arm`): a process still alive ``deadline_s`` later
     writes every thread's stack to stderr (the node's log) and exits with code 1
@@ -317,10 +323,13 @@ class StopSignals:
     interpreter has finalized, where faulthandler is gone). A signal is noticed without the main thread too:
     its byte on the signal wakeup fd wakes a watcher thread, which arms the deadline when the main thread is
     stuck in C code. SIGTERM (the launcher's second step, when SIGINT was not enough) also writes the stacks
-    at once (``faulthandler.register``). :func:`run_node` arms the same deadline for its clean-up and exit.
+    at once (``faulthandler.register``; on a first, normal SIGTERM stop too: a conditional dump would need the
+    main thread, which a hung node does not give). :func:`run_node` arms the same deadline for its clean-up and exit.
     """
 
     SIGNALS = (signal.SIGINT, signal.SIGTERM)
+    # our wakeup fd's write end, and the instance its watcher serves
+    _wakeup: ClassVar[tuple[int, StopSignals] | None] = None
 
     def __init__(self, deadline_s: float) -> None:
         self.deadline_s = deadline_s
@@ -328,62 +337,100 @@ class StopSignals:
         self.interrupt = False
         self._deadline_at: float | None = None  # time.monotonic() of the armed deadline
         self._arm_lock = threading.Lock()
+        self._pending: collections.deque[tuple[float, bool]] = collections.deque()  # (monotonic time, later)
 
     def requested(self) -> bool:
         """True once SIGINT or SIGTERM came (a method: it changes under the caller's feet)."""
         return self.signum is not None
 
-    def install(self) -> StopSignals:
-        """Take SIGINT and SIGTERM (call from the main thread, before ``rclpy.init``, whose handlers chain here)."""
-        for s in self.SIGNALS:
-            signal.signal(s, self._on_signal)
+    def install(self, handlers: bool = True) -> StopSignals:
+        """Take SIGINT and SIGTERM (call from the main thread, before ``rclpy.init``, whose handlers chain here).
+
+        ``handlers``: False for a caller with handlers of its own (the container, which calls :meth:`notice`):
+        only the SIGTERM stack dump and the wakeup-fd watcher are installed then (after the caller's handlers).
+        A wakeup fd someone else installed (an asyncio loop) is left in place, without a watcher; one of ours
+        (a second install in the process) is kept and its watcher serves this instance from now on.
+        """
+        if handlers:
+            for s in self.SIGNALS:
+                signal.signal(s, self._on_signal)
         try:
             faulthandler.register(signal.SIGTERM, file=sys.stderr, all_threads=True, chain=True)
         except (ValueError, OSError, AttributeError, io.UnsupportedOperation):  # no file descriptor (a test's capture)
             pass
         read_fd, write_fd = os.pipe()
         os.set_blocking(write_fd, False)
-        if signal.set_wakeup_fd(write_fd, warn_on_full_buffer=False) != -1:  # someone else's: give it back
-            signal.set_wakeup_fd(signal.set_wakeup_fd(-1), warn_on_full_buffer=False)  # pragma: no cover
-            os.close(read_fd)
-            os.close(write_fd)
-        else:
+        old = signal.set_wakeup_fd(write_fd, warn_on_full_buffer=False)
+        if old == -1:
+            StopSignals._wakeup = (write_fd, self)
             threading.Thread(target=self._watch, args=(read_fd,), name="bac-stop-signals", daemon=True).start()
+            return self
+        # not ours to take: give the old one back before our pipe is closed (a wakeup fd left pointing at a closed
+        # descriptor sends the signal bytes into whatever file reuses its number)
+        mine = StopSignals._wakeup is not None and StopSignals._wakeup[0] == old
+        signal.set_wakeup_fd(old, warn_on_full_buffer=not mine)
+        os.close(read_fd)
+        os.close(write_fd)
+        if mine:
+            StopSignals._wakeup = (old, self)
         return self
 
-    def _on_signal(self, signum: int, _frame: Any) -> None:
+    def notice(self, signum: int) -> None:
+        """A stop signal came (from a handler): remember the first, arm the deadline (never blocks)."""
         if self.signum is None:
             self.signum = signum
-        self.arm(self.deadline_s)
+        self._request(self.deadline_s, False, blocking=False)
+
+    def _on_signal(self, signum: int, _frame: Any) -> None:
+        self.notice(signum)
         if self.interrupt:
+            # once: a repeated SIGINT (the launcher's, every second) must not cut short the constructor's own
+            # except/finally clean-up that the first one started (a journal repair, a connection closed)
+            self.interrupt = False
             raise KeyboardInterrupt
 
-    def _watch(self, read_fd: int) -> None:
+    @staticmethod
+    def _watch(read_fd: int) -> None:
         while True:
             data = os.read(read_fd, 64)
             if not data:
                 return
-            if any(b in self.SIGNALS for b in data):
-                self.arm(self.deadline_s)
+            wakeup = StopSignals._wakeup
+            if wakeup is not None and any(b in StopSignals.SIGNALS for b in data):
+                target = wakeup[1]
+                target.arm(target.deadline_s)
 
     def arm(self, seconds: float, later: bool = False) -> None:
         """End the process ``seconds`` from now if it still lives (the earlier of this and an armed deadline;
-        ``later``: this one even if later, e.g. once the node's own clean-up time is known)."""
-        if not self._arm_lock.acquire(blocking=False):  # the other of the handler and the watcher is at it
-            return
-        try:
-            at = time.monotonic() + seconds
-            if self._deadline_at is not None and at >= self._deadline_at and not later:
+        ``later``: this one even if later, e.g. once the node's own clean-up time is known). Waits for an
+        arm in progress in another thread (the watcher's); never lost."""
+        self._request(seconds, later, blocking=True)
+
+    def _request(self, seconds: float, later: bool, blocking: bool) -> None:
+        # Every request goes into a queue; whoever holds the lock applies all queued ones before it lets go and
+        # looks again after. The signal handler does not block (it runs on the main thread, which may be inside
+        # arm() holding the lock itself): if the lock is taken, its holder applies the handler's request.
+        self._pending.append((time.monotonic() + seconds, later))
+        while self._pending:
+            if not self._arm_lock.acquire(blocking=blocking):
                 return
-            self._deadline_at = at
             try:
-                faulthandler.dump_traceback_later(seconds, exit=True, file=sys.stderr)
-            except (ValueError, OSError, AttributeError, io.UnsupportedOperation):  # no file descriptor
-                pass
-            if signal.getsignal(signal.SIGALRM) in (signal.SIG_DFL, None):  # nobody else's alarm
-                signal.alarm(math.ceil(seconds + 0.5))
-        finally:
-            self._arm_lock.release()
+                while self._pending:
+                    self._apply(*self._pending.popleft())
+            finally:
+                self._arm_lock.release()
+
+    def _apply(self, at: float, later: bool) -> None:
+        if self._deadline_at is not None and at >= self._deadline_at and not later:
+            return
+        self._deadline_at = at
+        seconds = max(at - time.monotonic(), 0.001)
+        try:
+            faulthandler.dump_traceback_later(seconds, exit=True, file=sys.stderr)
+        except (ValueError, OSError, AttributeError, io.UnsupportedOperation):  # no file descriptor
+            pass
+        if signal.getsignal(signal.SIGALRM) in (signal.SIG_DFL, None):  # nobody else's alarm
+            signal.alarm(math.ceil(seconds + 0.5))
 
 
 def run_node(
@@ -396,12 +443,17 @@ def run_node(
     the executor's threads, hangs. SIGINT and SIGTERM are taken by :class:`StopSignals` (a flag, never lost;
     rclpy's own handlers still shut the context down); after the first one the process ends within
     ``cleanup_timeout_s`` + :data:`STOP_NOTICE_S` (plus the node's own clean-up time) whatever hangs.
+
+    It must not be called in a process that goes on after it returns: it leaves the process-wide exit watchdog,
+    the armed hard deadline (faulthandler's exit timer and ``SIGALRM``) and SIGINT ignored behind, which end the
+    process a few seconds later by design (tests run it in a subprocess).
     """
     stop = StopSignals(cleanup_timeout_s + STOP_NOTICE_S).install()
     rclpy.init(args=list(args) if args is not None else sys.argv)
     node: N | None = None
     executor: MultiThreadedExecutor | None = None
     code = 0
+    own_at_start = 0.0  # the node's clean-up time when the stop deadline was set (after its constructor)
     log_name = getattr(node_cls, "__name__", "bac")
     try:
         if not stop.requested():
@@ -411,7 +463,8 @@ def run_node(
             finally:
                 stop.interrupt = False
             if isinstance(node, BacNode) and node.cleanup_time_s() > 0:
-                stop.deadline_s += node.cleanup_time_s()
+                own_at_start = node.cleanup_time_s()
+                stop.deadline_s += own_at_start
                 if stop.requested():  # armed with the shorter deadline while the constructor ran
                     stop.arm(stop.deadline_s, later=True)
         if node is None or stop.requested():
@@ -426,11 +479,17 @@ def run_node(
         code = 0
     except Exception:
         msg = traceback.format_exc()
-        if not rclpy_ok() or stop.requested():
+        if (not rclpy_ok() or stop.requested()) and executor is None:
             # SIGINT (Ctrl-C, the launcher's stop) while the node was still starting: rclpy's handler shut the
             # context down under the constructor, whose next rcl call then fails. An interrupted start, not a crash.
             rclpy.logging.get_logger(log_name).info("interrupted while starting")
             code = 0
+        elif node is not None and executor is not None and (not rclpy_ok() or stop.requested()):
+            # a running node that failed after the stop was asked for (often the context shut down under a
+            # callback): not an interrupted start; logged as what it is, the stop still clean unless it set a code
+            node.get_logger().error(f"an error after the stop was asked for:\n{msg}")
+            exit_code = getattr(node, "exit_code", None)
+            code = 0 if exit_code is None else int(exit_code)
         elif node is not None:
             node.get_logger().fatal(f"node crashed:\n{msg}")
             code = 1
@@ -444,11 +503,19 @@ def run_node(
         # the hard deadline 0.5 s after the watchdog's (whose exit code wins when it can run): for a clean-up
         # stuck in C code that holds the GIL (no Python thread runs then) and for the interpreter's exit once it
         # finalizes (the watchdog thread is gone then, and rclpy's SIGTERM handler, still installed, keeps SIGTERM
-        # from ending the process: the CI hang of 54c04f0, neither SIGINT nor SIGTERM ended imu_ingest)
-        stop.arm(cleanup_timeout_s + own + 0.5)
+        # from ending the process: the CI hang of 54c04f0, neither SIGINT nor SIGTERM ended imu_ingest). The
+        # node's clean-up time is read again: it may have grown at runtime (the bridge's timeouts are runtime
+        # parameters), and then this extends the deadline a stop signal armed (later=True), repeated SIGINTs too.
+        grown = own > own_at_start
+        if grown:
+            stop.deadline_s += own - own_at_start
+        stop.arm(cleanup_timeout_s + own + 0.5, later=grown)
         if executor is not None and not drain_executor(executor, cleanup_timeout_s / 2):
             sys.stderr.write(f"[{name}] a callback was still running at shutdown\n")
         if node is not None:
             node.destroy_node()
         try_shutdown()
+        # the interpreter's exit resets Python-handled signals to SIG_DFL: the launcher's repeated SIGINT would
+        # then kill a process that stopped cleanly (-2); an ignored one is left as it is (the deadline stays)
+        signal.signal(signal.SIGINT, signal.SIG_IGN)
     return code
