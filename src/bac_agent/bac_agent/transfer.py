@@ -17,8 +17,9 @@ carry their measured outcomes (``max_travel_mm``, ``peak_accel_z``, ...); each o
 at least 3 of those runs measured becomes a source surface of that outcome, the prior of its model
 (``EngineConfig.outcome_priors``). A ``bac reduce`` output (``result.json`` schema 2, since 2026-11-24) stores
 what each simulated run reported besides J (``max_travel_mm``, ``lift_off_ms``): each limited outcome that at
-least 3 runs of a campaign reported becomes a surrogate built as J_mu is (a GP per campaign over its own runs, the
-precision-weighted average of their posterior means, taken through this campaign's definition at Sobol points).
+least 3 runs reported becomes a source fitted to those runs as a campaign folder's are (noisy runs), pooled over
+the phase's campaigns and placed in this campaign's space through its definition (``project_runs``; since
+2026-11-24 evening: before, a dense noise-free sample of a surrogate, certain also where the phase never ran).
 An older result.json (J only) gives none, and the car's outcome models then start from their first runs.
 
 Either becomes a :class:`~bac_agent.bo.prior.SourceSurface` over this campaign's unit cube (a GP fitted to
@@ -143,12 +144,14 @@ def from_campaign(folder: Path, definition: CalibrationDefinition) -> SourceSurf
     return SourceSurface.fit(np.array(X), np.array(y), label, noisy=True)
 
 
-def reduce_surrogate(data: dict[str, Any]) -> tuple[list[str], Callable[[FloatArray], FloatArray]]:
+def reduce_surrogate(
+    data: dict[str, Any], result: Path = Path(REDUCE_RESULT)
+) -> tuple[list[str], Callable[[FloatArray], FloatArray]]:
     """The raw parameter names of a reduce output's campaigns and J_mu over raw calibrations (n, P) in that order."""
     models = []
     names: list[str] | None = None
-    for c in data.get("campaigns") or []:
-        state = json.loads(c["engine_state"]) if isinstance(c["engine_state"], str) else dict(c["engine_state"])
+    for k, c in enumerate(data.get("campaigns") or []):
+        state = _engine_state(result, k, c)
         if not state.get("hyper"):
             continue
         space = SearchSpace.from_dict(state["space"])
@@ -181,7 +184,7 @@ def from_reduce_result(
 ) -> SourceSurface:
     """The simulation phase's J_mu through ``definition``, sampled at Sobol points and fitted."""
     data = _read_reduce_result(result)
-    names, j_mu = reduce_surrogate(data)
+    names, j_mu = reduce_surrogate(data, result)
     space = SearchSpace.from_definition(definition)
     probe = definition.expand(space.to_params(space.from_unit(np.full(space.dim, 0.5))))
     missing = [n for n in names if n not in probe]
@@ -200,77 +203,109 @@ def from_reduce_result(
     return SourceSurface.fit(U, y, label=f"bac reduce {result} (J_mu of {m} campaigns, {n} points)")
 
 
-def reduce_outcome_surrogate(
-    data: dict[str, Any], name: str, seed: int = 0
-) -> tuple[list[str], Callable[[FloatArray], FloatArray], int] | None:
-    """The raw parameter names, the surrogate of outcome ``name`` over raw calibrations (n, P) and the runs it
-    rests on: per campaign a GP (``NOISY_SOURCE_GP``: the runs are noisy) fitted to the runs that reported the
-    outcome (at least 3), combined as J_mu is (precision-weighted posterior means); None when no campaign has one."""
-    from bac_agent.bo.prior import NOISY_SOURCE_GP
+def _engine_state(result: Path, k: int, c: Any) -> dict[str, Any]:
+    """Campaign ``k``'s stored engine state (its search space, its model)."""
+    if not isinstance(c, dict) or "engine_state" not in c:
+        raise TransferError(
+            f"campaign {k + 1} of {result} has no engine_state: the file is damaged or was not written by "
+            "bac reduce; write it again with bac reduce"
+        )
+    raw = c["engine_state"]
+    try:
+        state = json.loads(raw) if isinstance(raw, str) else dict(raw)
+        SearchSpace.from_dict(state["space"])
+    except (TypeError, ValueError, KeyError) as exc:
+        raise TransferError(f"campaign {k + 1} of {result}: unreadable engine_state ({exc!r})") from exc
+    return state
 
-    models = []
-    names: list[str] | None = None
-    runs = 0
-    rng = np.random.default_rng(seed)
-    for c in data.get("campaigns") or []:
-        values = np.array([np.nan if v is None else float(v) for v in (c.get("outcomes") or {}).get(name, [])])
-        X = np.asarray(c.get("X") or [], dtype=float)
-        if values.size != X.shape[0] or int(np.sum(np.isfinite(values))) < 3:
+
+def project_runs(definition: CalibrationDefinition, names: Sequence[str], R: FloatArray) -> FloatArray:
+    """Raw calibrations ``R`` (n, P; columns ``names``) seen in ``definition``'s tuned space (n, d): a raw
+    dimension its value, a meta-parameter its members' mean position in their ranges (``baseline_tuned``'s rule:
+    the nearest point of the meta-parameter's line in the members' relative coordinates); NaN where a tuned raw
+    dimension is not among ``names``. Values outside the definition's bounds are kept (the caller leaves them out)."""
+    col = {n: i for i, n in enumerate(names)}
+    R = np.atleast_2d(np.asarray(R, dtype=float))
+    out = np.full((R.shape[0], len(definition.dimensions)), np.nan)
+    for j, d in enumerate(definition.dimensions):
+        if not d.is_meta:
+            if d.name in col:
+                out[:, j] = R[:, col[d.name]]
             continue
-        state = json.loads(c["engine_state"]) if isinstance(c["engine_state"], str) else dict(c["engine_state"])
-        space = SearchSpace.from_dict(state["space"])
+        m = definition.meta_parameter(d.name)
+        if not all(n in col for n in m.members):
+            continue
+        rel = [(R[:, col[n]] - p.lower) / (p.upper - p.lower) for n in m.members for p in (definition.parameter(n),)]
+        out[:, j] = m.lower + np.mean(rel, axis=0) * (m.upper - m.lower)
+    return out
+
+
+def reduce_outcome_runs(
+    result: Path, data: dict[str, Any], definition: CalibrationDefinition, name: str
+) -> tuple[FloatArray, FloatArray, str]:
+    """The simulation phase's runs that reported outcome ``name``, pooled over its campaigns and seen in
+    ``definition``'s unit cube (``project_runs``), their values and a label; runs outside the bounds left out."""
+    space = SearchSpace.from_definition(definition)
+    Xs, ys, used, outside = [], [], 0, 0
+    for k, c in enumerate(data.get("campaigns") or []):
+        listed = (c.get("outcomes") or {}).get(name)
+        if listed is None:
+            continue
+        X = np.asarray(c.get("X") or [], dtype=float)
+        try:
+            values = np.array([np.nan if v is None else float(v) for v in listed], dtype=float)
+        except (TypeError, ValueError) as exc:
+            raise TransferError(f"campaign {k + 1} of {result}: {name} holds a value that is not a number") from exc
+        if values.size != X.shape[0]:
+            raise TransferError(
+                f"campaign {k + 1} of {result} has {X.shape[0]} runs but {values.size} values of {name}: the file "
+                "is damaged or was edited by hand; write it again with bac reduce (or remove that outcome)"
+            )
         ok = np.isfinite(values)
-        gp = GP(NOISY_SOURCE_GP).fit(space.to_unit(X[ok]), values[ok], rng)
-        models.append((space, gp))
-        runs += int(np.sum(ok))
-        names = list(space.names) if names is None else names
-        if list(space.names) != names:
-            raise TransferError("the campaigns of the reduce output tune different parameters")
-    if not models or names is None:
-        return None
-
-    def surrogate(R: FloatArray) -> FloatArray:
-        means, precisions = [], []
-        for space, gp in models:
-            m, sd = gp.predict(space.to_unit(R))
-            means.append(m)
-            precisions.append(1.0 / np.maximum(np.asarray(sd), 1e-12) ** 2)
-        w = np.array(precisions)
-        return np.asarray(np.sum(w * np.array(means), axis=0) / np.sum(w, axis=0), dtype=float)
-
-    return names, surrogate, runs
+        if not np.any(ok):
+            continue
+        state = _engine_state(result, k, c)
+        raw_names = list(SearchSpace.from_dict(state["space"]).names)
+        _check_raw_names(result, definition, space, raw_names)
+        T = project_runs(definition, raw_names, X[ok])
+        if np.any(np.isnan(T)):
+            missing = [d.name for j, d in enumerate(definition.dimensions) if np.isnan(T[0, j])]
+            raise TransferError(
+                f"the simulation phase in {result} did not calibrate {missing}, which definition "
+                f"'{definition.name}' tunes: its runs cannot be placed in this campaign's space"
+            )
+        U = space.to_unit(T)
+        inside = np.all((U >= -1e-9) & (U <= 1 + 1e-9), axis=1)
+        outside += int(np.sum(~inside))
+        used += 1
+        Xs.append(np.clip(U[inside], 0.0, 1.0))
+        ys.append(values[ok][inside])
+    X_all = np.vstack(Xs) if Xs else np.zeros((0, space.dim))
+    y_all = np.concatenate(ys) if ys else np.zeros(0)
+    label = f"bac reduce {result} ({y_all.size} runs of {used} campaigns"
+    label += f", {outside} outside the bounds left out)" if outside else ")"
+    return X_all, y_all, label
 
 
 def outcome_sources_from_reduce_result(
-    result: Path, definition: CalibrationDefinition, outcomes: Sequence[str], points: int = 0, seed: int = 0
+    result: Path, definition: CalibrationDefinition, outcomes: Sequence[str]
 ) -> dict[str, SourceSurface]:
-    """What the simulation phase's runs reported of the ``outcomes`` (``reduce_outcome_surrogate``), each taken
-    through ``definition`` at the Sobol points J_mu is taken at and fitted; an outcome no campaign reported on 3
-    runs (or a result.json from before outcomes, schema 1) is left out."""
+    """What the simulation phase's runs reported of the ``outcomes``: each outcome's runs, pooled over the
+    campaigns and placed in ``definition``'s unit cube (``reduce_outcome_runs``), fitted as noisy runs, as a
+    campaign folder's are (``load_outcome_sources``); an outcome fewer than 3 runs reported (or a result.json from
+    before outcomes, schema 1) is left out.
+
+    Why the runs and not J_mu's way (a surrogate sampled densely at Sobol points): a GP fitted to a dense sample of
+    a model's means is certain everywhere (its posterior variance is round-off), also far from every run of a phase
+    whose BO campaigns clustered near their optima; the runs carry what the phase did not see into the source's
+    own variance (``bo.constraints``: C_s), as a campaign folder's runs do (outside review, 2026-11-24)."""
     data = _read_reduce_result(result)
-    space = SearchSpace.from_definition(definition)
-    n = points or int(min(512, max(128, 64 * space.dim)))
-    U = qmc.Sobol(space.dim, scramble=True, seed=seed).random(n)
     out: dict[str, SourceSurface] = {}
-    R_cache: dict[tuple[str, ...], FloatArray] = {}
     for name in dict.fromkeys(outcomes):
-        got = reduce_outcome_surrogate(data, name, seed)
-        if got is None:
+        X, y, label = reduce_outcome_runs(result, data, definition, name)
+        if y.size < 3:
             continue
-        raw_names, f, runs = got
-        key = tuple(raw_names)
-        if key not in R_cache:
-            _check_raw_names(result, definition, space, raw_names)
-            R_cache[key] = np.array(
-                [[definition.expand(space.to_params(space.from_unit(u)))[k] for k in raw_names] for u in U]
-            )
-        y = f(R_cache[key])
-        if not np.all(np.isfinite(y)):
-            raise TransferError(f"the {name} surrogate of {result} is not finite everywhere in this campaign's space")
-        m = len(data["campaigns"])
-        out[name] = SourceSurface.fit(
-            U, y, label=f"{name}: bac reduce {result} ({runs} runs of {m} campaigns, {n} points)"
-        )
+        out[name] = SourceSurface.fit(X, y, f"{name}: {label}", noisy=True)
     return out
 
 
@@ -281,7 +316,13 @@ def _read_reduce_result(result: Path) -> dict[str, Any]:
         raise TransferError(f"cannot read {result}: {exc}") from exc
     if not isinstance(data, dict) or "campaigns" not in data:
         raise TransferError(f"{result} is not a bac reduce result.json (no campaigns)")
-    version = int(data.get("schema_version", 1))
+    raw_version = data.get("schema_version", 1)
+    if isinstance(raw_version, bool) or not isinstance(raw_version, int | float) or raw_version != int(raw_version):
+        raise TransferError(
+            f"{result} has schema_version {raw_version!r}, not a whole number: the file is damaged or was not "
+            "written by bac reduce"
+        )
+    version = int(raw_version)
     if version > 2:
         raise TransferError(f"{result} has schema_version {version}: written by a newer bac (this one reads 1 and 2)")
     return data

@@ -252,7 +252,7 @@ def _brute_force(m: OutcomeModel, X: np.ndarray, v: np.ndarray, Q: np.ndarray, b
     def k(A: np.ndarray, B: np.ndarray, diag: bool) -> np.ndarray:
         sa, sb = src.standardized(A), src.standardized(B)
         base = matern52_from_r2(sq_dist(A, B, h.lengthscales), h.outputscale)
-        C = cs(A, B)
+        C = cs(A, B) * (0.0 if c._SourceCov(src).zero else 1.0)  # below the floor everywhere: no C_s
         if diag:  # a variance below the round-off floor is 0 (c.SOURCE_VAR_FLOOR)
             np.fill_diagonal(C, np.maximum(np.diag(C) - c.SOURCE_VAR_FLOOR, 0.0))
         return np.asarray(
@@ -361,3 +361,123 @@ def test_a_source_evaluated_twice_at_the_same_points_computes_once(monkeypatch: 
     s3, _ = src.standardized_and_grad(U + 0.01)  # other points: computed
     assert len(calls) == 2 and not np.allclose(s3, s1)
     np.testing.assert_allclose(src.standardized_and_grad(U)[0], src.standardized(U))
+
+
+def _reduce_output(tmp_path: Path, U_runs: list[np.ndarray], travel: object) -> Path:
+    """A bac reduce result.json (schema 2) of campaigns over controller_i's dampers whose runs are ``U_runs``
+    (unit cube) with their travel as each run reported it."""
+    import json
+
+    from bac_common.paramspace import CalibrationDefinition
+    from bac_common.paths import resolve_definition
+
+    definition = CalibrationDefinition.load(resolve_definition("controller_i"))
+    space = SearchSpace.from_definition(definition)
+    state = Engine(definition, EngineConfig(budget=5)).to_json()
+    campaigns = [
+        {
+            "X": space.from_unit(U).tolist(),
+            "y": j_of(U).tolist(),
+            "engine_state": state,
+            "outcomes": {"max_travel_mm": travel(U).tolist()},  # type: ignore[operator]
+        }
+        for U in U_runs
+    ]
+    out = tmp_path / "reduce_out"
+    out.mkdir(exist_ok=True)
+    (out / "result.json").write_text(json.dumps({"schema_version": 2, "campaigns": campaigns}))
+    return out
+
+
+def test_a_reduce_output_whose_runs_cluster_is_uncertain_where_the_phase_never_ran(tmp_path: Path) -> None:
+    """The outside review's D2 (issue 23): a simulation phase whose BO campaigns all ran at u0 ≥ 0.7 (near their
+    optimum) knows nothing of the soft end, where the car breaks the limit by 20 mm. The travel prior built from
+    its result.json must be as uncertain there as one built from the same runs as a campaign folder (before: a
+    noise-free fit to the surrogate's means at Sobol points, certain everywhere: p_violation 0.0003-0.0013 at the
+    soft end; now 0.14-0.19); near the runs it agrees with the simulator's travel."""
+    from bac_agent.transfer import load_outcome_sources
+    from bac_common.paramspace import CalibrationDefinition
+    from bac_common.paths import resolve_definition
+
+    rng = np.random.default_rng(4)
+    runs = [np.column_stack([0.7 + 0.3 * rng.random(8), rng.random(8)]) for _ in range(2)]
+    noise = iter(0.5 * rng.standard_normal(16))
+    out = _reduce_output(tmp_path, runs, lambda U: nominal_travel(U) + np.array([next(noise) for _ in U]))
+    definition = CalibrationDefinition.load(resolve_definition("controller_i"))
+    src = load_outcome_sources(out, definition, ["max_travel_mm"])["max_travel_mm"]
+    assert "16 runs of 2 campaigns" in src.label and src.noisy
+    lim = OutcomeLimit("max_travel_mm", LIMIT)
+    m = OutcomeModel(lim, src)
+    m.fit(np.zeros((0, 2)), np.zeros(0), np.random.default_rng(0))
+    soft = np.array([[0.02, 0.1], [0.05, 0.5], [0.1, 0.9]])
+    assert np.all(car_travel(soft) > LIMIT + 15.0)
+    assert np.all(m.prob_violation(soft) > 0.05)
+    # near the runs: the simulator's travel, and a calibration it keeps well inside the limit is allowed
+    near = np.array([[0.8, 0.3], [0.9, 0.7]])
+    np.testing.assert_allclose(src.predict_j(near), nominal_travel(near), atol=2.0)
+    assert np.all(m.prob_violation(near) < 0.05)
+    # the source's own sd: at least 5 times larger at the soft end than near the runs
+    from bac_agent.bo.constraints import _SourceCov
+
+    v_soft = _SourceCov(src).var_with_grad(soft)[0]
+    v_near = _SourceCov(src).var_with_grad(near)[0]
+    assert np.all(np.sqrt(v_soft) > 5.0 * np.sqrt(np.max(v_near) + 1e-12))
+
+
+def test_a_damaged_reduce_output_is_a_transfer_error(tmp_path: Path) -> None:
+    """result.json's fields a user may have damaged are TransferErrors that say what is wrong: a schema_version
+    that is not a whole number, a campaign without its engine_state, an outcome list whose length is not the
+    campaign's number of runs (before: ValueError, KeyError, and a campaign skipped silently)."""
+    import json
+
+    from bac_agent.transfer import TransferError, load_outcome_sources, load_source
+    from bac_common.paramspace import CalibrationDefinition
+    from bac_common.paths import resolve_definition
+
+    definition = CalibrationDefinition.load(resolve_definition("controller_i"))
+    rng = np.random.default_rng(0)
+    out = _reduce_output(tmp_path, [rng.random((6, 2))], nominal_travel)
+    good = json.loads((out / "result.json").read_text())
+    assert set(load_outcome_sources(out, definition, ["max_travel_mm"])) == {"max_travel_mm"}
+
+    def broken(edit: object) -> Path:
+        data = json.loads(json.dumps(good))
+        edit(data)  # type: ignore[operator]
+        (out / "result.json").write_text(json.dumps(data))
+        return out
+
+    for version in ("2a", None, 2.5, [2]):
+        with pytest.raises(TransferError, match=r"schema_version .* not a whole number"):
+            load_outcome_sources(broken(lambda d, v=version: d.update(schema_version=v)), definition, ["max_travel_mm"])
+    with pytest.raises(TransferError, match=r"campaign 1 of .* has no engine_state"):
+        load_outcome_sources(broken(lambda d: d["campaigns"][0].pop("engine_state")), definition, ["max_travel_mm"])
+    with pytest.raises(TransferError, match=r"campaign 1 of .* has no engine_state"):
+        load_source(broken(lambda d: d["campaigns"][0].pop("engine_state")), definition, points=32)
+    with pytest.raises(TransferError, match=r"campaign 1 of .* has 6 runs but 5 values of max_travel_mm"):
+        load_outcome_sources(
+            broken(lambda d: d["campaigns"][0]["outcomes"]["max_travel_mm"].pop()), definition, ["max_travel_mm"]
+        )
+
+
+@pytest.mark.parametrize(("dim", "points"), [(2, 64), (4, 256)])
+def test_a_dense_noise_free_sources_covariance_is_dropped_not_indefinite(dim: int, points: int) -> None:
+    """The outside review's nit: a dense noise-free source's variance is round-off (max 1e-7 for 2-D/64 points,
+    5e-8 for 4-D/256), below SOURCE_VAR_FLOOR; taking the floor off C_s's diagonal only left it indefinite
+    (min eigenvalue -1e-7). Such a source has no C_s at all; a clustered one keeps its own (positive
+    semi-definite up to round-off)."""
+    from bac_agent.bo.constraints import _SourceCov
+
+    src = SourceSurface.from_function(
+        lambda U: 80 - 40 * np.atleast_2d(U)[:, 0] + 5 * np.atleast_2d(U)[:, 1], dim, points, label="dense"
+    )
+    sc = _SourceCov(src)
+    rng = np.random.default_rng(0)
+    for spread in (0.3, 0.05, 0.01):
+        X = 0.5 + spread * (rng.random((20, dim)) - 0.5)
+        assert np.linalg.eigvalsh(sc.cov_runs(X)).min() >= 0.0
+        np.testing.assert_array_equal(sc.cross(X[:3], X)[0], 0.0)
+        np.testing.assert_array_equal(sc.var_with_grad(X)[0], 0.0)
+    clustered = _SourceCov(_clustered_source())
+    assert not clustered.zero
+    far = np.array([[0.02, 0.1], [0.05, 0.5]])
+    assert np.all(clustered.var_with_grad(far)[0] > 0.1)

@@ -46,6 +46,7 @@ import numpy as np
 import scipy.linalg as sla
 from numpy.typing import NDArray
 from scipy.special import log_ndtr, ndtr
+from scipy.stats import qmc
 
 from bac_agent.bo.gp import GP, GPConfig, GPError, Hyper
 from bac_agent.bo.kernel import matern52_dr2_factor, matern52_from_r2, sq_dist
@@ -166,6 +167,16 @@ class _SourceCov:
         self.L = np.asarray(g._L, dtype=float)
         self.Kinv = np.asarray(sla.cho_solve((self.L, True), np.eye(self.Xs.shape[0]), check_finite=False))
         self._runs: tuple[FloatArray, FloatArray] | None = None  # (X, k_s(X, Xs) K_s⁻¹) of the last runs
+        # a source whose variance is below the floor everywhere (a dense noise-free one: round-off) has no C_s at
+        # all: its round-off off the diagonal, with the floor taken off the diagonal only, would leave C_s
+        # indefinite (min eigenvalue -1e-7: outside review, 2026-11-24). Probed at 1024 Sobol points, the corners
+        # (d <= 10) and the source's own points
+        d = self.Xs.shape[1]
+        probe = [qmc.Sobol(d, scramble=True, seed=0).random(1024), self.Xs]
+        if d <= 10:
+            probe.append(np.array(np.meshgrid(*[[0.0, 1.0]] * d)).reshape(d, -1).T)
+        Kp = self._k(np.vstack(probe), self.Xs)[0]
+        self.zero = bool(np.max(self.os - np.sum((Kp @ self.Kinv) * Kp, axis=1)) <= SOURCE_VAR_FLOOR)
 
     def _k(self, A: FloatArray, B: FloatArray) -> tuple[FloatArray, FloatArray]:
         r2 = sq_dist(A, B, self.ls)
@@ -178,7 +189,10 @@ class _SourceCov:
         return self._runs[1]
 
     def cov_runs(self, X: FloatArray) -> FloatArray:
-        """C_s(X, X) (its diagonal less the round-off floor, as ``var_with_grad``)."""
+        """C_s(X, X) (its diagonal less the round-off floor, as ``var_with_grad``; 0 for a source whose variance is
+        below the floor everywhere)."""
+        if self.zero:
+            return np.zeros((X.shape[0], X.shape[0]))
         A = self._at_runs(X)
         C = self._k(X, X)[0] - A @ self._k(self.Xs, X)[0]
         C = 0.5 * (C + C.T)
@@ -187,6 +201,8 @@ class _SourceCov:
 
     def var_with_grad(self, U: FloatArray) -> tuple[FloatArray, FloatArray]:
         """C_s(x, x) − SOURCE_VAR_FLOOR, at least 0, at the rows of ``U`` and its gradient: (q,), (q, d)."""
+        if self.zero:
+            return np.zeros(U.shape[0]), np.zeros_like(U)
         Kq, F = self._k(U, self.Xs)
         V = Kq @ self.Kinv
         var = self.os - np.sum(V * Kq, axis=1) - SOURCE_VAR_FLOOR
@@ -198,6 +214,8 @@ class _SourceCov:
     def cross(self, U: FloatArray, X: FloatArray) -> tuple[FloatArray, Any]:
         """C_s(U, X) (q, n), and a function that contracts its gradient in U with weights (q, n) or (n,):
         Σ_j w_j ∂C_s(x_q, X_j)/∂x_q, (q, d), without the (q, n, d) tensor (and its (q, n, m, d) sum)."""
+        if self.zero:
+            return np.zeros((U.shape[0], X.shape[0])), lambda W: np.zeros_like(U)
         A = self._at_runs(X)  # (n, m) = k_s(X, Xs) K_s⁻¹
         Kq, Fq = self._k(U, self.Xs)
         KX, FX = self._k(U, X)
