@@ -186,13 +186,7 @@ def from_reduce_result(
     data = _read_reduce_result(result)
     names, j_mu = reduce_surrogate(data, result)
     space = SearchSpace.from_definition(definition)
-    probe = definition.expand(space.to_params(space.from_unit(np.full(space.dim, 0.5))))
-    missing = [n for n in names if n not in probe]
-    if missing:
-        raise TransferError(
-            f"the simulation phase in {result} calibrated {missing[:5]}..., which definition '{definition.name}' "
-            "does not have: the prior must come from the same controller"
-        )
+    _check_raw_names(result, definition, space, names)
     n = points or int(min(512, max(128, 64 * space.dim)))
     U = qmc.Sobol(space.dim, scramble=True, seed=seed).random(n)
     R = np.array([[definition.expand(space.to_params(space.from_unit(u)))[k] for k in names] for u in U])
@@ -329,6 +323,7 @@ def _read_reduce_result(result: Path) -> dict[str, Any]:
 
 
 def _check_raw_names(result: Path, definition: CalibrationDefinition, space: SearchSpace, names: list[str]) -> None:
+    """The simulation phase's raw parameter names must all be the definition's (the same controller)."""
     probe = definition.expand(space.to_params(space.from_unit(np.full(space.dim, 0.5))))
     missing = [n for n in names if n not in probe]
     if missing:
