@@ -457,12 +457,21 @@ from bac_common.rosnode import BacNode
 class StuckInC(BacNode):
     def __init__(self, **kwargs):
         super().__init__("stuck_in_c", **kwargs)
-        Path(MARKER).write_text("constructing")
         libc = ctypes.CDLL("libc.so.6")  # releases the GIL; a futex wait that signals do not interrupt
         mutex = ctypes.create_string_buffer(64)
         libc.pthread_mutex_lock(mutex)
+        Path(MARKER).write_text(hex(ctypes.addressof(mutex)))  # the futex the main thread will wait on
         libc.pthread_mutex_lock(mutex)  # a C call that never returns to Python (an rcl/DDS wait)
 """
+
+
+def _waits_on_futex(pid: int, address: int) -> bool:
+    """The process's main thread is in a futex wait on ``address`` (Linux: /proc's syscall line, x86-64's 202)."""
+    try:
+        fields = Path(f"/proc/{pid}/task/{pid}/syscall").read_text().split()
+    except OSError:
+        return False
+    return len(fields) > 1 and fields[0] == "202" and int(fields[1], 16) == address
 
 
 @pytest.mark.parametrize("host", ["run_node", "container"])
@@ -490,7 +499,7 @@ def test_a_stop_signal_ends_a_process_whose_main_thread_is_stuck_in_c(
     p = subprocess.Popen(cmd, env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, start_new_session=True)
     try:
         wait_for(marker.exists, 60, what="the constructor running")
-        time.sleep(0.3)  # into the C call
+        wait_for(lambda: _waits_on_futex(p.pid, int(marker.read_text(), 16)), 30, what="the main thread in the C call")
         t0 = time.monotonic()
         p.send_signal(signal.SIGINT)
         try:
