@@ -546,3 +546,54 @@ def test_spin_until_done_keeps_a_code_set_just_before_the_stop() -> None:
         return False
 
     assert spin_until_done(Executor(), [node], stop=stop) == 3  # type: ignore[arg-type]
+
+
+FAILS_AFTER_STOP = """
+import os
+import signal
+import sys
+import time
+import bac_common.rosnode as r
+from bac_common.rosnode import BacNode, run_node
+
+class Up(BacNode):
+    def __init__(self, **kwargs):
+        super().__init__("up", **kwargs)
+        if sys.argv[1] != "none":
+            self.exit_code = int(sys.argv[1])
+
+def spin_then_fail(executor, nodes, poll_s=0.1, stop=None):
+    # a spin turn that fails once the stop was asked for (the context shut down under it): Ctrl-C, then the error
+    os.kill(os.getpid(), signal.SIGINT)
+    deadline = time.monotonic() + 20
+    while not stop() and time.monotonic() < deadline:
+        time.sleep(0.01)
+    raise RuntimeError("the context went away under the spin" if stop() else "no stop seen")
+
+r.spin_until_done = spin_then_fail
+sys.exit(run_node(Up, sys.argv[:1]))
+"""
+
+
+@pytest.mark.parametrize("exit_code", ["none", "3"])
+def test_an_error_after_the_stop_was_asked_for_is_logged_not_a_crash(ros_env: dict[str, str], exit_code: str) -> None:
+    """A running node whose spin fails after Ctrl-C (rclpy's handler shut the context down under it) stopped as
+    asked: the error is logged as such, and the exit code is the node's own (0 when it set none), not a crash's 1
+    (which the launcher would report as a failed stop)."""
+    p = subprocess.Popen(
+        [sys.executable, "-c", FAILS_AFTER_STOP, exit_code],
+        env=ros_env,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.STDOUT,
+        start_new_session=True,
+    )
+    try:
+        out, _ = p.communicate(timeout=60)
+    finally:
+        if p.poll() is None:
+            os.killpg(p.pid, signal.SIGKILL)
+            p.wait()
+    text = out.decode(errors="replace")
+    assert p.returncode == (0 if exit_code == "none" else 3), (p.returncode, text)
+    assert "an error after the stop was asked for" in text and "the context went away under the spin" in text, text
+    assert "node crashed" not in text, text
