@@ -22,28 +22,23 @@ from __future__ import annotations
 
 import argparse
 import logging
-import signal
 import sys
-import threading
 import time
 from collections.abc import Callable, Sequence
-from pathlib import Path
-from types import FrameType
 from typing import Any
 
 import can
 
 from bac_common.errors import BacError
 from bac_common.paramspace import CalibrationDefinition
-from bac_ecu_bridge.canbus import BusSettings, open_bus
 from bac_ecu_bridge.engine import CommitEvent, EcuEngine
-from bac_ecu_bridge.faults import FaultConfig, FaultyBus
 from bac_ecu_bridge.protocol import DEFAULT_REQUEST_ID, DEFAULT_RESPONSE_ID, CanIds, Op, Reason
+from bac_sim.canserver import CanServer, add_common_args, open_faulty_bus, serve_until_signalled
 
 LOG = logging.getLogger("bac_sim.ecu")
 
 
-class SimulatedEcu:
+class SimulatedEcu(CanServer):
     """An ECU that holds a calibration and serves the bac calibration protocol on a CAN bus.
 
     ``protocol_options``:
@@ -58,42 +53,26 @@ class SimulatedEcu:
 
     def __init__(self, bus: can.BusABC, definition: CalibrationDefinition, **protocol_options: Any) -> None:
         opts = dict(protocol_options)
-        self.bus = bus
         self.definition = definition
         self.ids = CanIds(
             int(opts.pop("request_id", DEFAULT_REQUEST_ID)),
             int(opts.pop("response_id", DEFAULT_RESPONSE_ID)),
             bool(opts.pop("extended_id", False)),
         )
-        self.reply_delay_s = float(opts.pop("reply_delay_s", 0.0))
+        self.request_id, self.response_id, self.extended = self.ids.request_id, self.ids.response_id, self.ids.extended
+        reply_delay_s = float(opts.pop("reply_delay_s", 0.0))
         self.commit_delay_s = float(opts.pop("commit_delay_s", 0.0))
-        self._on_commit: Callable[[dict[str, float]], None] | None = opts.pop("on_commit", None)
+        on_commit: Callable[[dict[str, float]], None] | None = opts.pop("on_commit", None)
         initial = opts.pop("initial", None)
         refuse = opts.pop("refuse", None)
         if opts:
             raise TypeError(f"unknown SimulatedEcu options: {sorted(opts)}")
-        self._lock = threading.Lock()
+        super().__init__(bus, LOG, "ECU", reply_delay_s, on_commit)
         self._engine = EcuEngine(definition, initial=initial, on_commit=self._committed, refuse=refuse)
-        self._stop = threading.Event()
-        self._thread: threading.Thread | None = None
         self._commit_event: CommitEvent | None = None
-        self.send_errors = 0
+        self._last_event: CommitEvent | None = None
 
     # --- the interface vehicle_sim uses ---------------------------------------------------------------
-    def start(self) -> None:
-        """Serve the protocol on a background thread."""
-        if self._thread is not None:
-            return
-        self._stop.clear()
-        self._thread = threading.Thread(target=self._serve, name="simulated-ecu", daemon=True)
-        self._thread.start()
-
-    def stop(self) -> None:
-        self._stop.set()
-        if self._thread is not None:
-            self._thread.join(timeout=2.0)
-            self._thread = None
-
     @property
     def active(self) -> dict[str, float]:
         """The calibration in force (raw parameters by name): the last one committed, or the baseline."""
@@ -132,46 +111,17 @@ class SimulatedEcu:
     def _committed(self, event: CommitEvent) -> None:
         self._commit_event = event  # called under self._lock by the engine
 
-    def _serve(self) -> None:
-        ids = self.ids
-        while not self._stop.is_set():
-            try:
-                msg = self.bus.recv(timeout=0.05)
-            except (can.CanError, OSError) as exc:
-                LOG.error("ECU: receiving failed: %s", exc)
-                self._stop.wait(0.1)
-                continue
-            if (
-                msg is None
-                or msg.arbitration_id != ids.request_id
-                or bool(msg.is_extended_id) != ids.extended
-                or msg.is_error_frame
-                or msg.is_remote_frame
-            ):
-                continue
-            with self._lock:
-                replies = self._engine.handle(msg.data)
-                event, self._commit_event = self._commit_event, None
-                values = self._engine.active_values() if event is not None else None
-            if event is not None:
-                if self.commit_delay_s:
-                    time.sleep(self.commit_delay_s)
-                LOG.info("ECU committed seq=%d count=%d crc=0x%08X", event.seq, len(event.raw), event.crc)
-                if self._on_commit is not None and values is not None:
-                    try:
-                        self._on_commit(values)
-                    except Exception:
-                        LOG.exception("ECU: the on_commit callback failed")
-            if self.reply_delay_s and replies:
-                time.sleep(self.reply_delay_s)
-            for data in replies:
-                try:
-                    self.bus.send(
-                        can.Message(arbitration_id=ids.response_id, is_extended_id=ids.extended, data=data, is_fd=False)
-                    )
-                except (can.CanError, OSError) as exc:
-                    self.send_errors += 1
-                    LOG.warning("ECU: sending a reply failed: %s", exc)
+    def _handle(self, data: bytes) -> tuple[list[bytes], dict[str, float] | None]:
+        replies = self._engine.handle(data)
+        self._last_event, self._commit_event = self._commit_event, None
+        return replies, (self._engine.active_values() if self._last_event is not None else None)
+
+    def _changed_values(self, values: dict[str, float]) -> None:
+        event = self._last_event
+        if self.commit_delay_s:
+            time.sleep(self.commit_delay_s)
+        if event is not None:
+            LOG.info("ECU committed seq=%d count=%d crc=0x%08X", event.seq, len(event.raw), event.crc)
 
 
 # --- the standalone process ------------------------------------------------------------------------------
@@ -195,16 +145,10 @@ def _parse_args(argv: Sequence[str] | None) -> argparse.Namespace:
         prog="python -m bac_sim.ecu",
         description="A simulated ECU serving the bac calibration protocol on a CAN bus (for tests and bench work).",
     )
-    ap.add_argument("--interface", default="udp_multicast", help="python-can interface (default udp_multicast)")
-    ap.add_argument("--channel", default="239.74.163.2", help="python-can channel (default 239.74.163.2)")
-    ap.add_argument("--bitrate", type=int, default=500_000)
-    ap.add_argument("--port", type=int, default=0, help="udp_multicast UDP port (default python-can's)")
-    ap.add_argument("--definition", required=True, type=Path, help="calibration definition YAML of this ECU")
-    ap.add_argument("--fault", default="", help="faults on the ECU's frames, e.g. drop=0.1,corrupt=0.1,seed=3")
+    add_common_args(ap)
     ap.add_argument("--request-id", type=lambda s: int(s, 0), default=DEFAULT_REQUEST_ID)
     ap.add_argument("--response-id", type=lambda s: int(s, 0), default=DEFAULT_RESPONSE_ID)
     ap.add_argument("--extended-id", action="store_true", help="29-bit CAN identifiers")
-    ap.add_argument("--driving", action="store_true", help="start with the vehicle moving (commits refused)")
     ap.add_argument(
         "--refuse",
         action="append",
@@ -212,8 +156,6 @@ def _parse_args(argv: Sequence[str] | None) -> argparse.Namespace:
         metavar="OP=REASON",
         help="refuse a request with a reason, e.g. commit=crc_mismatch, write=out_of_range, begin=busy (repeatable)",
     )
-    ap.add_argument("--reply-delay", type=float, default=0.0, help="seconds before each answer")
-    ap.add_argument("--log-level", default="INFO")
     return ap.parse_args(argv)
 
 
@@ -224,14 +166,11 @@ def main(argv: Sequence[str] | None = None) -> int:
     )
     try:
         definition = CalibrationDefinition.load(args.definition)
-        faults = FaultConfig.parse(args.fault)
         refuse = parse_refusals(args.refuse)
-        bus: can.BusABC = open_bus(BusSettings(args.interface, args.channel, args.bitrate, port=args.port))
+        bus = open_faulty_bus(args)
     except (BacError, ValueError) as exc:
         LOG.error("%s", exc)
         return 2
-    if faults.any:
-        bus = FaultyBus(bus, faults)
     ecu = SimulatedEcu(
         bus,
         definition,
@@ -241,41 +180,21 @@ def main(argv: Sequence[str] | None = None) -> int:
         reply_delay_s=args.reply_delay,
         refuse=refuse,
     )
-    ecu.set_driving(args.driving)
-    stop = threading.Event()
 
-    def on_stop(signum: int, _frame: FrameType | None) -> None:
-        LOG.info("ECU: %s, stopping", signal.Signals(signum).name)
-        stop.set()
+    def ready() -> None:
+        LOG.info(
+            "ECU ready: definition %s (%d parameters), %s:%s, request 0x%X, response 0x%X, driving=%s, faults=%s",
+            definition.name,
+            len(definition.parameters),
+            args.interface,
+            args.channel,
+            args.request_id,
+            args.response_id,
+            args.driving,
+            args.fault or "none",
+        )
 
-    def on_driving(signum: int, _frame: FrameType | None) -> None:
-        ecu.set_driving(signum == signal.SIGUSR1)
-        LOG.info("ECU: driving=%s", ecu.driving)
-
-    signal.signal(signal.SIGINT, on_stop)
-    signal.signal(signal.SIGTERM, on_stop)
-    signal.signal(signal.SIGUSR1, on_driving)
-    signal.signal(signal.SIGUSR2, on_driving)
-    ecu.start()
-    LOG.info(
-        "ECU ready: definition %s (%d parameters), %s:%s, request 0x%X, response 0x%X, driving=%s, faults=%s",
-        definition.name,
-        len(definition.parameters),
-        args.interface,
-        args.channel,
-        args.request_id,
-        args.response_id,
-        args.driving,
-        args.fault or "none",
-    )
-    try:
-        while not stop.wait(0.2):
-            pass
-    finally:
-        ecu.stop()
-        bus.shutdown()
-        LOG.info("ECU stopped after %d commits", ecu.commits)
-    return 0
+    return serve_until_signalled(ecu, bus, LOG, "ECU", args.driving, ready, counted="commits")
 
 
 if __name__ == "__main__":

@@ -22,23 +22,17 @@ from __future__ import annotations
 
 import argparse
 import logging
-import signal
 import sys
-import threading
-import time
 import zlib
 from collections.abc import Callable, Sequence
-from pathlib import Path
-from types import FrameType
 from typing import Any
 
 import can
 
 from bac_common.errors import BacError
 from bac_common.paramspace import CalibrationDefinition
-from bac_ecu_bridge.canbus import BusSettings, open_bus
-from bac_ecu_bridge.faults import FaultConfig, FaultyBus
 from bac_ecu_bridge.xcp.seedkey import load_key_algorithm
+from bac_sim.canserver import CanServer, add_common_args, open_faulty_bus, serve_until_signalled
 from bac_sim.xcp_slave import Cmd, Err, XcpSlave
 
 LOG = logging.getLogger("bac_sim.xcp_ecu")
@@ -47,7 +41,7 @@ DEFAULT_CAN_ID_MASTER = 0x7E0  # commands: master (bridge) -> slave (ECU)
 DEFAULT_CAN_ID_SLAVE = 0x7E1  # responses: slave -> master
 
 
-class SimulatedXcpEcu:
+class SimulatedXcpEcu(CanServer):
     """An ECU with an XCP-on-CAN slave (see the module doc).
 
     ``options``: ``can_id_master`` / ``can_id_slave`` / ``extended_id``; ``reply_delay_s``; ``initial`` (values
@@ -59,38 +53,23 @@ class SimulatedXcpEcu:
 
     def __init__(self, bus: can.BusABC, definition: CalibrationDefinition, **options: Any) -> None:
         opts = dict(options)
-        self.bus = bus
         self.definition = definition
         self.can_id_master = int(opts.pop("can_id_master", definition.xcp.get("can_id_master", DEFAULT_CAN_ID_MASTER)))
         self.can_id_slave = int(opts.pop("can_id_slave", definition.xcp.get("can_id_slave", DEFAULT_CAN_ID_SLAVE)))
+        self.request_id, self.response_id = self.can_id_master, self.can_id_slave
         self.extended = bool(opts.pop("extended_id", definition.xcp.get("extended_id", False)))
-        self.reply_delay_s = float(opts.pop("reply_delay_s", 0.0))
-        self._on_commit: Callable[[dict[str, float]], None] | None = opts.pop("on_commit", None)
+        reply_delay_s = float(opts.pop("reply_delay_s", 0.0))
+        on_commit: Callable[[dict[str, float]], None] | None = opts.pop("on_commit", None)
         key = opts.pop("key_algorithm", None)
         if isinstance(key, str):
             key = load_key_algorithm(key)
-        self._lock = threading.Lock()
+        super().__init__(bus, LOG, "XCP ECU", reply_delay_s, on_commit)
         self._changes = 0
         self._pending_change = False
+        self._page = 0
         self.slave = XcpSlave(definition, key_algorithm=key, on_change=self._changed, **opts)
-        self._stop = threading.Event()
-        self._thread: threading.Thread | None = None
-        self.send_errors = 0
 
     # --- the interface vehicle_sim uses ---------------------------------------------------------------
-    def start(self) -> None:
-        if self._thread is not None:
-            return
-        self._stop.clear()
-        self._thread = threading.Thread(target=self._serve, name="simulated-xcp-ecu", daemon=True)
-        self._thread.start()
-
-    def stop(self) -> None:
-        self._stop.set()
-        if self._thread is not None:
-            self._thread.join(timeout=2.0)
-            self._thread = None
-
     @property
     def active(self) -> dict[str, float]:
         """The calibration the ECU application uses (the values of its page), by name."""
@@ -131,47 +110,14 @@ class SimulatedXcpEcu:
         self._changes += 1
         self._pending_change = True
 
-    def _serve(self) -> None:
-        while not self._stop.is_set():
-            try:
-                msg = self.bus.recv(timeout=0.05)
-            except (can.CanError, OSError) as exc:
-                LOG.error("XCP ECU: receiving failed: %s", exc)
-                self._stop.wait(0.1)
-                continue
-            if (
-                msg is None
-                or msg.arbitration_id != self.can_id_master
-                or bool(msg.is_extended_id) != self.extended
-                or msg.is_error_frame
-                or msg.is_remote_frame
-            ):
-                continue
-            with self._lock:
-                replies = self.slave.handle(msg.data)
-                changed, self._pending_change = self._pending_change, False
-                values = self.slave.active_values() if changed else None
-                page = self.slave.ecu_page
-            if values is not None:
-                crc = zlib.crc32(repr(sorted(values.items())).encode()) & 0xFFFF_FFFF
-                LOG.info("ECU calibration: page %d crc=0x%08X", page, crc)
-                if self._on_commit is not None:
-                    try:
-                        self._on_commit(values)
-                    except Exception:
-                        LOG.exception("XCP ECU: the on_commit callback failed")
-            if self.reply_delay_s and replies:
-                time.sleep(self.reply_delay_s)
-            for data in replies:
-                try:
-                    self.bus.send(
-                        can.Message(
-                            arbitration_id=self.can_id_slave, is_extended_id=self.extended, data=data, is_fd=False
-                        )
-                    )
-                except (can.CanError, OSError) as exc:
-                    self.send_errors += 1
-                    LOG.warning("XCP ECU: sending a response failed: %s", exc)
+    def _handle(self, data: bytes) -> tuple[list[bytes], dict[str, float] | None]:
+        replies = self.slave.handle(data)
+        changed, self._pending_change = self._pending_change, False
+        self._page = self.slave.ecu_page
+        return replies, (self.slave.active_values() if changed else None)
+
+    def _changed_values(self, values: dict[str, float]) -> None:
+        LOG.info("ECU calibration: page %d crc=0x%08X", self._page, values_crc(values))
 
 
 def values_crc(values: dict[str, float]) -> int:
@@ -202,20 +148,12 @@ def _parse_args(argv: Sequence[str] | None) -> argparse.Namespace:
         prog="python -m bac_sim.xcp_ecu",
         description="A simulated ECU with an XCP-on-CAN slave (for tests and bench work).",
     )
-    ap.add_argument("--interface", default="udp_multicast")
-    ap.add_argument("--channel", default="239.74.163.2")
-    ap.add_argument("--bitrate", type=int, default=500_000)
-    ap.add_argument("--port", type=int, default=0, help="udp_multicast UDP port (default python-can's)")
-    ap.add_argument("--definition", required=True, type=Path, help="calibration definition (with xcp addresses)")
-    ap.add_argument("--fault", default="", help="faults on the ECU's frames, e.g. drop=0.1,corrupt=0.1,seed=3")
+    add_common_args(ap)
     ap.add_argument("--can-id-master", type=lambda s: int(s, 0), default=None, help="default: definition, 0x7E0")
     ap.add_argument("--can-id-slave", type=lambda s: int(s, 0), default=None, help="default: definition, 0x7E1")
-    ap.add_argument("--driving", action="store_true", help="start with the vehicle moving (changes refused)")
     ap.add_argument("--no-pages", action="store_true", help="one RAM page only (no reference page)")
     ap.add_argument("--key", default="", help="protect calibration with seed & key, e.g. xor:5a17c3")
     ap.add_argument("--refuse", action="append", default=[], metavar="COMMAND=ERROR")
-    ap.add_argument("--reply-delay", type=float, default=0.0)
-    ap.add_argument("--log-level", default="INFO")
     return ap.parse_args(argv)
 
 
@@ -226,14 +164,11 @@ def main(argv: Sequence[str] | None = None) -> int:
     )
     try:
         definition = CalibrationDefinition.load(args.definition)
-        faults = FaultConfig.parse(args.fault)
         refuse = parse_refusals(args.refuse)
-        bus: can.BusABC = open_bus(BusSettings(args.interface, args.channel, args.bitrate, port=args.port))
+        bus = open_faulty_bus(args)
     except (BacError, ValueError) as exc:
         LOG.error("%s", exc)
         return 2
-    if faults.any:
-        bus = FaultyBus(bus, faults)
     options: dict[str, Any] = {"reply_delay_s": args.reply_delay, "pages": not args.no_pages, "refuse": refuse}
     if args.can_id_master is not None:
         options["can_id_master"] = args.can_id_master
@@ -247,44 +182,24 @@ def main(argv: Sequence[str] | None = None) -> int:
         LOG.error("%s", exc)
         bus.shutdown()
         return 2
-    ecu.set_driving(args.driving)
-    stop = threading.Event()
 
-    def on_stop(signum: int, _frame: FrameType | None) -> None:
-        LOG.info("XCP ECU: %s, stopping", signal.Signals(signum).name)
-        stop.set()
+    def ready() -> None:
+        LOG.info(
+            "XCP ECU ready: definition %s (%d parameters), %s:%s, CAN_ID_MASTER 0x%X, CAN_ID_SLAVE 0x%X, pages=%s, "
+            "seed&key=%s, driving=%s, faults=%s",
+            definition.name,
+            len(definition.parameters),
+            args.interface,
+            args.channel,
+            ecu.can_id_master,
+            ecu.can_id_slave,
+            not args.no_pages,
+            bool(args.key),
+            args.driving,
+            args.fault or "none",
+        )
 
-    def on_driving(signum: int, _frame: FrameType | None) -> None:
-        ecu.set_driving(signum == signal.SIGUSR1)
-        LOG.info("XCP ECU: driving=%s", ecu.driving)
-
-    signal.signal(signal.SIGINT, on_stop)
-    signal.signal(signal.SIGTERM, on_stop)
-    signal.signal(signal.SIGUSR1, on_driving)
-    signal.signal(signal.SIGUSR2, on_driving)
-    ecu.start()
-    LOG.info(
-        "XCP ECU ready: definition %s (%d parameters), %s:%s, CAN_ID_MASTER 0x%X, CAN_ID_SLAVE 0x%X, pages=%s, "
-        "seed&key=%s, driving=%s, faults=%s",
-        definition.name,
-        len(definition.parameters),
-        args.interface,
-        args.channel,
-        ecu.can_id_master,
-        ecu.can_id_slave,
-        not args.no_pages,
-        bool(args.key),
-        args.driving,
-        args.fault or "none",
-    )
-    try:
-        while not stop.wait(0.2):
-            pass
-    finally:
-        ecu.stop()
-        bus.shutdown()
-        LOG.info("XCP ECU stopped after %d changes", ecu.commits)
-    return 0
+    return serve_until_signalled(ecu, bus, LOG, "XCP ECU", args.driving, ready, counted="changes")
 
 
 if __name__ == "__main__":
