@@ -6,6 +6,8 @@ from __future__ import annotations
 
 import json
 import math
+import subprocess
+import sys
 from datetime import UTC, datetime
 from pathlib import Path
 
@@ -162,6 +164,20 @@ def test_bad_mdf_input_is_named(
     assert whole.runs[0].score.valid and math.isfinite(whole.runs[0].score.j)
     cut = rescore([tmp_path / "imu_only.mf4"])
     assert not cut.runs[0].score.valid
+
+
+def test_a_refused_mdf_file_gives_bac_s_message_only(tmp_path: Path, run: tuple[ImuArrays, OdomArrays]) -> None:
+    """asammdf leaves a half-built reader behind when it refuses a file, whose ``__del__`` fails: Python printed
+    "Exception ignored in MDF4.__del__" and a traceback after bac's own message."""
+    imu, odom = run
+    mf4 = write_canape_mf4(tmp_path / "run.mf4", imu, odom)
+    truncated = tmp_path / "cut.mf4"
+    truncated.write_bytes(mf4.read_bytes()[:3000])
+    cmd = [sys.executable, "-m", "bac_campaign.rescore", str(truncated)]
+    p = subprocess.run(cmd, check=False, capture_output=True, text=True, timeout=120)
+    assert p.returncode == 2, p.stderr
+    assert "the file is truncated or corrupt" in p.stderr
+    assert "Exception ignored" not in p.stderr and "Traceback" not in p.stderr, p.stderr
 
 
 def test_rescore_p_values_are_yaml_and_checked(

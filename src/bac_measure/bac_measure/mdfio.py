@@ -31,8 +31,10 @@ asammdf is imported only here and only when an MDF file is read (it takes ~0.4 s
 
 from __future__ import annotations
 
+import gc
 import math
 import re
+import sys
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from datetime import UTC, datetime
@@ -235,10 +237,36 @@ def _open(path: Path) -> Any:
     try:
         return MDF(path)
     except Exception as exc:
+        _drop_half_built(exc)
         raise MdfError(
             f"cannot read MDF file {path}: {exc or type(exc).__name__}; the file is truncated or corrupt (a logger "
             "that lost power?): open it in the logger's tool (CANape, INCA, asammdf GUI) to repair it"
         ) from exc
+
+
+def _drop_half_built(exc: BaseException) -> None:
+    """Free the reader asammdf left half-built when it refused a file, now and quietly.
+
+    Its ``MDF4.__del__`` calls ``close()``, which fails on an object whose ``__init__`` did not finish
+    (``AttributeError: ... '_file'``); Python prints that as "Exception ignored in MDF4.__del__" with a traceback,
+    after bac's own message, whenever the object is freed. The object lives in the frames of the exception's
+    traceback: dropping the traceback frees it here, where that one report is left out (any other goes to the
+    previous hook)."""
+    previous = sys.unraisablehook
+
+    def hook(unraisable: Any) -> None:
+        obj = getattr(unraisable, "object", None)
+        if not (isinstance(unraisable.exc_value, AttributeError) and "MDF4.__del__" in repr(obj)):
+            previous(unraisable)
+
+    sys.unraisablehook = hook
+    try:
+        exc.__traceback__ = None
+        if exc.__context__ is not None:
+            exc.__context__.__traceback__ = None
+        gc.collect()
+    finally:
+        sys.unraisablehook = previous
 
 
 def _start_ns(mdf: Any) -> int:
