@@ -211,6 +211,8 @@ def test_the_acquisition_averages_the_models_with_and_without_the_source(seed: i
     averaged, _ = _told_near_the_source_optimum(True, seed)
     s = averaged.ask_with_info()
     assert s.kind == KIND_OPTIMIZED and s.info["transfer"]["prior_in_use"] == 1.0
+    assert s.info["acquisition"].startswith("noisy EI averaged over the models with the transfer prior (0.9")
+    assert "acquisition" not in held.ask_with_info().info  # journaled (trial_proposed's model) only when averaged
     u = np.array([s.params["a"], s.params["b"]])
     assert np.min(np.linalg.norm(runs - u, axis=1)) > 0.4  # far from every run
 
@@ -224,6 +226,7 @@ def test_the_averaged_acquisition_is_the_weighted_mean_of_the_two_expected_impro
     assert alt is not None and eng.transfer is not None
     assert alt.y_mean == gp.y_mean and alt.y_std == gp.y_std  # both on the source's scale: improvements add
     state = eng.rng.bit_generator.state
+    eng._acq_info = {}  # what an ask journals with the proposal (set by ask_with_info)
     values, value_and_grad = eng._averaged_nei(gp, alt, None)
     eng.rng.bit_generator.state = state
     nei1 = NoisyEI(gp, eng.config.nei_samples, eng.rng, None)

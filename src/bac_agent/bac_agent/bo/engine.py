@@ -715,6 +715,9 @@ class Engine:
         nei1 = NoisyEI(model, self.config.nei_samples, self.rng, incumbents)
         nei0 = NoisyEI(alt, self.config.nei_samples, self.rng, incumbents)
         lw1, lw0 = math.log(self.transfer.weight), math.log1p(-self.transfer.weight)
+        self._acq_info["acquisition"] = (
+            f"noisy EI averaged over the models with the transfer prior ({self.transfer.weight:.3f}) and without it"
+        )
 
         def values(U: FloatArray) -> FloatArray:
             return np.asarray(np.logaddexp(lw1 + nei1(U), lw0 + nei0(U)), dtype=float)
