@@ -15,8 +15,10 @@ engine's state, and used in two ways:
 Whether the source is used at all is decided by the car's runs, at every fit: the marginal likelihood of the runs
 under ``a + b s(x) + residual`` is compared with a model without the source (``a + residual``, the same scale),
 and the posterior probability of the source, from a prior probability ``weight``, is the **transfer weight**.
-While it is at least 0.5 the source's trend is the prior mean; once the runs disagree with the source, the weight
-falls and the engine returns to its own model (the bowl, the output warp). A simulator that is right needs no
+While it is at least 0.5 the source's trend is the prior mean, and the engine's acquisition averages the expected
+improvement of that model (weight w) and of the model without the source (``without_source``, 1 - w); once the
+runs disagree with the source, the weight falls and the engine returns to its own model (the bowl, the output
+warp). A simulator that is right needs no
 runs to be believed; one that is wrong costs the few runs that show it.
 """
 
