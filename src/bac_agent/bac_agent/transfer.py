@@ -96,7 +96,7 @@ def load_outcome_sources(
         for name in dict.fromkeys(names):
             X, y, label = _campaign_runs(p, definition, outcome=name)
             if len(y) >= 3:
-                out[name] = SourceSurface.fit(np.array(X), np.array(y), f"{name}: {label}", noisy=True)
+                out[name] = SourceSurface.fit(np.array(X), np.array(y), f"{name}: {label}", noisy=True, outcome=True)
     return out
 
 
@@ -299,7 +299,7 @@ def outcome_sources_from_reduce_result(
         X, y, label = reduce_outcome_runs(result, data, definition, name)
         if y.size < 3:
             continue
-        out[name] = SourceSurface.fit(X, y, f"{name}: {label}", noisy=True)
+        out[name] = SourceSurface.fit(X, y, f"{name}: {label}", noisy=True, outcome=True)
     return out
 
 

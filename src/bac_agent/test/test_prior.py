@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+from dataclasses import replace
 from typing import Any
 
 import numpy as np
@@ -175,3 +176,100 @@ def test_the_source_is_the_prior_mean_for_prior_runs_runs_then_the_engines_own_m
     assert seen[4:] == [(5, False, 0.0), (6, False, 0.0)]  # then the engine's own model, and the journal says so
     with pytest.raises(EngineError, match="prior_runs"):
         EngineConfig(prior_runs=-1)
+
+
+def _told_near_the_source_optimum(average: bool, seed: int) -> tuple[Engine, np.ndarray]:
+    """An engine with a source whose optimum is at (0.3, 0.3), told six runs that agree with it, all within 0.1 of
+    that optimum: the source's shape is supported (weight > 0.9) and nothing was run elsewhere."""
+    c = np.array([0.3, 0.3])
+
+    def bowl(U: np.ndarray) -> np.ndarray:
+        return np.sqrt(0.02 + np.sum((np.atleast_2d(U) - c) ** 2 * [1.0, 2.0], axis=1))
+
+    src = SourceSurface.from_function(bowl, 2, 64, seed=0)
+    cfg = EngineConfig(budget=20, seed=seed, prior=src.to_dict(), prior_average=average)
+    eng = Engine({"a": (0.0, 1.0), "b": (0.0, 1.0)}, cfg)
+    runs = np.array([[0.3, 0.3], [0.4, 0.3], [0.3, 0.4], [0.2, 0.25], [0.35, 0.2], [0.25, 0.35]])
+    rng = np.random.default_rng(seed)
+    for u in runs:
+        eng.tell({"a": float(u[0]), "b": float(u[1])}, float(1.0 + bowl(u)[0] + 0.01 * rng.standard_normal()))
+    return eng, runs
+
+
+@pytest.mark.parametrize("seed", [0, 2])
+def test_the_acquisition_averages_the_models_with_and_without_the_source(seed: int) -> None:
+    """issue 23 (prior_average, the default): while the runs support the source, the expected improvement is
+    averaged over the model with the source (weight w) and the model without it (1 - w). A source right where
+    the runs are, but never tested elsewhere, no longer holds the proposals at its optimum: the model without the
+    source is uncertain far from the runs, and its share of the average sends the next run there (on the tuning
+    split of bench/transfer.py a nearly right simulator held road_c1's campaigns for > 15 runs)."""
+    held, runs = _told_near_the_source_optimum(False, seed)
+    s = held.ask_with_info()
+    assert s.kind == KIND_OPTIMIZED and held.transfer is not None and 0.9 < held.transfer.weight < 1.0
+    u = np.array([s.params["a"], s.params["b"]])
+    assert np.min(np.linalg.norm(runs - u, axis=1)) < 0.1  # the model with the source alone: at its optimum
+    averaged, _ = _told_near_the_source_optimum(True, seed)
+    s = averaged.ask_with_info()
+    assert s.kind == KIND_OPTIMIZED and s.info["transfer"]["prior_in_use"] == 1.0
+    assert s.info["acquisition"].startswith("noisy EI averaged over the models with the transfer prior (0.9")
+    assert "acquisition" not in held.ask_with_info().info  # journaled (trial_proposed's model) only when averaged
+    u = np.array([s.params["a"], s.params["b"]])
+    assert np.min(np.linalg.norm(runs - u, axis=1)) > 0.4  # far from every run
+
+
+def test_the_averaged_acquisition_is_the_weighted_mean_of_the_two_expected_improvements() -> None:
+    from bac_agent.bo.acquisition import NoisyEI
+
+    eng, _ = _told_near_the_source_optimum(True, 0)
+    gp = eng._model()
+    alt = eng._model_without_source(gp)
+    assert alt is not None and eng.transfer is not None
+    assert alt.y_mean == gp.y_mean and alt.y_std == gp.y_std  # both on the source's scale: improvements add
+    state = eng.rng.bit_generator.state
+    eng._acq_info = {}  # what an ask journals with the proposal (set by ask_with_info)
+    values, value_and_grad = eng._averaged_nei(gp, alt, None)
+    eng.rng.bit_generator.state = state
+    nei1 = NoisyEI(gp, eng.config.nei_samples, eng.rng, None)
+    nei0 = NoisyEI(alt, eng.config.nei_samples, eng.rng, None)
+    U = np.random.default_rng(5).random((7, 2))
+    w = eng.transfer.weight
+    want = np.log(w * np.exp(nei1(U)) + (1.0 - w) * np.exp(nei0(U)))
+    assert np.allclose(values(U), want, rtol=1e-9, atol=1e-9)
+    v, g = value_and_grad(U)
+    assert np.allclose(v, want, rtol=1e-9, atol=1e-9)
+    h = 1e-6
+    for j in range(2):
+        dU = np.zeros_like(U)
+        dU[:, j] = h
+        fd = (values(U + dU) - values(U - dU)) / (2 * h)
+        assert np.allclose(g[:, j], fd, rtol=1e-4, atol=1e-6)
+    # a right source's weight of 1 to round-off: the model with the source alone (no second model's cost)
+    eng.transfer = replace(eng.transfer, weight=1.0 - 1e-9)
+    assert eng._model_without_source(gp) is None
+    eng.transfer = replace(eng.transfer, weight=0.4)  # the source rejected: the engine's own model, no average
+    assert eng._model_without_source(gp) is None
+
+
+def test_an_outcome_source_keeps_points_spread_over_the_cube() -> None:
+    """More than MAX_SOURCE_POINTS points: J's source keeps its 64 lowest and a spread of the rest; an outcome's
+    source (a limit may lie anywhere in its range) keeps points spread over the cube, here every one of 40 runs
+    spread over the box beside 700 clustered in a corner (a campaign that stayed near its optimum)."""
+    from bac_agent.bo.prior import MAX_SOURCE_POINTS, spread_subset
+
+    rng = np.random.default_rng(0)
+    cluster = 0.15 * rng.random((700, 2))
+    wide = 0.2 + 0.8 * np.random.default_rng(1).random((40, 2))
+    X = np.vstack([cluster[:350], wide, cluster[350:]])
+    y = 40.0 + 30.0 * X[:, 0] + rng.standard_normal(X.shape[0])  # e.g. a travel in mm
+
+    def kept_wide(src: SourceSurface) -> int:
+        return int(sum(np.any(np.all(np.isclose(src.X, p), axis=1)) for p in wide))
+
+    out = SourceSurface.fit(X, y, noisy=True, outcome=True)
+    assert out.X.shape[0] == MAX_SOURCE_POINTS and kept_wide(out) == 40
+    j = SourceSurface.fit(X, y, noisy=True)  # J's rule: the lowest values first
+    assert j.X.shape[0] <= MAX_SOURCE_POINTS and kept_wide(j) < 40
+    # the subset itself: every row when there are few, the farthest ones first
+    assert np.array_equal(spread_subset(X[:10], 20), np.arange(10))
+    pick = spread_subset(np.array([[0.5, 0.5], [0.51, 0.5], [0.0, 0.0], [1.0, 1.0], [0.5, 0.49]]), 3)
+    assert set(pick.tolist()) == {0, 2, 3}

@@ -42,7 +42,7 @@ from bac_agent.bo.acquisition import NoisyEI, log_ei, log_ei_with_grad
 from bac_agent.bo.constraints import OutcomeLimit, OutcomeModels, parse_limits, violations
 from bac_agent.bo.design import candidates, default_n_initial, initial_design
 from bac_agent.bo.gp import GP, GPConfig, Hyper
-from bac_agent.bo.prior import SourceSurface, TransferFit, TransferSettings, fit_with_source
+from bac_agent.bo.prior import SourceSurface, TransferFit, TransferSettings, fit_with_source, without_source
 from bac_agent.bo.space import SearchSpace
 from bac_agent.bo.warp import WARPS, OutputWarp
 from bac_common.errors import BacError
@@ -162,6 +162,12 @@ class EngineConfig:
     # optimum (road_c1 > 15 runs; 7 with 6, 6 with 4), but right after the switch the recommendation can jump
     # away from an optimum the source had right (test_prior.py): not the default (docs/agent.md)
     prior_runs: int = 0
+    # while the runs support the source (weight >= 0.5), the acquisition is the expected improvement averaged over
+    # the two models the weight weighs: with the source (weight w) and without it (1 - w), both on the source's
+    # scale (Bayesian model averaging); False: the model with the source alone (before 2026-11-24, late). Issue 23,
+    # tuning split of bench/transfer.py: a source right in shape but not at its optimum held the runs near its own
+    # optimum (road_c1 > 15 runs with the simulator's prior; 4.5 averaged); docs/agent.md
+    prior_average: bool = True
     # --- outcome constraints (bo/constraints.py): limits on measured outcomes besides J, e.g.
     # {"name": "max_travel_mm", "bound": 60.0, "upper": True}; a proposal's probability of breaking any is at
     # most constraint_level, and so is the recommendation's
@@ -681,6 +687,49 @@ class Engine:
         m, s = self._model().predict(U)
         return self._warp.inverse_mean_std(m, s)
 
+    def _model_without_source(self, gp: GP) -> GP | None:
+        """The other member of the transfer prior's model average (``prior_average``): the model the source was
+        weighed against (a constant and a GP on the runs, on the source's scale), while the model with the source
+        is in use (``gp``) and the model without it has a share of at least 1e-6 (below it the average is the
+        model with the source to round-off: 100 runs of a right source give a weight of 1 - e^-127)."""
+        tr = self.transfer
+        if not self.config.prior_average or self._source is None or tr is None or tr.alt_hyper is None:
+            return None
+        if not tr.used or 1.0 - tr.weight < 1e-6 or gp.hyper is None or gp.hyper.prior is None:
+            return None
+        y = np.array([o.value for o in self.observations])
+        return without_source(self.config.gp, gp.X, y, self._source, tr.alt_hyper)
+
+    def _averaged_nei(
+        self, model: GP, alt: GP, incumbents: NDArray[np.bool_] | None
+    ) -> tuple[Callable[[FloatArray], FloatArray], Callable[[FloatArray], tuple[FloatArray, FloatArray]]]:
+        """log of the noisy EI averaged over the model with the source (``model``, weight w) and the model without
+        it (``alt``, 1 - w): the expected improvement under the model average (both in the source's units, so
+        their improvements add), and its gradient. Pending points are fantasized in ``alt`` as in ``model``."""
+        assert self.transfer is not None
+        if self.pending:
+            Xp = self.space.to_unit(np.array([self.space.to_array(p) for p in self.pending]))
+            mp, _ = alt.predict(Xp)
+            y_all = np.concatenate([alt.y_mean + alt.y_std * alt._z, mp])
+            alt = GP(alt.config).condition(np.vstack([alt.X, Xp]), y_all, alt.hyper, scaling=(alt.y_mean, alt.y_std))
+        nei1 = NoisyEI(model, self.config.nei_samples, self.rng, incumbents)
+        nei0 = NoisyEI(alt, self.config.nei_samples, self.rng, incumbents)
+        lw1, lw0 = math.log(self.transfer.weight), math.log1p(-self.transfer.weight)
+        self._acq_info["acquisition"] = (
+            f"noisy EI averaged over the models with the transfer prior ({self.transfer.weight:.3f}) and without it"
+        )
+
+        def values(U: FloatArray) -> FloatArray:
+            return np.asarray(np.logaddexp(lw1 + nei1(U), lw0 + nei0(U)), dtype=float)
+
+        def value_and_grad(U: FloatArray) -> tuple[FloatArray, FloatArray]:
+            v1, g1 = nei1.value_and_grad(U)
+            v0, g0 = nei0.value_and_grad(U)
+            v = np.logaddexp(lw1 + v1, lw0 + v0)
+            return v, np.exp(lw1 + v1 - v)[:, None] * g1 + np.exp(lw0 + v0 - v)[:, None] * g0
+
+        return values, value_and_grad
+
     def _maximize_acquisition(self) -> FloatArray:
         gp = self._model()
         d = self.space.dim
@@ -721,10 +770,14 @@ class Engine:
             acq_values, acq_grad = feasible_values, outc.log_feasible_and_grad
             self._acq_info["acquisition"] = "feasibility (no run has kept every limit yet)"
         else:
-            if self.config.acquisition == "nei":
+            j_values: Callable[[FloatArray], FloatArray]
+            j_grad: Callable[[FloatArray], tuple[FloatArray, FloatArray]]
+            alt = self._model_without_source(gp)
+            if self.config.acquisition == "nei" and alt is not None:
+                j_values, j_grad = self._averaged_nei(model, alt, incumbents)
+            elif self.config.acquisition == "nei":
                 nei = NoisyEI(model, self.config.nei_samples, self.rng, incumbents)
-                j_values: Callable[[FloatArray], FloatArray] = nei
-                j_grad: Callable[[FloatArray], tuple[FloatArray, FloatArray]] = nei.value_and_grad
+                j_values, j_grad = nei, nei.value_and_grad
             else:
 
                 def j_values(U: FloatArray) -> FloatArray:

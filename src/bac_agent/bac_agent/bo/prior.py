@@ -15,15 +15,17 @@ engine's state, and used in two ways:
 Whether the source is used at all is decided by the car's runs, at every fit: the marginal likelihood of the runs
 under ``a + b s(x) + residual`` is compared with a model without the source (``a + residual``, the same scale),
 and the posterior probability of the source, from a prior probability ``weight``, is the **transfer weight**.
-While it is at least 0.5 the source's trend is the prior mean; once the runs disagree with the source, the weight
-falls and the engine returns to its own model (the bowl, the output warp). A simulator that is right needs no
+While it is at least 0.5 the source's trend is the prior mean, and the engine's acquisition averages the expected
+improvement of that model (weight w) and of the model without the source (``without_source``, 1 - w); once the
+runs disagree with the source, the weight falls and the engine returns to its own model (the bowl, the output
+warp). A simulator that is right needs no
 runs to be believed; one that is wrong costs the few runs that show it.
 """
 
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, field, replace
 from typing import Any
 
 import numpy as np
@@ -42,6 +44,26 @@ FloatArray = NDArray[np.float64]
 SOURCE_GP = GPConfig(mean="constant", noise_loc=-7.0, noise_scale=1.0)
 NOISY_SOURCE_GP = GPConfig(mean="constant")  # runs of an earlier campaign: the engine's noise prior
 MAX_SOURCE_POINTS = 512
+
+
+def spread_subset(X: FloatArray, m: int) -> NDArray[np.intp]:
+    """Indices (sorted) of ``m`` rows of ``X`` spread over their region: greedy farthest-point selection (each next
+    row the one farthest from those taken), from the row nearest to the rows' centroid; all rows when there are
+    at most ``m``. Duplicates are taken last."""
+    X = np.atleast_2d(np.asarray(X, dtype=float))
+    n = X.shape[0]
+    if n <= m:
+        return np.arange(n)
+    first = int(np.argmin(np.sum((X - X.mean(axis=0)) ** 2, axis=1)))
+    taken = np.zeros(n, dtype=bool)
+    order = np.empty(m, dtype=np.intp)
+    d2 = np.full(n, np.inf)
+    j = first
+    for i in range(m):  # m steps of O(n d) each (a source is fitted once per campaign)
+        order[i], taken[j] = j, True
+        d2 = np.minimum(d2, np.sum((X - X[j]) ** 2, axis=1))
+        j = int(np.argmax(np.where(taken, -1.0, d2)))
+    return np.sort(order)
 
 
 @dataclass(frozen=True)
@@ -88,12 +110,20 @@ class SourceSurface:
         label: str = "",
         rng: np.random.Generator | None = None,
         noisy: bool = False,
+        outcome: bool = False,
     ) -> SourceSurface:
         """Fit the source GP (MAP hyperparameters) to points ``X`` (unit cube) and values ``y`` (J); ``noisy``:
-        they are runs (the engine's noise prior), not a model's predictions (a low noise)."""
+        they are runs (the engine's noise prior), not a model's predictions (a low noise). Of more than
+        MAX_SOURCE_POINTS points, J's source keeps the 64 lowest and a spread of the rest (where J is low matters
+        most); an ``outcome``'s source (a limited outcome's values: a limit may lie anywhere in its range, and its
+        lowest values, e.g. the smallest travels, are no better known than the others) keeps the points spread over
+        the cube (``spread_subset``)."""
         X = np.atleast_2d(np.asarray(X, dtype=float))
         y = np.asarray(y, dtype=float).ravel()
-        if X.shape[0] > MAX_SOURCE_POINTS:  # keep the best points and a spread of the rest
+        if X.shape[0] > MAX_SOURCE_POINTS and outcome:
+            keep = spread_subset(X, MAX_SOURCE_POINTS)
+            X, y = X[keep], y[keep]
+        elif X.shape[0] > MAX_SOURCE_POINTS:  # keep the best points and a spread of the rest
             order = np.argsort(y)
             keep = np.unique(
                 np.concatenate([order[:64], np.linspace(0, y.size - 1, MAX_SOURCE_POINTS - 64).astype(int)])
@@ -201,6 +231,9 @@ class TransferFit:
     b: float  # posterior mean of the scale
     b_sd: float  # its posterior standard deviation
     log_bayes_factor: float  # log p(runs | source) - log p(runs | no source)
+    # the kernel of the model without the source (an offset and a residual, on the source's scale): the other
+    # member of the model average (``without_source``); not journaled
+    alt_hyper: Hyper | None = field(default=None, compare=False, repr=False)
 
     @property
     def used(self) -> bool:
@@ -275,7 +308,9 @@ def weigh_source(
     prior_logit = math.log(weight / (1.0 - weight)) if 0.0 < weight < 1.0 else (math.inf if weight >= 1 else -math.inf)
     t = lbf + prior_logit
     w = 1.0 / (1.0 + math.exp(-t)) if t > -700 else 0.0
-    return TransferFit(float(w), float(beta[0]), float(beta[1]), float(math.sqrt(max(cov[1, 1], 0.0))), float(lbf))
+    return TransferFit(
+        float(w), float(beta[0]), float(beta[1]), float(math.sqrt(max(cov[1, 1], 0.0))), float(lbf), alt_hyper=h0
+    )
 
 
 @dataclass(frozen=True)
@@ -333,4 +368,24 @@ def fit_with_source(
     return gp1, fit
 
 
-__all__ = ["PriorTrend", "SourceSurface", "TransferFit", "TransferSettings", "fit_with_source", "weigh_source"]
+def without_source(config: GPConfig, X: FloatArray, y: FloatArray, source: SourceSurface, hyper: Hyper) -> GP:
+    """The model the source is weighed against (``weigh_source``'s ``h0``): a constant mean (its GLS value) and a
+    GP on the runs ``y`` put on the source's scale, so that its predictions and expected improvements are in the
+    same units as the model with the source (the two members of the model average)."""
+    gp = GP(replace(config, mean="constant"))
+    gp._set_data(X, y, (source.loc, source.scale))
+    gp.hyper = replace(hyper, mean=0.0, bowl=None, prior=None)
+    gp._factorize(refit_mean=True)
+    return gp
+
+
+__all__ = [
+    "PriorTrend",
+    "SourceSurface",
+    "TransferFit",
+    "TransferSettings",
+    "fit_with_source",
+    "spread_subset",
+    "weigh_source",
+    "without_source",
+]
