@@ -326,7 +326,7 @@ def test_a_transfer_prior_and_an_outcome_limit_through_the_node_and_the_report(p
     lines = (cdir / "journal.jsonl").read_text().splitlines()
     first = json.loads(lines[0])
     assert first["event"] == "campaign_started"
-    for key in ("outcome_priors", "prior_runs"):
+    for key in ("outcome_priors", "prior_runs", "prior_average"):
         del first["config"][key]
     (cdir / "journal.jsonl").write_text("\n".join([json.dumps(first), *lines[1:]]) + "\n")
     agent2 = start_agent(
@@ -336,6 +336,7 @@ def test_a_transfer_prior_and_an_outcome_limit_through_the_node_and_the_report(p
         "budget:=6",
         "seed:=1",
         f"prior_source:={source}",
+        "prior_average:=false",  # it ran the model with the prior alone (before prior_average)
         "constraints:=['peak_accel_z<=6.0']",
     )
     assert wait_exit(agent2, 120, "the resumed bo_agent to finish") == 0, procs.log("agent2")

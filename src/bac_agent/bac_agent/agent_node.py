@@ -193,6 +193,13 @@ class BoAgentNode(BacNode):
             1000,
             read_only=True,
         )
+        prior_average = self.declare_bool(
+            "prior_average",
+            True,
+            "bo with prior_source: while the runs support the prior, the acquisition averages the models with and "
+            "without it by the transfer weight (false: the model with the prior alone, as before 2026-11-24)",
+            True,
+        )
         constraints = [
             c
             for c in self.declare_str_list(
@@ -342,6 +349,7 @@ class BoAgentNode(BacNode):
                     prior=source.to_dict() if source is not None else None,
                     prior_weight=prior_weight,
                     prior_runs=prior_runs,
+                    prior_average=prior_average,
                     constraints=tuple(constraints),
                     constraint_level=constraint_level,
                     outcome_priors={k: v.to_dict() for k, v in outcome_sources.items()} or None,
@@ -381,6 +389,7 @@ class BoAgentNode(BacNode):
                 "prior": source.to_dict() if source is not None else None,
                 "prior_weight": prior_weight,
                 "prior_runs": prior_runs,
+                "prior_average": prior_average,
                 "constraints": constraints,
                 "constraint_level": constraint_level,
                 # what the prior source knew of the limited outcomes: each surface (a refit models as the agent did)

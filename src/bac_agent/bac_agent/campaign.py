@@ -999,8 +999,14 @@ RESUME_MAY_CHANGE = frozenset(
 # config entries added after campaigns were journaled without them, with the value such a campaign ran with: a
 # journal without the entry is compared as if it held that value (it resumes when the agent keeps it)
 # configuration keys added after campaigns were journaled, with the value those campaigns ran with (issue 23,
-# 2026-11-24: no outcome priors, no limit on the transfer prior's runs)
-ADDED_LATER: Mapping[str, Any] = {"recommend_rule": "mean", "outcome_priors": {}, "prior_runs": 0, "safe_start": {}}
+# 2026-11-24: no outcome priors, no limit on the transfer prior's runs, no safe start, no model average)
+ADDED_LATER: Mapping[str, Any] = {
+    "recommend_rule": "mean",
+    "outcome_priors": {},
+    "prior_runs": 0,
+    "safe_start": {},
+    "prior_average": False,
+}
 _MISSING = object()
 
 

@@ -200,6 +200,7 @@ def journaled_engine_options(started: Mapping[str, Any]) -> dict[str, Any]:
         options["prior"] = dict(cfg["prior"])
         options["prior_weight"] = float(cfg.get("prior_weight", 0.5) or 0.5)
         options["prior_runs"] = int(cfg.get("prior_runs", 0) or 0)
+        options["prior_average"] = bool(cfg.get("prior_average", False))  # a journal from before it: without
     if cfg.get("constraints"):
         options["constraints"] = [str(c) for c in cfg["constraints"]]
         options["constraint_level"] = float(cfg.get("constraint_level", 0.05) or 0.05)

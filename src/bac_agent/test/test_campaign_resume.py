@@ -617,6 +617,11 @@ REFUSED: dict[str, tuple[str, Refusal]] = {
         "config.prior_runs: journaled 0, this agent 6",
         lambda: (engine(), config(extra=_extra(prior_runs=6)), DEFINITION),
     ),
+    "transfer prior's model average": (
+        # a journal from before prior_average ran the model with the prior alone (campaign.ADDED_LATER)
+        "config.prior_average: journaled false, this agent true",
+        lambda: (engine(), config(extra=_extra(prior_average=True)), DEFINITION),
+    ),
     "acquisition": (
         'config.acquisition: journaled "nei", this agent "ei"',
         lambda: (engine(), config(extra=_extra(acquisition="ei")), DEFINITION),
