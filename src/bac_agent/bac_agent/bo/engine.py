@@ -487,7 +487,9 @@ class Engine:
                 s = self._suggest(u, self._guess_kind if k - self._n_safe < self._n_guess else KIND_INITIAL)
         if s is None:
             if not self._can_model():
-                s = self._suggest(self._random_allowed(), KIND_RANDOM)
+                safe = self._safe_set()
+                u = self._random_allowed() if safe is None else self._grow_safe(self.rng.random(self.space.dim))
+                s = self._suggest(u, KIND_RANDOM)
             else:
                 s = self._suggest(self._maximize_acquisition(), KIND_OPTIMIZED)
         self.pending.append(dict(s.params))
@@ -527,6 +529,16 @@ class Engine:
         """The runs (unit cube) that kept every outcome limit as measured."""
         ok = self._outcomes.observed_ok([o.outcomes for o in self.observations])
         return self._obs_unit()[ok] if np.any(ok) else np.zeros((0, self.space.dim))
+
+    def _safe_set(self) -> tuple[FloatArray, FloatArray] | None:
+        """With a safe start, after its run kept the limits: the runs that kept every limit and their safe steps
+        (the balls every proposal stays in); else None."""
+        if not self._n_safe:
+            return None
+        kept = self._kept_runs()
+        if not kept.size:
+            return None
+        return kept, np.maximum(self._safe_radii(), SAFE_MIN_STEP)
 
     def _safe_radii(self) -> FloatArray:
         """How far (unit cube) the safe region reaches from each run that kept every limit (SAFE_STEP at most)."""
@@ -704,6 +716,11 @@ class Engine:
         local = np.clip(top[idx] + self.rng.standard_normal((self.config.n_local, d)) * scale, 0.0, 1.0)
         cand = np.vstack([cand, local])
         outc = self._outcome_models() if self._limits else None
+        # a safe start: the proposals stay in the safe set after the design too (SafeOpt, Sui et al. 2015), each
+        # within a safe step of a run that kept every limit; candidates drawn in those steps' balls besides
+        safe = self._safe_set()
+        if safe is not None:
+            cand = np.vstack([cand, self._safe_ball_candidates(top[0], *safe)])
         incumbents = None
         if outc is not None:
             ok_obs = outc.observed_ok([o.outcomes for o in self.observations])
@@ -751,6 +768,8 @@ class Engine:
 
         def allowed(U: FloatArray) -> NDArray[np.bool_]:
             ok = ~self._near_failures(U)
+            if safe is not None:
+                ok &= _in_balls(U, *safe)
             return ok & outc.allowed(U) if outc is not None else ok
 
         ok = allowed(cand)
@@ -760,6 +779,8 @@ class Engine:
             # nothing is within the level: the calibration least likely to break a limit
             worst = outc.prob_violation(cand).max(axis=1)
             worst = np.where(self._near_failures(cand), np.inf, worst)
+            if safe is not None:
+                worst = np.where(_in_balls(cand, *safe), worst, np.inf)
             i = int(np.argmin(worst))
             self._no_safe_candidate(float(worst[i]))
             return np.asarray(cand[i], dtype=float)
@@ -781,6 +802,8 @@ class Engine:
             options={"maxiter": self.config.acq_maxiter},
         )
         opt = np.clip(res.x.reshape(k, d), 0.0, 1.0)
+        if safe is not None:  # the maximizer is bounded by the box only: back into the nearest ball
+            opt = _into_balls(opt, *safe)
         both = np.vstack([opt, starts])
         acq2 = np.where(allowed(both), acq_values(both), -np.inf)
         acq2 = np.where(np.isfinite(acq2), acq2, -np.inf)
@@ -1036,6 +1059,27 @@ class Engine:
         except json.JSONDecodeError as exc:
             raise EngineError(f"engine state is not valid JSON: {exc}") from exc
         return cls.from_state_dict(data)
+
+
+def _in_balls(U: FloatArray, centres: FloatArray, radii: FloatArray) -> NDArray[np.bool_]:
+    """Which rows of ``U`` lie within ``radii`` of one of ``centres`` (1e-9: rounding)."""
+    d2 = np.sum((U[:, None, :] - centres[None, :, :]) ** 2, axis=2)
+    return np.asarray(np.any(d2 <= radii[None, :] ** 2 + 1e-9, axis=1))
+
+
+def _into_balls(U: FloatArray, centres: FloatArray, radii: FloatArray) -> FloatArray:
+    """Each row of ``U`` outside every ball moved onto the nearest ball (towards its centre, 0.999 of its radius;
+    the centres are in the box, so the point stays in it)."""
+    diff = U[:, None, :] - centres[None, :, :]
+    dist = np.sqrt(np.sum(diff**2, axis=2))
+    j = np.argmin(dist - radii[None, :], axis=1)
+    rows = np.arange(U.shape[0])
+    dj, rj = dist[rows, j], radii[j]
+    out = U.copy()
+    far = dj > rj
+    scale = (0.999 * rj[far] / dj[far])[:, None]
+    out[far] = centres[j[far]] + scale * diff[rows[far], j[far]]
+    return np.asarray(np.clip(out, 0.0, 1.0), dtype=float)
 
 
 def _hyper_state(h: Hyper | None) -> dict[str, Any] | None:
