@@ -583,11 +583,14 @@ class Engine:
         d2 = np.where(ok, np.sum((cand - u) ** 2, axis=1), np.inf)
         return np.asarray(cand[int(np.argmin(d2))], dtype=float)
 
-    def _safe_ball_candidates(self, u: FloatArray, kept: FloatArray, radii: FloatArray) -> FloatArray:
+    def _safe_ball_candidates(
+        self, u: FloatArray, kept: FloatArray, radii: FloatArray, rng: np.random.Generator | None = None
+    ) -> FloatArray:
         """Candidates inside the balls (``radii``) around the runs that kept every limit, clipped to the box (the
         centres are in it, so a clipped point stays in its ball): for each ball the steps towards ``u`` of
         SAFE_LADDER times the reachable distance (the first is the ball's point nearest to ``u``), and points
-        uniform in the ball (a random direction times r * U^(1/D)), n_candidates in all (16 per ball at least)."""
+        uniform in the ball (a random direction times r * U^(1/D)), n_candidates in all (16 per ball at least);
+        drawn from ``rng`` (default: the engine's; the recommendation's own, which leaves the asks unchanged)."""
         n, dim = kept.shape
         diff = u[None, :] - kept
         dist = np.sqrt(np.sum(diff**2, axis=1))
@@ -595,9 +598,10 @@ class Engine:
         reach = np.minimum(dist, radii)
         ladder = kept[:, None, :] + (np.asarray(SAFE_LADDER)[None, :, None] * reach[:, None, None]) * unit[:, None, :]
         m = max(16, self.config.n_candidates // max(n, 1))
-        g = self.rng.standard_normal((n, m, dim))
+        rng = self.rng if rng is None else rng
+        g = rng.standard_normal((n, m, dim))
         g /= np.maximum(np.sqrt(np.sum(g**2, axis=2, keepdims=True)), 1e-12)
-        rho = radii[:, None] * self.rng.random((n, m)) ** (1.0 / dim)
+        rho = radii[:, None] * rng.random((n, m)) ** (1.0 / dim)
         ball = kept[:, None, :] + rho[:, :, None] * g
         return np.asarray(np.clip(np.vstack([ladder.reshape(-1, dim), ball.reshape(-1, dim)]), 0.0, 1.0), dtype=float)
 
@@ -915,8 +919,15 @@ class Engine:
         d = self.space.dim
         rng = np.random.default_rng(self.config.seed + 7919 * len(self.observations))
         cand = np.vstack([candidates(self.config.n_candidates, d, rng), gp.X])
+        # a safe start: the recommendation too lies in the safe set (SafeOpt), within a safe step of a kept run
+        safe = self._safe_set()
+        if safe is not None:
+            kept_best = safe[0][int(np.argmin(gp.predict_std_units(safe[0])[0]))]
+            cand = np.vstack([cand, self._safe_ball_candidates(kept_best, *safe, rng=rng)])
         mu, var = gp.predict_std_units(cand)
         score = mu + beta * np.sqrt(var)
+        if safe is not None:
+            score = np.where(_in_balls(cand, *safe), score, np.inf)
         outc = self._outcome_models() if self._limits else None
         log_ok = math.log(1.0 - self.config.constraint_level)
         if outc is not None:
@@ -941,9 +952,13 @@ class Engine:
 
         res = minimize(f, starts.ravel(), jac=True, method="L-BFGS-B", bounds=[(0.0, 1.0)] * (k * d))
         pts = np.vstack([np.clip(res.x.reshape(k, d), 0.0, 1.0), starts])
+        if safe is not None:
+            pts = _into_balls(pts, *safe)
         U = self.space.to_unit(self.space.from_unit(pts))
         m, v = gp.predict_std_units(U)
         sc = m + beta * np.sqrt(v)
+        if safe is not None:
+            sc = np.where(_in_balls(U, *safe), sc, np.inf)
         if outc is not None:
             sc = np.where(outc.allowed(U, measured=False), sc, np.inf)
             if not np.any(np.isfinite(sc)):
