@@ -519,7 +519,8 @@ class Engine:
         p = outc.prob_violation(cand).max(axis=1)
         ok = p <= outc.level
         if not np.any(ok):
-            i = int(np.argmin(p))
+            # no run has kept every limit yet: the retreat (a linear trend gives it a direction); else the least risky
+            i = int(np.argmin(p if self._kept_runs().size else outc.retreat_prob(cand)))
             self._no_safe_candidate(float(p[i]))
             return np.asarray(cand[i], dtype=float)
         d2 = np.where(ok, np.sum((cand - u) ** 2, axis=1), np.inf)
@@ -735,6 +736,12 @@ class Engine:
         acq_grad: Callable[[FloatArray], tuple[FloatArray, FloatArray]]
         if outc is not None and incumbents is not None and not incumbents.any():
             # no run has kept every limit yet: look for the calibration most likely to keep them
+            if not np.any(outc.allowed(cand) & ~self._near_failures(cand)):
+                # none is within the level: the retreat, in the direction the runs' values give (a linear trend)
+                i = int(np.argmin(np.where(self._near_failures(cand), np.inf, outc.retreat_prob(cand))))
+                self._no_safe_candidate(float(outc.prob_violation(cand[i : i + 1]).max()))
+                self._acq_info["acquisition"] = "retreat (no run has kept every limit yet)"
+                return np.asarray(cand[i], dtype=float)
 
             def feasible_values(U: FloatArray) -> FloatArray:
                 return outc.log_feasible_and_grad(U)[0]
