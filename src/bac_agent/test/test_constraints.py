@@ -139,3 +139,19 @@ def test_the_acquisition_maximizer_stops_after_acq_maxiter(monkeypatch: pytest.M
     assert seen and seen[-1] == 7
     with pytest.raises(EngineError, match="acq_maxiter"):
         EngineConfig(acq_maxiter=0)
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+@pytest.mark.parametrize("j_differs", [False, True])
+def test_after_runs_that_all_broke_the_limit_the_retreat_follows_their_values(seed: int, j_differs: bool) -> None:
+    # travel 70 - 15 (a + b), limit 44 (kept where a + b >= 1.73): runs at (0, 0) and (0.6, 0.9) break it (70, 47.5
+    # mm). Nothing is within the level; the constant-mean model's least risky calibration stayed near the run
+    # closest to the limit (a + b 1.77-1.79, 43.2-43.5 mm: a run's scatter from breaking it); the retreat's
+    # linear trend goes on the way the values fall, to the corner (issue 23, since 2026-11-24). Through the
+    # design (J equal: no model of J yet) and through the acquisition
+    eng = Engine({"a": (0.0, 1.0), "b": (0.0, 1.0)}, EngineConfig(budget=12, seed=seed, constraints=("travel<=44",)))
+    for a, b in ((0.0, 0.0), (0.6, 0.9)):
+        eng.tell({"a": a, "b": b}, 1.0 + (a if j_differs else 0.0), {"travel": 70.0 - 15.0 * (a + b)})
+    s = eng.ask_with_info()
+    assert "no_safe_candidate" in s.info
+    assert s.params["a"] + s.params["b"] > 1.9, s.params

@@ -18,6 +18,11 @@ With fewer than 3 values of an outcome, its spread is unknown; the model then as
 large as the distance from the values to the limit (or their spread if larger), so that after the first runs
 only calibrations near them count as safe, and calibrations far from them as uncertain.
 
+**The retreat** (no run has kept every limit yet and no calibration is within the level, e.g. after an unsafe
+first run; since 2026-11-24): the calibration least likely to break a limit under the outcome's model plus a
+linear trend with its slopes integrated out (``RETREAT_TREND_SD``), so that the runs' values give a direction;
+under the constant-mean model alone the least risky calibration is simply the one farthest from the runs.
+
 **What the simulator knows of an outcome** (``OutcomeModel(limit, source)``; issue 23): a
 :class:`~bac_agent.bo.prior.SourceSurface` of the outcome over the same unit cube (the simulation phase's travel,
 the nominal car's peaks, an earlier campaign's measurements) is the outcome GP's prior mean ``a + b · s(x)``, with
@@ -81,6 +86,13 @@ _SOURCE_OUTCOME_GP = replace(OUTCOME_GP, os_loc=math.log(OUTCOME_PRIOR_RESIDUAL_
 SOURCE_VAR_FLOOR = 1e-4
 # E[b²] under b's prior: before the first run, the factor of the source's own posterior covariance
 _PRIOR_B2 = 1.0 + OUTCOME_PRIOR_SCALE_SD**2
+# the retreat (no run has kept every limit yet and no calibration is within the level): the calibration least likely
+# to break a limit under the outcome's model plus a linear trend whose slopes, N(0, RETREAT_TREND_SD²) per unit of
+# the box in the outcome's few-run units (the spread as before 3 runs), are integrated out (a linear kernel): the
+# runs' values give the retreat a direction. The constant-mean model's least risky calibration is the one farthest
+# from the runs, a coin toss that kept breaking the limit run after run (issue 23, bench/outcome_limits.py's tuning
+# instances with 12 seeds: 19.7 % of the runs broke the limit, 12.2 % with 2 or 4; docs/agent.md); 0: off
+RETREAT_TREND_SD = 2.0
 _LIMIT_RE = re.compile(r"^\s*([A-Za-z_][A-Za-z0-9_.]*)\s*(<=|>=)\s*([-+0-9.eE]+)\s*$")
 
 
@@ -246,6 +258,7 @@ class OutcomeModel:
         self._alpha = np.zeros(0)  # K⁻¹ (z − H β̂)
         self._beta2 = _PRIOR_B2  # E[b²]: the factor of the source's own covariance
         self._src_cov: _SourceCov | None = None
+        self._data: tuple[FloatArray, FloatArray] | None = None
 
     def _source_cov(self) -> _SourceCov:
         assert self.source is not None
@@ -257,6 +270,7 @@ class OutcomeModel:
         ok = np.isfinite(values)
         X, v = X[ok], values[ok]
         self.n = int(v.size)
+        self._data = (X, v) if self.n else None
         if self.source is not None:
             self._fit_with_source(X, v, rng)
             return
@@ -269,6 +283,38 @@ class OutcomeModel:
         spread = max(float(np.std(v)), abs(self.limit.bound - mean), 1e-6 * max(1.0, abs(mean)))
         loc, _ = self.gp._prior(X.shape[1])
         self.gp = GP(OUTCOME_GP).condition(X, v, Hyper.from_vector(loc), scaling=(mean, spread))
+
+    def retreat_prob(self, U: FloatArray) -> FloatArray:
+        """The probability that a run at the rows of ``U`` breaks the limit under the model with a linear trend (see
+        RETREAT_TREND_SD; the outcome's own model with a source, before a run, or with the trend off)."""
+        U = np.atleast_2d(U)
+        if self.source is not None or self.n == 0 or RETREAT_TREND_SD <= 0.0 or self._data is None:
+            return self.prob_violation(U)
+        X, v = self._data
+        mean = float(np.mean(v))
+        spread = max(float(np.std(v)), abs(self.limit.bound - mean), 1e-6 * max(1.0, abs(mean)))
+        z = (v - mean) / spread
+        loc, _ = GP(OUTCOME_GP)._prior(X.shape[1])
+        h = Hyper.from_vector(loc)
+        c = X.mean(axis=0)
+        sw2 = RETREAT_TREND_SD**2
+        n = X.shape[0]
+        K = matern52_from_r2(sq_dist(X, X, h.lengthscales), h.outputscale) + sw2 * (X - c) @ (X - c).T
+        K.flat[:: n + 1] += h.noise + 1e-10
+        Kinv = sla.cho_solve(sla.cho_factor(K, lower=True), np.eye(n), check_finite=False)
+        ks = matern52_from_r2(sq_dist(U, X, h.lengthscales), h.outputscale) + sw2 * (U - c) @ (X - c).T
+        kss = h.outputscale + sw2 * np.sum((U - c) ** 2, axis=1)
+        one = np.ones(n)
+        a = float(one @ Kinv @ one)
+        beta = float(one @ Kinv @ z) / a
+        V = ks @ Kinv
+        mu = beta + V @ (z - beta)
+        R = 1.0 - V @ one
+        var = kss - np.sum(V * ks, axis=1) + R * R / a
+        sd = np.sqrt(np.maximum(var, 1e-12) + h.noise)
+        b = (self.limit.bound - mean) / spread
+        t = (b - mu) / sd if self.limit.upper else (mu - b) / sd
+        return np.asarray(1.0 - ndtr(t), dtype=float)
 
     def _fit_with_source(self, X: FloatArray, v: FloatArray, rng: np.random.Generator) -> None:
         """The residual's kernel (MAP from 3 values, the prior's mode before) and the posterior of (a, b).
@@ -474,6 +520,13 @@ class OutcomeModels:
         if not self.models:
             return np.zeros((U.shape[0], 0))
         return np.column_stack([m.prob_violation(U, measured) for m in self.models])
+
+    def retreat_prob(self, U: FloatArray) -> FloatArray:
+        """(m,): the largest probability that a run breaks a limit, under the retreat's models (RETREAT_TREND_SD)."""
+        U = np.atleast_2d(U)
+        if not self.models:
+            return np.zeros(U.shape[0])
+        return np.asarray(np.max(np.column_stack([m.retreat_prob(U) for m in self.models]), axis=1), dtype=float)
 
     def allowed(self, U: FloatArray, measured: bool = True) -> NDArray[np.bool_]:
         """Points whose probability of breaking any limit is at most the level."""

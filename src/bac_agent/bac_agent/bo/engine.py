@@ -493,7 +493,9 @@ class Engine:
                 s = self._suggest(u, self._guess_kind if k - self._n_safe < self._n_guess else KIND_INITIAL)
         if s is None:
             if not self._can_model():
-                s = self._suggest(self._random_allowed(), KIND_RANDOM)
+                safe = self._safe_set()
+                u = self._random_allowed() if safe is None else self._grow_safe(self.rng.random(self.space.dim))
+                s = self._suggest(u, KIND_RANDOM)
             else:
                 s = self._suggest(self._maximize_acquisition(), KIND_OPTIMIZED)
         self.pending.append(dict(s.params))
@@ -523,7 +525,8 @@ class Engine:
         p = outc.prob_violation(cand).max(axis=1)
         ok = p <= outc.level
         if not np.any(ok):
-            i = int(np.argmin(p))
+            # no run has kept every limit yet: the retreat (a linear trend gives it a direction); else the least risky
+            i = int(np.argmin(p if self._kept_runs().size else outc.retreat_prob(cand)))
             self._no_safe_candidate(float(p[i]))
             return np.asarray(cand[i], dtype=float)
         d2 = np.where(ok, np.sum((cand - u) ** 2, axis=1), np.inf)
@@ -533,6 +536,16 @@ class Engine:
         """The runs (unit cube) that kept every outcome limit as measured."""
         ok = self._outcomes.observed_ok([o.outcomes for o in self.observations])
         return self._obs_unit()[ok] if np.any(ok) else np.zeros((0, self.space.dim))
+
+    def _safe_set(self) -> tuple[FloatArray, FloatArray] | None:
+        """With a safe start, after its run kept the limits: the runs that kept every limit and their safe steps
+        (the balls every proposal stays in); else None."""
+        if not self._n_safe:
+            return None
+        kept = self._kept_runs()
+        if not kept.size:
+            return None
+        return kept, np.maximum(self._safe_radii(), SAFE_MIN_STEP)
 
     def _safe_radii(self) -> FloatArray:
         """How far (unit cube) the safe region reaches from each run that kept every limit (SAFE_STEP at most)."""
@@ -577,11 +590,14 @@ class Engine:
         d2 = np.where(ok, np.sum((cand - u) ** 2, axis=1), np.inf)
         return np.asarray(cand[int(np.argmin(d2))], dtype=float)
 
-    def _safe_ball_candidates(self, u: FloatArray, kept: FloatArray, radii: FloatArray) -> FloatArray:
+    def _safe_ball_candidates(
+        self, u: FloatArray, kept: FloatArray, radii: FloatArray, rng: np.random.Generator | None = None
+    ) -> FloatArray:
         """Candidates inside the balls (``radii``) around the runs that kept every limit, clipped to the box (the
         centres are in it, so a clipped point stays in its ball): for each ball the steps towards ``u`` of
         SAFE_LADDER times the reachable distance (the first is the ball's point nearest to ``u``), and points
-        uniform in the ball (a random direction times r * U^(1/D)), n_candidates in all (16 per ball at least)."""
+        uniform in the ball (a random direction times r * U^(1/D)), n_candidates in all (16 per ball at least);
+        drawn from ``rng`` (default: the engine's; the recommendation's own, which leaves the asks unchanged)."""
         n, dim = kept.shape
         diff = u[None, :] - kept
         dist = np.sqrt(np.sum(diff**2, axis=1))
@@ -589,9 +605,10 @@ class Engine:
         reach = np.minimum(dist, radii)
         ladder = kept[:, None, :] + (np.asarray(SAFE_LADDER)[None, :, None] * reach[:, None, None]) * unit[:, None, :]
         m = max(16, self.config.n_candidates // max(n, 1))
-        g = self.rng.standard_normal((n, m, dim))
+        rng = self.rng if rng is None else rng
+        g = rng.standard_normal((n, m, dim))
         g /= np.maximum(np.sqrt(np.sum(g**2, axis=2, keepdims=True)), 1e-12)
-        rho = radii[:, None] * self.rng.random((n, m)) ** (1.0 / dim)
+        rho = radii[:, None] * rng.random((n, m)) ** (1.0 / dim)
         ball = kept[:, None, :] + rho[:, :, None] * g
         return np.asarray(np.clip(np.vstack([ladder.reshape(-1, dim), ball.reshape(-1, dim)]), 0.0, 1.0), dtype=float)
 
@@ -753,6 +770,11 @@ class Engine:
         local = np.clip(top[idx] + self.rng.standard_normal((self.config.n_local, d)) * scale, 0.0, 1.0)
         cand = np.vstack([cand, local])
         outc = self._outcome_models() if self._limits else None
+        # a safe start: the proposals stay in the safe set after the design too (SafeOpt, Sui et al. 2015), each
+        # within a safe step of a run that kept every limit; candidates drawn in those steps' balls besides
+        safe = self._safe_set()
+        if safe is not None:
+            cand = np.vstack([cand, self._safe_ball_candidates(top[0], *safe)])
         incumbents = None
         if outc is not None:
             ok_obs = outc.observed_ok([o.outcomes for o in self.observations])
@@ -763,6 +785,12 @@ class Engine:
         acq_grad: Callable[[FloatArray], tuple[FloatArray, FloatArray]]
         if outc is not None and incumbents is not None and not incumbents.any():
             # no run has kept every limit yet: look for the calibration most likely to keep them
+            if not np.any(outc.allowed(cand) & ~self._near_failures(cand)):
+                # none is within the level: the retreat, in the direction the runs' values give (a linear trend)
+                i = int(np.argmin(np.where(self._near_failures(cand), np.inf, outc.retreat_prob(cand))))
+                self._no_safe_candidate(float(outc.prob_violation(cand[i : i + 1]).max()))
+                self._acq_info["acquisition"] = "retreat (no run has kept every limit yet)"
+                return np.asarray(cand[i], dtype=float)
 
             def feasible_values(U: FloatArray) -> FloatArray:
                 return outc.log_feasible_and_grad(U)[0]
@@ -804,6 +832,8 @@ class Engine:
 
         def allowed(U: FloatArray) -> NDArray[np.bool_]:
             ok = ~self._near_failures(U)
+            if safe is not None:
+                ok &= _in_balls(U, *safe)
             return ok & outc.allowed(U) if outc is not None else ok
 
         ok = allowed(cand)
@@ -813,6 +843,8 @@ class Engine:
             # nothing is within the level: the calibration least likely to break a limit
             worst = outc.prob_violation(cand).max(axis=1)
             worst = np.where(self._near_failures(cand), np.inf, worst)
+            if safe is not None:
+                worst = np.where(_in_balls(cand, *safe), worst, np.inf)
             i = int(np.argmin(worst))
             self._no_safe_candidate(float(worst[i]))
             return np.asarray(cand[i], dtype=float)
@@ -834,6 +866,8 @@ class Engine:
             options={"maxiter": self.config.acq_maxiter},
         )
         opt = np.clip(res.x.reshape(k, d), 0.0, 1.0)
+        if safe is not None:  # the maximizer is bounded by the box only: back into the nearest ball
+            opt = _into_balls(opt, *safe)
         both = np.vstack([opt, starts])
         acq2 = np.where(allowed(both), acq_values(both), -np.inf)
         acq2 = np.where(np.isfinite(acq2), acq2, -np.inf)
@@ -945,8 +979,15 @@ class Engine:
         d = self.space.dim
         rng = np.random.default_rng(self.config.seed + 7919 * len(self.observations))
         cand = np.vstack([candidates(self.config.n_candidates, d, rng), gp.X])
+        # a safe start: the recommendation too lies in the safe set (SafeOpt), within a safe step of a kept run
+        safe = self._safe_set()
+        if safe is not None:
+            kept_best = safe[0][int(np.argmin(gp.predict_std_units(safe[0])[0]))]
+            cand = np.vstack([cand, self._safe_ball_candidates(kept_best, *safe, rng=rng)])
         mu, var = gp.predict_std_units(cand)
         score = mu + beta * np.sqrt(var)
+        if safe is not None:
+            score = np.where(_in_balls(cand, *safe), score, np.inf)
         outc = self._outcome_models() if self._limits else None
         log_ok = math.log(1.0 - self.config.constraint_level)
         if outc is not None:
@@ -971,9 +1012,13 @@ class Engine:
 
         res = minimize(f, starts.ravel(), jac=True, method="L-BFGS-B", bounds=[(0.0, 1.0)] * (k * d))
         pts = np.vstack([np.clip(res.x.reshape(k, d), 0.0, 1.0), starts])
+        if safe is not None:
+            pts = _into_balls(pts, *safe)
         U = self.space.to_unit(self.space.from_unit(pts))
         m, v = gp.predict_std_units(U)
         sc = m + beta * np.sqrt(v)
+        if safe is not None:
+            sc = np.where(_in_balls(U, *safe), sc, np.inf)
         if outc is not None:
             sc = np.where(outc.allowed(U, measured=False), sc, np.inf)
             if not np.any(np.isfinite(sc)):
@@ -1089,6 +1134,27 @@ class Engine:
         except json.JSONDecodeError as exc:
             raise EngineError(f"engine state is not valid JSON: {exc}") from exc
         return cls.from_state_dict(data)
+
+
+def _in_balls(U: FloatArray, centres: FloatArray, radii: FloatArray) -> NDArray[np.bool_]:
+    """Which rows of ``U`` lie within ``radii`` of one of ``centres`` (1e-9: rounding)."""
+    d2 = np.sum((U[:, None, :] - centres[None, :, :]) ** 2, axis=2)
+    return np.asarray(np.any(d2 <= radii[None, :] ** 2 + 1e-9, axis=1))
+
+
+def _into_balls(U: FloatArray, centres: FloatArray, radii: FloatArray) -> FloatArray:
+    """Each row of ``U`` outside every ball moved onto the nearest ball (towards its centre, 0.999 of its radius;
+    the centres are in the box, so the point stays in it)."""
+    diff = U[:, None, :] - centres[None, :, :]
+    dist = np.sqrt(np.sum(diff**2, axis=2))
+    j = np.argmin(dist - radii[None, :], axis=1)
+    rows = np.arange(U.shape[0])
+    dj, rj = dist[rows, j], radii[j]
+    out = U.copy()
+    far = dj > rj
+    scale = (0.999 * rj[far] / dj[far])[:, None]
+    out[far] = centres[j[far]] + scale * diff[rows[far], j[far]]
+    return np.asarray(np.clip(out, 0.0, 1.0), dtype=float)
 
 
 def _hyper_state(h: Hyper | None) -> dict[str, Any] | None:
