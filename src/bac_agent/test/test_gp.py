@@ -393,7 +393,12 @@ def test_bowl_loo_keeps_the_bowl_on_a_cone_and_drops_it_on_a_tilt() -> None:
             assert gp.hyper is not None
             kept[name] += gp.hyper.bowl is not None
     assert kept == {"cone": 4, "tilt": 1}
-    # off (the default): the bowl whatever the runs
+    # off (the default), with fewer runs than bowl_loo_runs, or with a margin the constant does not beat: the bowl
     X = 0.1 + 0.8 * qmc.LatinHypercube(2, seed=0).random(6)
-    off = GP(GPConfig()).fit(X, _tilted(X), np.random.default_rng(0))
-    assert off.hyper is not None and off.hyper.bowl is not None
+    y = _tilted(X) + 0.01 * np.random.default_rng(4).standard_normal(6)
+    on = GP(GPConfig(bowl_loo=True)).fit(X, y, np.random.default_rng(0))
+    assert on.hyper is not None and on.hyper.bowl is None
+    assert 0.0 < on._const_loo - on._bowl_loo < 5.0
+    for cfg in (GPConfig(), GPConfig(bowl_loo=True, bowl_loo_runs=7), GPConfig(bowl_loo=True, bowl_loo_margin=5.0)):
+        kept = GP(cfg).fit(X, y, np.random.default_rng(0))
+        assert kept.hyper is not None and kept.hyper.bowl is not None

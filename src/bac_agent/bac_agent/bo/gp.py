@@ -95,6 +95,10 @@ class GPConfig:
     # the bowl is kept only while it predicts the runs, left out one at a time, better than a constant mean (the
     # bowl's mixture and the constant both re-estimated without the run left out); else the constant mean
     bowl_loo: bool = False
+    bowl_loo_margin: float = 0.0  # how much better (log predictive density, nats) the constant must predict
+    # fewer runs than this: the bowl without the comparison (5: the engine's own design up to 4 dimensions; the LOO
+    # of 3 or 4 runs cost road_c1 on the tuning split, docs/agent.md)
+    bowl_loo_runs: int = 5
     draws: int = 8  # draws from the prior, screened by their objective
     restarts: int = 1  # best draws optimized, besides the prior mode and the previous fit
     maxiter: int = 200
@@ -282,6 +286,7 @@ class GP:
     _z: FloatArray = field(default_factory=lambda: np.zeros(0))
     _offset: FloatArray | float = 0.0  # a fixed trend subtracted from z while fitting (the bowl's)
     _bowl_loo: float = -math.inf  # the bowl's leave-one-out log predictive density (GPConfig.bowl_loo)
+    _const_loo: float = -math.inf  # the constant mean's, the last time they were compared
     _lin: bool = False  # the fit profiles a linear trend out of the likelihood (GPConfig.mean "linear"/"select")
 
     # --- priors ------------------------------------------------------------------
@@ -449,12 +454,13 @@ class GP:
                 v = self._map_hyper(rng)
                 self._offset = 0.0
                 bowl = self._fit_bowl(Hyper.from_vector(v), scale)
-            if bowl is not None and self.config.bowl_loo:
+            if bowl is not None and self.config.bowl_loo and self.X.shape[0] >= self.config.bowl_loo_runs:
                 try:
                     const_loo = self.loo_log_predictive(v_const, False)
                 except np.linalg.LinAlgError:
                     const_loo = -math.inf
-                if const_loo > self._bowl_loo:
+                self._const_loo = const_loo  # (shown by bench diagnostics)
+                if const_loo > self._bowl_loo + self.config.bowl_loo_margin:
                     bowl, v = None, v_const
         self.hyper = Hyper.from_vector(v)
         if bowl is not None and self.config.bowl_slope_sd > 0.0:
