@@ -96,9 +96,10 @@ class GPConfig:
     # bowl's mixture and the constant both re-estimated without the run left out); else the constant mean
     bowl_loo: bool = False
     bowl_loo_margin: float = 0.0  # how much better (log predictive density, nats) the constant must predict
-    # fewer runs than this: the bowl without the comparison (5: the engine's own design up to 4 dimensions; the LOO
-    # of 3 or 4 runs cost road_c1 on the tuning split, docs/agent.md)
-    bowl_loo_runs: int = 5
+    # fewer runs than this: the bowl without the comparison; 0 = automatic, 2d + 1 and at least 5 (in 2-D the
+    # engine's own design: the LOO of 3 or 4 runs cost road_c1 on the tuning split, and in 3-D that of 5 or 6 runs
+    # cost Hartmann-3, docs/agent.md; the bowl lasts d + 2 runs beyond 4-D, so it is never dropped there)
+    bowl_loo_runs: int = 0
     draws: int = 8  # draws from the prior, screened by their objective
     restarts: int = 1  # best draws optimized, besides the prior mode and the previous fit
     maxiter: int = 200
@@ -454,7 +455,8 @@ class GP:
                 v = self._map_hyper(rng)
                 self._offset = 0.0
                 bowl = self._fit_bowl(Hyper.from_vector(v), scale)
-            if bowl is not None and self.config.bowl_loo and self.X.shape[0] >= self.config.bowl_loo_runs:
+            loo_runs = self.config.bowl_loo_runs or max(5, 2 * self.X.shape[1] + 1)
+            if bowl is not None and self.config.bowl_loo and self.X.shape[0] >= loo_runs:
                 try:
                     const_loo = self.loo_log_predictive(v_const, False)
                 except np.linalg.LinAlgError:
