@@ -402,3 +402,9 @@ def test_bowl_loo_keeps_the_bowl_on_a_cone_and_drops_it_on_a_tilt() -> None:
     for cfg in (GPConfig(), GPConfig(bowl_loo=True, bowl_loo_runs=7), GPConfig(bowl_loo=True, bowl_loo_margin=5.0)):
         kept = GP(cfg).fit(X, y, np.random.default_rng(0))
         assert kept.hyper is not None and kept.hyper.bowl is not None
+    # automatic: from 2d + 1 runs on; in 3-D the same tilted runs (a third input that does not matter) keep the bowl
+    X3 = np.column_stack([X, qmc.LatinHypercube(1, seed=1).random(6)])
+    kept3 = GP(GPConfig(bowl_loo=True)).fit(X3, y, np.random.default_rng(0))
+    dropped3 = GP(GPConfig(bowl_loo=True, bowl_loo_runs=5)).fit(X3, y, np.random.default_rng(0))
+    assert kept3.hyper is not None and kept3.hyper.bowl is not None
+    assert dropped3.hyper is not None and dropped3.hyper.bowl is None
