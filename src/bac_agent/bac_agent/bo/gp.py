@@ -47,7 +47,10 @@ FloatArray = NDArray[np.float64]
 LOG_2PI = math.log(2.0 * math.pi)
 
 
-MEANS = ("zero", "constant", "bowl", "linear", "select")  # GPConfig.mean
+MEANS = ("zero", "constant", "bowl")  # GPConfig.mean (the node's gp_mean)
+# further means of GPConfig.mean and GPConfig.bowl_then (issue 23, options): "linear" a linear trend (GLS, profiled
+# out of the likelihood); "select" the constant or the linear trend, whichever predicts the runs left out better
+TREND_MEANS = ("linear", "select")
 
 
 class GPError(BacError, ValueError):
@@ -105,9 +108,9 @@ class GPConfig:
     maxiter: int = 200
 
     def __post_init__(self) -> None:
-        if self.mean not in MEANS:
-            raise GPError(f"GP mean must be one of {', '.join(MEANS)}, got {self.mean!r}")
-        if self.bowl_then not in MEANS or self.bowl_then == "bowl":
+        if self.mean not in MEANS + TREND_MEANS:
+            raise GPError(f"GP mean must be one of {', '.join(MEANS + TREND_MEANS)}, got {self.mean!r}")
+        if self.bowl_then not in MEANS + TREND_MEANS or self.bowl_then == "bowl":
             raise GPError(f"bowl_then must be one of zero, constant, linear, select, got {self.bowl_then!r}")
         if not (self.bowl_slope_sd >= 0.0 and 0.0 <= self.bowl_faces < 1.0):
             raise GPError(
@@ -440,7 +443,7 @@ class GP:
         self._offset = 0.0
         self._lin = False
         v = self._map_hyper(rng)
-        if self.config.mean in ("linear", "select") and self._linear_ok():
+        if self.config.mean in TREND_MEANS and self._linear_ok():
             v = self._fit_linear(v, rng)
         bowl = None
         v_const = v
