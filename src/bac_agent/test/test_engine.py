@@ -214,6 +214,27 @@ def test_bowl_mean_only_for_the_first_runs() -> None:
         EngineConfig(bowl_runs=-1)
 
 
+def test_the_mean_after_the_bowl_is_configurable() -> None:
+    """GPConfig.bowl_then (issue 23): after the bowl's runs a linear trend instead of the constant, through the
+    engine and its JSON state; J falling towards the corner (0, 1) is carried there by the trend."""
+    cfg = EngineConfig(budget=10, seed=2, gp=GPConfig(bowl_then="linear"))
+    eng = Engine({"a": (0.0, 1.0), "b": (0.0, 1.0)}, cfg)
+    rng = np.random.default_rng(2)
+    slopes = []
+    while not eng.done:
+        p = eng.ask()
+        eng.tell(p, 2.0 + 1.5 * p["a"] - p["b"] + 0.01 * rng.standard_normal())
+        eng.recommend()
+        assert eng.hyper is not None
+        slopes.append(eng.hyper.slope is not None)
+    assert slopes[:6] == [False] * 6 and slopes[6:] == [True] * 4  # the bowl's 6 runs, then the trend
+    r = eng.recommend()
+    assert r.params["a"] < 0.02 and r.params["b"] > 0.98
+    eng2 = Engine.from_json(eng.to_json())
+    assert eng2.config.gp.bowl_then == "linear"
+    assert eng2.recommend().params == pytest.approx(r.params, abs=1e-9)
+
+
 def test_best_guesses_are_asked_first_and_the_design_still_spans_the_space() -> None:
     space = {"a": (0.0, 1.0), "b": (0.0, 1.0)}
     plain = Engine(space, EngineConfig(n_initial=5, seed=4))

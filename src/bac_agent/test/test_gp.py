@@ -257,3 +257,154 @@ def test_boundary_centres_lie_on_the_faces_and_corners() -> None:
     assert len(corners) == 8
     for j in range(3):
         assert np.sum(F[:, j] == 0.0) >= 64
+
+
+# --- a linear trend, and the choice by leave-one-out prediction (issue 23) ------------------------------------
+def _loo_by_refits(X: np.ndarray, z: np.ndarray, h: Hyper, H: np.ndarray) -> float:
+    """Leave-one-out log predictive density the long way: for each run, the GP of the others with the trend's
+    coefficients integrated out under a flat prior (R&W 2006 eq. 2.41-2.42, B⁻¹ → 0), the run's noisy value."""
+    n = X.shape[0]
+    K = matern52(X, X, h.lengthscales, h.outputscale) + (h.noise + 1e-10 * h.outputscale) * np.eye(n)
+    total = 0.0
+    for i in range(n):
+        o = np.arange(n) != i
+        Ki = np.linalg.inv(K[np.ix_(o, o)])
+        Ho, hi, ki = H[o], H[i], K[o, i]
+        A = Ho.T @ Ki @ Ho
+        beta = np.linalg.solve(A, Ho.T @ Ki @ z[o])
+        mu = hi @ beta + ki @ Ki @ (z[o] - Ho @ beta)
+        R = hi - Ho.T @ Ki @ ki
+        var = K[i, i] - ki @ Ki @ ki + R @ np.linalg.solve(A, R)
+        total += -0.5 * np.log(2 * np.pi * var) - 0.5 * (z[i] - mu) ** 2 / var
+    return float(total)
+
+
+@pytest.mark.parametrize("linear", [False, True])
+def test_loo_log_predictive_equals_refits_without_each_run(linear: bool) -> None:
+    X, y = _data(12, 2, seed=3)
+    h = Hyper(np.array([0.3, 0.6]), 0.9, 0.02)
+    gp = GP(GPConfig(mean="constant")).condition(X, y, h)
+    H = np.hstack([np.ones((12, 1)), X - 0.5]) if linear else np.ones((12, 1))
+    assert gp.loo_log_predictive(h.to_vector(), linear) == pytest.approx(_loo_by_refits(X, gp._z, h, H), rel=1e-8)
+
+
+def _tilted(X: np.ndarray) -> np.ndarray:
+    """J falling towards the corner (0, 1) with a ripple: Controller II's landscapes have their optimum there."""
+    return np.asarray(1.5 * X[:, 0] - 1.0 * X[:, 1] + 0.1 * np.sin(7 * X[:, 0]) * np.cos(5 * X[:, 1]))
+
+
+def test_linear_trend_carries_a_tilt_to_the_corner_with_exact_gradients() -> None:
+    from scipy.stats import qmc
+
+    X = 0.1 + 0.8 * qmc.LatinHypercube(2, seed=2).random(8)  # the runs 0.1 off the faces, as the design's
+    y = _tilted(X) + 0.01 * np.random.default_rng(2).standard_normal(8)
+    lin = GP(GPConfig(mean="linear")).fit(X, y, np.random.default_rng(0))
+    assert lin.hyper is not None and lin.hyper.slope is not None and lin.hyper.bowl is None
+    s = lin.hyper.slope * lin.y_std
+    assert s[0] > 0.8 and s[1] < -0.5  # the tilt (1.5, -1) recovered in J's units
+    assert np.linalg.norm(_argmin_on_grid(lin) - np.array([0.0, 1.0])) < 0.05
+    x0 = np.array([[0.93, 0.04]])  # far from the runs: the trend's gradient is most of the mean's
+    _, _, dmu, _ = lin.predict_with_grad(x0)
+    fd_mu = approx_fprime(x0[0], lambda x: lin.predict_std_units(x[None])[0][0], 1e-7)
+    np.testing.assert_allclose(dmu[0], fd_mu, rtol=1e-4, atol=1e-6)
+    # the likelihood's gradient with the trend profiled out is the gradient at the fixed GLS trend (envelope)
+    v = lin.hyper.to_vector()
+    _, g = lin.neg_log_posterior(v)
+    fd = approx_fprime(v, lambda u: lin.neg_log_posterior(u)[0], 1e-6)
+    np.testing.assert_allclose(g, fd, rtol=1e-3, atol=1e-4)
+    # the state survives a JSON round trip: the same predictions
+    h2 = Hyper.from_dict(json.loads(json.dumps(lin.hyper.to_dict())))
+    gp2 = GP(GPConfig(mean="linear")).condition(X, y, h2)
+    np.testing.assert_allclose(gp2.predict(x0)[0], lin.predict(x0)[0], rtol=1e-12)
+    # too few runs for a trend in d dimensions (d + 3): the constant mean
+    few = GP(GPConfig(mean="linear")).fit(X[:4], y[:4], np.random.default_rng(0))
+    assert few.hyper is not None and few.hyper.slope is None
+
+
+def test_select_takes_the_trend_only_where_it_predicts_the_runs_better() -> None:
+    from scipy.stats import qmc
+
+    chosen = {"plane": 0, "cone": 0}
+    for seed in range(4):
+        X = 0.1 + 0.8 * qmc.LatinHypercube(2, seed=seed).random(9)
+        noise = 0.01 * np.random.default_rng(4).standard_normal(9)
+        plane = GP(GPConfig(mean="select")).fit(X, 1.5 * X[:, 0] - X[:, 1] + noise, np.random.default_rng(0))
+        cone = GP(GPConfig(mean="select")).fit(X, _cone(X) + noise, np.random.default_rng(0))
+        assert plane.hyper is not None and cone.hyper is not None
+        chosen["plane"] += plane.hyper.slope is not None
+        chosen["cone"] += cone.hyper.slope is not None
+    assert chosen == {"plane": 4, "cone": 0}
+
+
+def test_gp_config_refuses_a_bowl_after_the_bowl() -> None:
+    with pytest.raises(GPError, match="bowl_then"):
+        GPConfig(bowl_then="bowl")
+    with pytest.raises(GPError, match="bowl_then"):
+        GPConfig(bowl_then="quadratic")
+
+
+def test_bowl_loo_equals_the_mixture_refitted_without_each_run() -> None:
+    """GPConfig.bowl_loo: the bowl's leave-one-out density in closed form equals, run by run, the mixture over the
+    same centres refitted to the other runs (each centre's coefficients and evidence from them alone)."""
+    from scipy.special import logsumexp
+    from scipy.stats import qmc
+
+    X = qmc.LatinHypercube(2, seed=7).random(6)
+    y = _cone(X) + 0.01 * np.random.default_rng(7).standard_normal(6)
+    gp = GP(GPConfig(bowl_loo=True, bowl_centres=64)).fit(X, y, np.random.default_rng(0))
+    assert gp.hyper is not None and gp.hyper.bowl is not None
+    h, bowl, z, n, tau = gp.hyper, gp.hyper.bowl, gp._z, 6, GPConfig().bowl_temper
+    # the centres the fit weighed (those it kept carry all but 1e-6 of the weight) and the same kernel
+    from bac_agent.bo.gp import cone_radius
+
+    R = cone_radius(X, bowl.centres, bowl.scale, bowl.tip)
+    K = matern52(X, X, h.lengthscales, h.outputscale) + (h.noise + 1e-10 * h.outputscale) * np.eye(n)
+    total = 0.0
+    for i in range(n):
+        o = np.arange(n) != i
+        Ki = np.linalg.inv(K[np.ix_(o, o)])
+        logml, logp = [], []
+        for c in range(R.shape[1]):
+            H = np.column_stack([np.ones(n), R[:, c]])
+            A = H[o].T @ Ki @ H[o]
+            b = H[o].T @ Ki @ z[o]
+            beta = np.linalg.solve(A, b)
+            logml.append(0.5 * b @ beta - 0.5 * np.log(np.linalg.det(A)))
+            ki = K[o, i]
+            mu = H[i] @ beta + ki @ Ki @ (z[o] - H[o] @ beta)
+            Rv = H[i] - H[o].T @ Ki @ ki
+            var = K[i, i] - ki @ Ki @ ki + Rv @ np.linalg.solve(A, Rv)
+            logp.append(-0.5 * np.log(2 * np.pi * var) - 0.5 * (z[i] - mu) ** 2 / var)
+        lw = tau * np.array(logml)
+        total += float(logsumexp(lw - logsumexp(lw) + np.array(logp)))
+    # the fit's own figure is over all its centres, these over the kept ones: equal to the weight cut-off
+    assert gp._bowl_loo == pytest.approx(total, abs=1e-3)
+
+
+def test_bowl_loo_keeps_the_bowl_on_a_cone_and_drops_it_on_a_tilt() -> None:
+    from scipy.stats import qmc
+
+    kept = {"cone": 0, "tilt": 0}
+    for seed in range(4):
+        X = 0.1 + 0.8 * qmc.LatinHypercube(2, seed=seed).random(6)
+        noise = 0.01 * np.random.default_rng(4).standard_normal(6)
+        for name, f in (("cone", _cone), ("tilt", _tilted)):
+            gp = GP(GPConfig(bowl_loo=True)).fit(X, f(X) + noise, np.random.default_rng(0))
+            assert gp.hyper is not None
+            kept[name] += gp.hyper.bowl is not None
+    assert kept == {"cone": 4, "tilt": 1}
+    # off (the default), with fewer runs than bowl_loo_runs, or with a margin the constant does not beat: the bowl
+    X = 0.1 + 0.8 * qmc.LatinHypercube(2, seed=0).random(6)
+    y = _tilted(X) + 0.01 * np.random.default_rng(4).standard_normal(6)
+    on = GP(GPConfig(bowl_loo=True)).fit(X, y, np.random.default_rng(0))
+    assert on.hyper is not None and on.hyper.bowl is None
+    assert 0.0 < on._const_loo - on._bowl_loo < 5.0
+    for cfg in (GPConfig(), GPConfig(bowl_loo=True, bowl_loo_runs=7), GPConfig(bowl_loo=True, bowl_loo_margin=5.0)):
+        kept = GP(cfg).fit(X, y, np.random.default_rng(0))
+        assert kept.hyper is not None and kept.hyper.bowl is not None
+    # automatic: from 2d + 1 runs on; in 3-D the same tilted runs (a third input that does not matter) keep the bowl
+    X3 = np.column_stack([X, qmc.LatinHypercube(1, seed=1).random(6)])
+    kept3 = GP(GPConfig(bowl_loo=True)).fit(X3, y, np.random.default_rng(0))
+    dropped3 = GP(GPConfig(bowl_loo=True, bowl_loo_runs=5)).fit(X3, y, np.random.default_rng(0))
+    assert kept3.hyper is not None and kept3.hyper.bowl is not None
+    assert dropped3.hyper is not None and dropped3.hyper.bowl is None

@@ -434,7 +434,7 @@ class Engine:
     def _gp_config(self) -> GPConfig:
         cfg = self.config.gp
         if cfg.mean == "bowl" and len(self.observations) > self.bowl_runs:
-            return replace(cfg, mean="constant")
+            return replace(cfg, mean=cfg.bowl_then)
         return cfg
 
     @property

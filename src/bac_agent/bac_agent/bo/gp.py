@@ -47,7 +47,10 @@ FloatArray = NDArray[np.float64]
 LOG_2PI = math.log(2.0 * math.pi)
 
 
-MEANS = ("zero", "constant", "bowl")  # GPConfig.mean
+MEANS = ("zero", "constant", "bowl")  # GPConfig.mean (the node's gp_mean)
+# further means of GPConfig.mean and GPConfig.bowl_then (issue 23, options): "linear" a linear trend (GLS, profiled
+# out of the likelihood); "select" the constant or the linear trend, whichever predicts the runs left out better
+TREND_MEANS = ("linear", "select")
 
 
 class GPError(BacError, ValueError):
@@ -88,13 +91,27 @@ class GPConfig:
     # prior probability that the bowl's centre lies on the box's boundary (centres on every face and at the
     # corners, besides the Sobol centres inside): a calibration's optimum often lies at a bound; 0: inside only
     bowl_faces: float = 0.0
+    # the prior mean once the bowl's runs are over (the engine's bowl_runs): "constant"; "linear" (a linear trend,
+    # its GLS estimate profiled out of the likelihood as the constant is); "select" (constant or linear, whichever
+    # predicts the runs better left out one at a time)
+    bowl_then: str = "constant"
+    # the bowl is kept only while it predicts the runs, left out one at a time, better than a constant mean (the
+    # bowl's mixture and the constant both re-estimated without the run left out); else the constant mean
+    bowl_loo: bool = False
+    bowl_loo_margin: float = 0.0  # how much better (log predictive density, nats) the constant must predict
+    # fewer runs than this: the bowl without the comparison; 0 = automatic, 2d + 1 and at least 5 (in 2-D the
+    # engine's own design: the LOO of 3 or 4 runs cost road_c1 on the tuning split, and in 3-D that of 5 or 6 runs
+    # cost Hartmann-3, docs/agent.md; the bowl lasts d + 2 runs beyond 4-D, so it is never dropped there)
+    bowl_loo_runs: int = 0
     draws: int = 8  # draws from the prior, screened by their objective
     restarts: int = 1  # best draws optimized, besides the prior mode and the previous fit
     maxiter: int = 200
 
     def __post_init__(self) -> None:
-        if self.mean not in MEANS:
-            raise GPError(f"GP mean must be one of {', '.join(MEANS)}, got {self.mean!r}")
+        if self.mean not in MEANS + TREND_MEANS:
+            raise GPError(f"GP mean must be one of {', '.join(MEANS + TREND_MEANS)}, got {self.mean!r}")
+        if self.bowl_then not in MEANS + TREND_MEANS or self.bowl_then == "bowl":
+            raise GPError(f"bowl_then must be one of zero, constant, linear, select, got {self.bowl_then!r}")
         if not (self.bowl_slope_sd >= 0.0 and 0.0 <= self.bowl_faces < 1.0):
             raise GPError(
                 f"bowl_slope_sd must be >= 0 and bowl_faces in [0, 1), got {self.bowl_slope_sd}, {self.bowl_faces}"
@@ -201,11 +218,15 @@ class Hyper:
     bowl: Bowl | None = None  # the bowl trend, added to ``mean`` (GPConfig.mean == "bowl"; None: none fitted)
     # another trend added to the mean (a transfer prior's a + b s(x), bo/prior.py); set by the engine, not saved
     prior: Trend | None = None
+    # a linear trend's slope over the unit cube (GPConfig.mean "linear" or "select"), added to ``mean``
+    slope: FloatArray | None = None
 
     def mean_at(self, Xq: FloatArray) -> FloatArray:
         """The prior mean at the rows of ``Xq`` (standardized units)."""
         Xq = np.atleast_2d(Xq)
         out = np.full(Xq.shape[0], self.mean)
+        if self.slope is not None:
+            out = out + Xq @ self.slope
         if self.bowl is not None:
             out = out + self.bowl.value(Xq)
         if self.prior is not None:
@@ -215,6 +236,8 @@ class Hyper:
     def mean_and_grad(self, Xq: FloatArray) -> tuple[FloatArray, FloatArray]:
         Xq = np.atleast_2d(Xq)
         v, g = np.full(Xq.shape[0], self.mean), np.zeros_like(Xq)
+        if self.slope is not None:
+            v, g = v + Xq @ self.slope, g + self.slope[None, :]
         if self.bowl is not None:
             vb, gb = self.bowl.value_and_grad(Xq)
             v, g = v + vb, g + gb
@@ -238,6 +261,7 @@ class Hyper:
             "noise": self.noise,
             "mean": self.mean,
             "bowl": self.bowl.to_dict() if self.bowl is not None else None,
+            **({"slope": self.slope.tolist()} if self.slope is not None else {}),
         }
 
     @classmethod
@@ -248,6 +272,7 @@ class Hyper:
             float(d["noise"]),
             float(d.get("mean", 0.0)),
             Bowl.from_dict(d["bowl"]) if d.get("bowl") else None,
+            slope=np.asarray(d["slope"], dtype=float) if d.get("slope") is not None else None,
         )
 
 
@@ -264,6 +289,9 @@ class GP:
     _alpha: FloatArray = field(default_factory=lambda: np.zeros(0))
     _z: FloatArray = field(default_factory=lambda: np.zeros(0))
     _offset: FloatArray | float = 0.0  # a fixed trend subtracted from z while fitting (the bowl's)
+    _bowl_loo: float = -math.inf  # the bowl's leave-one-out log predictive density (GPConfig.bowl_loo)
+    _const_loo: float = -math.inf  # the constant mean's, the last time they were compared
+    _lin: bool = False  # the fit profiles a linear trend out of the likelihood (GPConfig.mean "linear"/"select")
 
     # --- priors ------------------------------------------------------------------
     def _prior(self, d: int) -> tuple[FloatArray, FloatArray]:
@@ -330,7 +358,9 @@ class GP:
             return 1e10, np.zeros_like(v)
         Kinv, _ = lapack.dpotri(L, lower=1)
         Kinv = np.tril(Kinv) + np.tril(Kinv, -1).T
-        if self.config.mean != "zero":
+        if self._lin:
+            z = z - self._trend_basis() @ self._gls_beta(Kinv, z)
+        elif self.config.mean != "zero":
             # the constant mean profiled out (its GLS estimate); by the envelope theorem the gradient
             # below (at fixed c) is the gradient of the profiled likelihood
             z = z - self._gls_mean(Kinv, z)
@@ -354,6 +384,41 @@ class GP:
         k1 = Kinv.sum(axis=0)
         return float(k1 @ z / max(float(k1.sum()), 1e-300))
 
+    def _trend_basis(self) -> FloatArray:
+        """(n, d + 1) basis of the linear trend at the runs: 1 and the inputs about the box's centre."""
+        return np.hstack([np.ones((self.X.shape[0], 1)), self.X - 0.5])
+
+    def _gls_beta(self, Kinv: FloatArray, z: FloatArray) -> FloatArray:
+        """The generalized-least-squares coefficients of the linear trend (basis ``_trend_basis``)."""
+        H = self._trend_basis()
+        KH = Kinv @ H
+        A = H.T @ KH
+        A.flat[:: A.shape[0] + 1] += 1e-10 * max(float(np.trace(A)), 1e-300)
+        return np.asarray(np.linalg.solve(A, KH.T @ z), dtype=float)
+
+    def _linear_ok(self) -> bool:
+        """Enough runs for a linear trend: at least d + 3 (its d + 1 coefficients and some left for the kernel)."""
+        return bool(self.X.shape[0] >= self.X.shape[1] + 3)
+
+    def loo_log_predictive(self, v: FloatArray, linear: bool) -> float:
+        """Leave-one-out log predictive density of the standardized runs under log-hyperparameters ``v``, with a
+        constant or a linear trend re-estimated (GLS, flat prior) without the run left out.
+
+        Closed form (universal kriging, Dubrule 1983; R&W 2006 §5.4.2 with the trend's coefficients integrated
+        out): with P = K⁻¹ − K⁻¹H(HᵀK⁻¹H)⁻¹HᵀK⁻¹, run i's left-out residual is (Pz)ᵢ/Pᵢᵢ and its variance 1/Pᵢᵢ.
+        """
+        h = Hyper.from_vector(v)
+        n = self.X.shape[0]
+        K = matern52_from_r2(sq_dist(self.X, self.X, h.lengthscales), h.outputscale)
+        K.flat[:: n + 1] += h.noise + 1e-10 * h.outputscale
+        Kinv = sla.cho_solve((np.linalg.cholesky(K), True), np.eye(n), check_finite=False)
+        H = self._trend_basis() if linear else np.ones((n, 1))
+        KH = Kinv @ H
+        P = Kinv - KH @ np.linalg.solve(H.T @ KH, KH.T)
+        pii = np.maximum(np.diag(P), 1e-300)
+        r = P @ self._z
+        return float(np.sum(-0.5 * np.log(2.0 * math.pi / pii) - 0.5 * r * r / pii))
+
     def _d2(self) -> FloatArray:
         X = self.X
         return ((X[:, None, :] - X[None, :, :]) ** 2).reshape(-1, X.shape[1])
@@ -376,8 +441,12 @@ class GP:
         self._set_data(X, y)
         rng = rng if rng is not None else np.random.default_rng(0)
         self._offset = 0.0
+        self._lin = False
         v = self._map_hyper(rng)
+        if self.config.mean in TREND_MEANS and self._linear_ok():
+            v = self._fit_linear(v, rng)
         bowl = None
+        v_const = v
         if self.config.mean == "bowl" and self.X.shape[0] >= 3:
             h0 = Hyper.from_vector(v)
             ls0 = h0.lengthscales
@@ -389,6 +458,15 @@ class GP:
                 v = self._map_hyper(rng)
                 self._offset = 0.0
                 bowl = self._fit_bowl(Hyper.from_vector(v), scale)
+            loo_runs = self.config.bowl_loo_runs or max(5, 2 * self.X.shape[1] + 1)
+            if bowl is not None and self.config.bowl_loo and self.X.shape[0] >= loo_runs:
+                try:
+                    const_loo = self.loo_log_predictive(v_const, False)
+                except np.linalg.LinAlgError:
+                    const_loo = -math.inf
+                self._const_loo = const_loo  # (shown by bench diagnostics)
+                if const_loo > self._bowl_loo + self.config.bowl_loo_margin:
+                    bowl, v = None, v_const
         self.hyper = Hyper.from_vector(v)
         if bowl is not None and self.config.bowl_slope_sd > 0.0:
             # the bowl's weights carry its probability against a constant mean: the constant given that trend
@@ -404,6 +482,22 @@ class GP:
         else:
             self._factorize(refit_mean=True)
         return self
+
+    def _fit_linear(self, v_const: FloatArray, rng: np.random.Generator) -> FloatArray:
+        """The hyperparameters with a linear trend profiled out (sets ``_lin``); with the mean "select", only when
+        the linear trend predicts the runs left out one at a time better than the constant (``v_const``'s fit)."""
+        self.hyper = Hyper.from_vector(v_const)  # a start of the linear fit
+        self._lin = True
+        v_lin = self._map_hyper(rng)
+        if self.config.mean == "select":
+            try:
+                better = self.loo_log_predictive(v_lin, True) > self.loo_log_predictive(v_const, False)
+            except np.linalg.LinAlgError:
+                better = False
+            if not better:
+                self._lin = False
+                return v_const
+        return v_lin
 
     def _fit_bowl(self, h: Hyper, scale: FloatArray) -> Bowl | None:
         """The bowl's mixture under kernel ``h``, or None when no centre gives an upward slope.
@@ -449,10 +543,43 @@ class GP:
             logw = logw + log_prior  # (else uniform: the weights as before, to the bit)
         w = np.exp(logw - np.max(logw))
         keep = w > 1e-6
+        if c.bowl_loo:
+            self._bowl_loo = self._bowl_loo_lpd(Kinv, z, k1, R, a12, a22, safe, beta0, beta1, logw)
         p_bowl = 1.0
         if c.bowl_slope_sd > 0.0:
             p_bowl = self._bowl_probability(a11, b1, a12, a22, b2, log_prior)
         return Bowl(C[keep], beta0[keep], beta1[keep], p_bowl * w[keep] / w[keep].sum(), scale, c.bowl_tip)
+
+    def _bowl_loo_lpd(
+        self,
+        Kinv: FloatArray,
+        z: FloatArray,
+        k1: FloatArray,
+        R: FloatArray,
+        a12: FloatArray,
+        a22: FloatArray,
+        det: FloatArray,
+        beta0: FloatArray,
+        beta1: FloatArray,
+        logw: FloatArray,
+    ) -> float:
+        """Leave-one-out log predictive density of the runs under the bowl's mixture (GPConfig.bowl_loo).
+
+        Per centre c, the basis H = [1, r_c(x)] with its coefficients integrated out (flat prior) gives run i's
+        left-out prediction in closed form (as :meth:`loo_log_predictive`): with P = K⁻¹ − K⁻¹H A⁻¹HᵀK⁻¹,
+        residual (Pz)ᵢ/Pᵢᵢ, variance 1/Pᵢᵢ. The centres' weights without run i are their (tempered) evidence
+        over the other runs: the evidence of all runs divided by run i's left-out density, p(z) = p(z₋ᵢ) p(zᵢ|z₋ᵢ).
+        """
+        a11 = float(k1.sum())
+        KR = Kinv @ R  # (n, m)
+        r = (Kinv @ z)[:, None] - k1[:, None] * beta0[None, :] - KR * beta1[None, :]
+        quad = a22[None, :] * (k1 * k1)[:, None] - 2.0 * a12[None, :] * k1[:, None] * KR + a11 * KR * KR
+        pii = np.maximum(np.diag(Kinv)[:, None] - quad / det[None, :], 1e-300)
+        logp = -0.5 * np.log(2.0 * math.pi / pii) - 0.5 * r * r / pii  # (n, m)
+        ok = np.isfinite(logw)
+        lw = np.where(ok[None, :], logw[None, :] - self.config.bowl_temper * logp, -np.inf)
+        lw = lw - logsumexp(lw, axis=1, keepdims=True)
+        return float(np.sum(logsumexp(np.where(ok[None, :], lw + logp, -np.inf), axis=1)))
 
     def _bowl_probability(
         self, a11: float, b1: float, a12: FloatArray, a22: FloatArray, b2: FloatArray, log_prior: FloatArray
@@ -564,11 +691,17 @@ class GP:
                 jitter *= 100.0
         else:
             raise GPError("kernel matrix is not positive definite even with jitter; duplicate points with no noise?")
-        if self.config.mean != "zero" and refit_mean:
+        if self._lin and refit_mean:
+            Kinv = sla.cho_solve((self._L, True), np.eye(n), check_finite=False)
+            beta = self._gls_beta(Kinv, self._z)
+            h = self.hyper = replace(h, mean=float(beta[0] - 0.5 * np.sum(beta[1:])), bowl=None, slope=beta[1:])
+        elif self.config.mean != "zero" and refit_mean:
             ones = sla.cho_solve((self._L, True), np.ones(n), check_finite=False)
-            h = self.hyper = replace(h, mean=float(ones @ self._z / max(float(ones.sum()), 1e-300)), bowl=None)
-        elif self.config.mean == "zero" and (h.mean != 0.0 or h.bowl is not None):
-            h = self.hyper = replace(h, mean=0.0, bowl=None)
+            h = self.hyper = replace(
+                h, mean=float(ones @ self._z / max(float(ones.sum()), 1e-300)), bowl=None, slope=None
+            )
+        elif self.config.mean == "zero" and (h.mean != 0.0 or h.bowl is not None or h.slope is not None):
+            h = self.hyper = replace(h, mean=0.0, bowl=None, slope=None)
         elif self.config.mean != "bowl" and h.bowl is not None:
             h = self.hyper = replace(h, bowl=None)
         resid = self._z - h.mean_at(self.X)
