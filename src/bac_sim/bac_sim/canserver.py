@@ -44,8 +44,10 @@ class CanServer:
         label: str,
         reply_delay_s: float,
         on_commit: Callable[[dict[str, float]], None] | None,
+        reply_word: str = "reply",
     ) -> None:
         self.bus = bus
+        self._reply_word = reply_word  # the log's word for an answer: "reply" (bac protocol), "response" (XCP)
         self.reply_delay_s = reply_delay_s
         self.send_errors = 0
         self._log = log
@@ -118,7 +120,7 @@ class CanServer:
                     self.bus.send(reply)
                 except (can.CanError, OSError) as exc:
                     self.send_errors += 1
-                    self._log.warning("%s: sending a reply failed: %s", self._label, exc)
+                    self._log.warning("%s: sending a %s failed: %s", self._label, self._reply_word, exc)
 
 
 # --- the standalone processes ----------------------------------------------------------------------------

@@ -63,7 +63,7 @@ class SimulatedXcpEcu(CanServer):
         key = opts.pop("key_algorithm", None)
         if isinstance(key, str):
             key = load_key_algorithm(key)
-        super().__init__(bus, LOG, "XCP ECU", reply_delay_s, on_commit)
+        super().__init__(bus, LOG, "XCP ECU", reply_delay_s, on_commit, reply_word="response")
         self._changes = 0
         self._pending_change = False
         self._page = 0
