@@ -35,6 +35,7 @@ import gc
 import math
 import re
 import sys
+import threading
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from datetime import UTC, datetime
@@ -244,6 +245,9 @@ def _open(path: Path) -> Any:
         ) from exc
 
 
+_HOOK_LOCK = threading.Lock()
+
+
 def _drop_half_built(exc: BaseException) -> None:
     """Free the reader asammdf left half-built when it refused a file, now and quietly.
 
@@ -252,21 +256,25 @@ def _drop_half_built(exc: BaseException) -> None:
     after bac's own message, whenever the object is freed. The object lives in the frames of the exception's
     traceback: dropping the traceback frees it here, where that one report is left out (any other goes to the
     previous hook)."""
-    previous = sys.unraisablehook
+    with _HOOK_LOCK:  # two threads refusing files at once: each restores what it found, in order
+        previous = sys.unraisablehook
 
-    def hook(unraisable: Any) -> None:
-        obj = getattr(unraisable, "object", None)
-        if not (isinstance(unraisable.exc_value, AttributeError) and "MDF4.__del__" in repr(obj)):
-            previous(unraisable)
+        def hook(unraisable: Any) -> None:
+            obj = getattr(unraisable, "object", None)
+            if not (isinstance(unraisable.exc_value, AttributeError) and "MDF4.__del__" in repr(obj)):
+                previous(unraisable)
 
-    sys.unraisablehook = hook
-    try:
-        exc.__traceback__ = None
-        if exc.__context__ is not None:
-            exc.__context__.__traceback__ = None
-        gc.collect()
-    finally:
-        sys.unraisablehook = previous
+        sys.unraisablehook = hook
+        try:
+            cause: BaseException | None = exc
+            seen: set[int] = set()
+            while cause is not None and id(cause) not in seen:  # the whole chain: any frame may hold the reader
+                seen.add(id(cause))
+                cause.__traceback__ = None
+                cause = cause.__context__
+            gc.collect()
+        finally:
+            sys.unraisablehook = previous
 
 
 def _start_ns(mdf: Any) -> int:
