@@ -148,6 +148,13 @@ class BoAgentNode(BacNode):
             1000,
             read_only=True,
         )
+        gp_bowl_loo = self.declare_bool(
+            "gp_bowl_loo",
+            True,
+            "bo with gp_mean bowl: keep the bowl only while it predicts the runs, left out one at a time, better "
+            "than a constant mean (from 2d + 1 runs, at least 5); false: as before 2026-11-24 (late)",
+            True,
+        )
         output_warp = self.declare_str(
             "output_warp",
             "yeo-johnson",
@@ -344,7 +351,7 @@ class BoAgentNode(BacNode):
                     output_warp=output_warp,
                     design_margin=design_margin,
                     initial_points=initial_points,
-                    gp=GPConfig(mean=gp_mean),
+                    gp=GPConfig(mean=gp_mean, bowl_loo=gp_bowl_loo),
                     bowl_runs=bowl_runs,
                     prior=source.to_dict() if source is not None else None,
                     prior_weight=prior_weight,
@@ -379,6 +386,7 @@ class BoAgentNode(BacNode):
                 "recommend_beta": recommend_beta,
                 "recommend_rule": recommend_rule,
                 "gp_mean": gp_mean,
+                "gp_bowl_loo": gp_bowl_loo,
                 "bowl_runs": optimizer.bowl_runs if isinstance(optimizer, Engine) else 0,
                 "output_warp": output_warp,
                 "design_margin": design_margin,

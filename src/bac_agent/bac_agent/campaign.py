@@ -534,6 +534,10 @@ class Campaign:
         if all(isinstance(c, dict) and c.get("gp_mean", "bowl") != "bowl" for c in confs):
             for c in confs:  # without the bowl its length changes nothing: not a reason to refuse a resume
                 c.pop("bowl_runs", None)  # type: ignore[union-attr]
+                c.pop("gp_bowl_loo", None)  # type: ignore[union-attr]
+        if all(isinstance(c, dict) and not c.get("prior") for c in confs):
+            for c in confs:  # without a transfer prior the model average changes nothing (outside review D2)
+                c.pop("prior_average", None)  # type: ignore[union-attr]
         problems, changed = config_differences(journaled, mine)
         if problems:
             raise CampaignError(
@@ -999,13 +1003,15 @@ RESUME_MAY_CHANGE = frozenset(
 # config entries added after campaigns were journaled without them, with the value such a campaign ran with: a
 # journal without the entry is compared as if it held that value (it resumes when the agent keeps it)
 # configuration keys added after campaigns were journaled, with the value those campaigns ran with (issue 23,
-# 2026-11-24: no outcome priors, no limit on the transfer prior's runs, no safe start, no model average)
+# 2026-11-24: no outcome priors, no limit on the transfer prior's runs, no safe start, no model average, the bowl
+# unchecked by leave-one-out)
 ADDED_LATER: Mapping[str, Any] = {
     "recommend_rule": "mean",
     "outcome_priors": {},
     "prior_runs": 0,
     "safe_start": {},
     "prior_average": False,
+    "gp_bowl_loo": False,
 }
 _MISSING = object()
 

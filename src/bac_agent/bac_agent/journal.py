@@ -191,7 +191,10 @@ def journaled_engine_options(started: Mapping[str, Any]) -> dict[str, Any]:
     options: dict[str, Any] = {
         "recommend_beta": float(cfg.get("recommend_beta", 0.0) or 0.0),
         "recommend_rule": str(cfg.get("recommend_rule", "mean") or "mean"),
-        "gp": {"mean": str(cfg.get("gp_mean", "constant") or "constant")},
+        "gp": {
+            "mean": str(cfg.get("gp_mean", "constant") or "constant"),
+            "bowl_loo": bool(cfg.get("gp_bowl_loo", False)),  # a journal from before it ran without it
+        },
         "bowl_runs": int(cfg.get("bowl_runs", 0) or 0),
         "output_warp": str(cfg.get("output_warp", "none") or "none"),
     }

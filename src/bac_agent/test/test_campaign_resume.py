@@ -554,6 +554,11 @@ LIMITS_REFUSED: dict[str, tuple[str, Callable[[], CampaignConfig]]] = {
         "config.prior_weight: journaled 0.5, this agent 0.9",
         lambda: config_limits(extra={**config_limits().extra, "prior_weight": 0.9}),
     ),
+    "transfer prior's model average": (
+        # a journal from before prior_average ran the model with the prior alone (campaign.ADDED_LATER)
+        "config.prior_average: journaled false, this agent true",
+        lambda: config_limits(extra={**config_limits().extra, "prior_average": True}),
+    ),
 }
 
 
@@ -617,10 +622,10 @@ REFUSED: dict[str, tuple[str, Refusal]] = {
         "config.prior_runs: journaled 0, this agent 6",
         lambda: (engine(), config(extra=_extra(prior_runs=6)), DEFINITION),
     ),
-    "transfer prior's model average": (
-        # a journal from before prior_average ran the model with the prior alone (campaign.ADDED_LATER)
-        "config.prior_average: journaled false, this agent true",
-        lambda: (engine(), config(extra=_extra(prior_average=True)), DEFINITION),
+    "bowl checked by leave-one-out": (
+        # a journal from before gp_bowl_loo ran the bowl unchecked (campaign.ADDED_LATER)
+        "config.gp_bowl_loo: journaled false, this agent true",
+        lambda: (engine(), config(extra=_extra(gp_bowl_loo=True)), DEFINITION),
     ),
     "acquisition": (
         'config.acquisition: journaled "nei", this agent "ei"',
@@ -736,6 +741,20 @@ def test_the_bowl_length_does_not_refuse_a_resume_without_the_bowl(tmp_path: Pat
         chain.step()
     chain.c.journal.close()
     again = start(tmp_path, Clock(), cfg=config(extra=_extra(gp_mean="constant", bowl_runs=6)))
+    assert again.pending is not None
+    (resumed,) = [e for e in again.c.journal.events if e["event"] == "campaign_resumed"]
+    assert resumed["changed"] == []
+
+
+def test_the_model_average_does_not_refuse_a_resume_without_a_prior(tmp_path: Path) -> None:
+    """prior_average is journaled whatever the prior; without one it changes nothing, so a campaign journaled
+    before it existed (no key: ADDED_LATER's false) resumes with the default (true) (outside review D2: every such
+    journal was refused)."""
+    chain = start(tmp_path, Clock())
+    for _ in range(3):
+        chain.step()
+    chain.c.journal.close()
+    again = start(tmp_path, Clock(), cfg=config(extra=_extra(prior_average=True)))
     assert again.pending is not None
     (resumed,) = [e for e in again.c.journal.events if e["event"] == "campaign_resumed"]
     assert resumed["changed"] == []

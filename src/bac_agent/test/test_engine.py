@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 import math
 
 import numpy as np
@@ -307,6 +308,20 @@ def test_json_round_trip_continues_identically() -> None:
         Engine.from_json('{"version": 99}')
     with pytest.raises(EngineError, match="JSON"):
         Engine.from_json("{torn")
+
+
+def test_a_state_written_before_bowl_loo_reads_back_without_it() -> None:
+    """``gp.bowl_loo`` became the default on 2026-11-24: an engine state without the key (written before) goes on
+    as it ran, with the bowl unchecked; a state with it keeps its value."""
+    eng = Engine({"a": (0.0, 1.0), "b": (0.0, 1.0)}, budget=8, seed=1)
+    assert eng.config.gp.bowl_loo
+    data = json.loads(eng.to_json())
+    assert Engine.from_json(json.dumps(data)).config.gp.bowl_loo
+    del data["config"]["gp"]["bowl_loo"]
+    assert not Engine.from_json(json.dumps(data)).config.gp.bowl_loo
+    # a dict of overrides (the benches' --bac-config) is not a saved state: the defaults apply (outside review D4)
+    assert EngineConfig.from_dict({"budget": 10}).gp.bowl_loo
+    assert EngineConfig.from_dict({"budget": 10, "gp": {"mean": "bowl"}}).gp.bowl_loo
 
 
 def test_bad_input_is_refused_clearly() -> None:

@@ -91,7 +91,7 @@ _PRIOR_B2 = 1.0 + OUTCOME_PRIOR_SCALE_SD**2
 # the box in the outcome's few-run units (the spread as before 3 runs), are integrated out (a linear kernel): the
 # runs' values give the retreat a direction. The constant-mean model's least risky calibration is the one farthest
 # from the runs, a coin toss that kept breaking the limit run after run (issue 23, bench/outcome_limits.py's tuning
-# instances with 12 seeds: 19.7 % of the runs broke the limit, 12.2 % with 2 or 4; docs/agent.md); 0: off
+# instances with 12 seeds: 18.2 % of the runs broke the limit, 12.2 % with 2 or 4; docs/agent.md); 0: off
 RETREAT_TREND_SD = 2.0
 _LIMIT_RE = re.compile(r"^\s*([A-Za-z_][A-Za-z0-9_.]*)\s*(<=|>=)\s*([-+0-9.eE]+)\s*$")
 

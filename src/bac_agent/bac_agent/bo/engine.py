@@ -241,6 +241,8 @@ class EngineConfig:
         if data.get("safe_start"):
             data["safe_start"] = {str(k): float(v) for k, v in data["safe_start"].items()}
         gp = dict(data.pop("gp", {}) or {})
+        if "maxiter" in gp and "bowl_loo" not in gp:  # a whole GPConfig saved before bowl_loo existed: it ran without
+            gp["bowl_loo"] = False
         for k in ("ls_bounds", "os_bounds"):
             if k in gp:
                 gp[k] = tuple(gp[k])
@@ -574,21 +576,29 @@ class Engine:
         ball, and then the least risky calibration anywhere was taken: jumps across the box)."""
         kept = self._kept_runs()
         radii = np.maximum(self._safe_radii(), SAFE_MIN_STEP)
-        cand = np.vstack([u[None, :], self._safe_ball_candidates(u, kept, radii)])
+        # every candidate as the ECU will hold it, rounded to the resolution: a point inside a ball may round out of
+        # it (outside review D1: up to 0.06 of the box with a resolution of 0.1)
+        cand = self._snap(np.vstack([u[None, :], self._safe_ball_candidates(u, kept, radii)]))
         outc = self._outcome_models()
         p = outc.prob_violation(cand).max(axis=1)
-        # u itself counts only when it lies in a ball; the ball candidates do by construction (1e-9: rounding)
-        near = np.ones(cand.shape[0], dtype=bool)
-        near[0] = bool(np.any(np.sum((kept - u) ** 2, axis=1) <= radii**2 + 1e-9))
+        near = _in_balls(cand, kept, radii)
         ok = (p <= outc.level) & near & ~self._near_failures(cand)
         if ok[0]:
-            return u
+            return np.asarray(cand[0], dtype=float)
         if not np.any(ok):
+            if not np.any(near):  # no candidate rounds into a ball: the widest ball's own run, driven before
+                j = int(np.argmax(radii))
+                self._no_safe_candidate(float(outc.prob_violation(kept[j : j + 1]).max()))
+                return np.asarray(kept[j], dtype=float)
             i = int(np.argmin(np.where(near, p, np.inf)))
             self._no_safe_candidate(float(p[i]))
             return np.asarray(cand[i], dtype=float)
         d2 = np.where(ok, np.sum((cand - u) ** 2, axis=1), np.inf)
         return np.asarray(cand[int(np.argmin(d2))], dtype=float)
+
+    def _snap(self, U: FloatArray) -> FloatArray:
+        """Unit-cube points as the ECU will hold them: clipped and rounded to each dimension's resolution."""
+        return np.asarray(self.space.to_unit(self.space.from_unit(U)), dtype=float)
 
     def _safe_ball_candidates(
         self, u: FloatArray, kept: FloatArray, radii: FloatArray, rng: np.random.Generator | None = None
@@ -832,8 +842,8 @@ class Engine:
 
         def allowed(U: FloatArray) -> NDArray[np.bool_]:
             ok = ~self._near_failures(U)
-            if safe is not None:
-                ok &= _in_balls(U, *safe)
+            if safe is not None:  # judged as the ECU will hold it: rounded to the resolution (outside review D1)
+                ok &= _in_balls(self._snap(U), *safe)
             return ok & outc.allowed(U) if outc is not None else ok
 
         ok = allowed(cand)
@@ -844,7 +854,10 @@ class Engine:
             worst = outc.prob_violation(cand).max(axis=1)
             worst = np.where(self._near_failures(cand), np.inf, worst)
             if safe is not None:
-                worst = np.where(_in_balls(cand, *safe), worst, np.inf)
+                worst = np.where(_in_balls(self._snap(cand), *safe), worst, np.inf)
+                if not np.any(np.isfinite(worst)):  # no candidate rounds into a ball: the widest ball's own run
+                    self._no_safe_candidate(float(outc.prob_violation(safe[0]).max(axis=1).min()))
+                    return np.asarray(safe[0][int(np.argmax(safe[1]))], dtype=float)
             i = int(np.argmin(worst))
             self._no_safe_candidate(float(worst[i]))
             return np.asarray(cand[i], dtype=float)

@@ -96,8 +96,10 @@ class GPConfig:
     # predicts the runs better left out one at a time)
     bowl_then: str = "constant"
     # the bowl is kept only while it predicts the runs, left out one at a time, better than a constant mean (the
-    # bowl's mixture and the constant both re-estimated without the run left out); else the constant mean
-    bowl_loo: bool = False
+    # bowl's mixture and the constant both re-estimated without the run left out); else the constant mean. The
+    # default since 2026-11-24 (late; the tuning split, docs/agent.md); an engine state written before it (no key)
+    # reads back without it
+    bowl_loo: bool = True
     bowl_loo_margin: float = 0.0  # how much better (log predictive density, nats) the constant must predict
     # fewer runs than this: the bowl without the comparison; 0 = automatic, 2d + 1 and at least 5 (in 2-D the
     # engine's own design: the LOO of 3 or 4 runs cost road_c1 on the tuning split, and in 3-D that of 5 or 6 runs
