@@ -29,6 +29,7 @@ from builtin_interfaces.msg import Time as TimeMsg
 from rclpy.callback_groups import MutuallyExclusiveCallbackGroup
 from rclpy.clock import Clock
 from rclpy.clock_type import ClockType
+from rclpy.duration import Duration
 
 from bac_agent.bo.baselines import GridStrategy, RandomStrategy
 from bac_agent.bo.constraints import parse_limits
@@ -62,6 +63,7 @@ from bac_msgs.msg import Calibration, RunScore, Trial
 from bac_msgs.srv import ApplyCalibration, ReadCalibration
 
 STRATEGIES = ("bo", "grid", "random")
+FINAL_ACK_S = 2.0  # the longest the agent waits at the end for subscribers to acknowledge the last bac/trial
 BACKSTOP_RUN_TIMEOUT_S = 3600.0  # run_timeout_s 0: the segmenter's verdict decides; this only guards a dead chain
 
 
@@ -487,6 +489,14 @@ class BoAgentNode(BacNode):
                 self._apply = None
                 self._run = None
                 self.campaign.journal.close()
+                # the campaign's last state reaches every subscriber before the launcher ends the graph: the
+                # recorder, the cockpit, a `ros2 topic echo` apart from the launcher (a CI run's listener missed
+                # STATE_DONE once: the agent had finished before the message was delivered)
+                if not self.pub_trial.wait_for_all_acked(Duration(seconds=FINAL_ACK_S)):
+                    self.get_logger().warning(
+                        "bac/trial: not every subscriber acknowledged the campaign's last state within "
+                        f"{FINAL_ACK_S:g} s"
+                    )
                 self.finish(a.code)
 
     def _trial_msg(self, s: TrialStatus) -> Trial:
