@@ -1000,9 +1000,8 @@ RESUME_MAY_CHANGE = frozenset(
         "definition_file",
     }
 )
-# config entries added after campaigns were journaled without them, with the value such a campaign ran with: a
-# journal without the entry is compared as if it held that value (it resumes when the agent keeps it)
-# configuration keys added after campaigns were journaled, with the value those campaigns ran with (issue 23,
+# configuration keys added after campaigns were journaled without them, with the value such a campaign ran with: a
+# journal without the key is compared as if it held that value, so it resumes when the agent keeps it (issue 23,
 # 2026-11-24: no outcome priors, no limit on the transfer prior's runs, no safe start, no model average, the bowl
 # unchecked by leave-one-out)
 ADDED_LATER: Mapping[str, Any] = {

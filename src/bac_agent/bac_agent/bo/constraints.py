@@ -279,20 +279,24 @@ class OutcomeModel:
         if self.n >= 3 and float(np.std(v)) > 1e-12 * max(1.0, abs(float(np.mean(v)))):
             self.gp.fit(X, v, rng)
             return
-        mean = float(np.mean(v))
-        spread = max(float(np.std(v)), abs(self.limit.bound - mean), 1e-6 * max(1.0, abs(mean)))
+        mean, spread = self._few_run_scale(v)
         loc, _ = self.gp._prior(X.shape[1])
         self.gp = GP(OUTCOME_GP).condition(X, v, Hyper.from_vector(loc), scaling=(mean, spread))
+
+    def _few_run_scale(self, v: FloatArray) -> tuple[float, float]:
+        """The values' mean and the spread assumed with few of them: their distance to the limit when larger than
+        their scatter (so that calibrations far from the runs count as uncertain)."""
+        mean = float(np.mean(v))
+        return mean, max(float(np.std(v)), abs(self.limit.bound - mean), 1e-6 * max(1.0, abs(mean)))
 
     def retreat_prob(self, U: FloatArray) -> FloatArray:
         """The probability that a run at the rows of ``U`` breaks the limit under the model with a linear trend (see
         RETREAT_TREND_SD; the outcome's own model with a source, before a run, or with the trend off)."""
         U = np.atleast_2d(U)
-        if self.source is not None or self.n == 0 or RETREAT_TREND_SD <= 0.0 or self._data is None:
+        if self.source is not None or self._data is None or RETREAT_TREND_SD <= 0.0:
             return self.prob_violation(U)
         X, v = self._data
-        mean = float(np.mean(v))
-        spread = max(float(np.std(v)), abs(self.limit.bound - mean), 1e-6 * max(1.0, abs(mean)))
+        mean, spread = self._few_run_scale(v)
         z = (v - mean) / spread
         loc, _ = GP(OUTCOME_GP)._prior(X.shape[1])
         h = Hyper.from_vector(loc)

@@ -544,10 +544,13 @@ class Engine:
         (the balls every proposal stays in); else None."""
         if not self._n_safe:
             return None
+        kept, radii = self._safe_balls()
+        return (kept, radii) if kept.size else None
+
+    def _safe_balls(self) -> tuple[FloatArray, FloatArray]:
+        """The runs that kept every limit and their safe steps (SAFE_MIN_STEP at least); none before such a run."""
         kept = self._kept_runs()
-        if not kept.size:
-            return None
-        return kept, np.maximum(self._safe_radii(), SAFE_MIN_STEP)
+        return kept, (np.maximum(self._safe_radii(), SAFE_MIN_STEP) if kept.size else np.zeros(0))
 
     def _safe_radii(self) -> FloatArray:
         """How far (unit cube) the safe region reaches from each run that kept every limit (SAFE_STEP at most)."""
@@ -574,8 +577,7 @@ class Engine:
         the least likely of those to break a limit: never a calibration outside the balls (2026-11-24: the
         candidates were Sobol points over the whole box, of which in 8-D about one in ten, in 20-D none fell in a
         ball, and then the least risky calibration anywhere was taken: jumps across the box)."""
-        kept = self._kept_runs()
-        radii = np.maximum(self._safe_radii(), SAFE_MIN_STEP)
+        kept, radii = self._safe_balls()
         # every candidate as the ECU will hold it, rounded to the resolution: a point inside a ball may round out of
         # it (outside review D1: up to 0.06 of the box with a resolution of 0.1)
         cand = self._snap(np.vstack([u[None, :], self._safe_ball_candidates(u, kept, radii)]))
@@ -727,6 +729,15 @@ class Engine:
         y = np.array([o.value for o in self.observations])
         return without_source(self.config.gp, gp.X, y, self._source, tr.alt_hyper)
 
+    def _with_pending(self, gp: GP) -> GP:
+        """``gp`` with the pending asks fantasized at its posterior mean (kriging believer); ``gp`` when none."""
+        if not self.pending:
+            return gp
+        Xp = self.space.to_unit(np.array([self.space.to_array(p) for p in self.pending]))
+        mp, _ = gp.predict(Xp)
+        y_all = np.concatenate([gp.y_mean + gp.y_std * gp._z, mp])
+        return GP(gp.config).condition(np.vstack([gp.X, Xp]), y_all, gp.hyper, scaling=(gp.y_mean, gp.y_std))
+
     def _averaged_nei(
         self, model: GP, alt: GP, incumbents: NDArray[np.bool_] | None
     ) -> tuple[Callable[[FloatArray], FloatArray], Callable[[FloatArray], tuple[FloatArray, FloatArray]]]:
@@ -734,11 +745,7 @@ class Engine:
         it (``alt``, 1 - w): the expected improvement under the model average (both in the source's units, so
         their improvements add), and its gradient. Pending points are fantasized in ``alt`` as in ``model``."""
         assert self.transfer is not None
-        if self.pending:
-            Xp = self.space.to_unit(np.array([self.space.to_array(p) for p in self.pending]))
-            mp, _ = alt.predict(Xp)
-            y_all = np.concatenate([alt.y_mean + alt.y_std * alt._z, mp])
-            alt = GP(alt.config).condition(np.vstack([alt.X, Xp]), y_all, alt.hyper, scaling=(alt.y_mean, alt.y_std))
+        alt = self._with_pending(alt)
         nei1 = NoisyEI(model, self.config.nei_samples, self.rng, incumbents)
         nei0 = NoisyEI(alt, self.config.nei_samples, self.rng, incumbents)
         lw1, lw0 = math.log(self.transfer.weight), math.log1p(-self.transfer.weight)
@@ -763,13 +770,8 @@ class Engine:
         X_obs = gp.X
         mu_obs, _ = gp.predict_std_units(X_obs)
         best = float(np.min(mu_obs))
-        model = gp
+        model = self._with_pending(gp)
         if self.pending:
-            # kriging believer: pending points are fantasized at their posterior mean
-            Xp = self.space.to_unit(np.array([self.space.to_array(p) for p in self.pending]))
-            mp, _ = gp.predict(Xp)
-            y_all = np.concatenate([gp.y_mean + gp.y_std * gp._z, mp])
-            model = GP(gp.config).condition(np.vstack([X_obs, Xp]), y_all, gp.hyper, scaling=(gp.y_mean, gp.y_std))
             best = float((np.min(model.predict(X_obs)[0]) - model.y_mean) / model.y_std)
         cand = candidates(self.config.n_candidates, d, self.rng)
         # local candidates around the best points by posterior mean
@@ -1027,7 +1029,7 @@ class Engine:
         pts = np.vstack([np.clip(res.x.reshape(k, d), 0.0, 1.0), starts])
         if safe is not None:
             pts = _into_balls(pts, *safe)
-        U = self.space.to_unit(self.space.from_unit(pts))
+        U = self._snap(pts)
         m, v = gp.predict_std_units(U)
         sc = m + beta * np.sqrt(v)
         if safe is not None:

@@ -460,8 +460,7 @@ class GP:
                 v = self._map_hyper(rng)
                 self._offset = 0.0
                 bowl = self._fit_bowl(Hyper.from_vector(v), scale)
-            loo_runs = self.config.bowl_loo_runs or max(5, 2 * self.X.shape[1] + 1)
-            if bowl is not None and self.config.bowl_loo and self.X.shape[0] >= loo_runs:
+            if bowl is not None and self._bowl_loo_due():
                 try:
                     const_loo = self.loo_log_predictive(v_const, False)
                 except np.linalg.LinAlgError:
@@ -484,6 +483,12 @@ class GP:
         else:
             self._factorize(refit_mean=True)
         return self
+
+    def _bowl_loo_due(self) -> bool:
+        """GPConfig.bowl_loo compares the bowl with a constant mean at this many runs (bowl_loo_runs; 0: 2d + 1 and
+        at least 5)."""
+        c = self.config
+        return c.bowl_loo and self.X.shape[0] >= (c.bowl_loo_runs or max(5, 2 * self.X.shape[1] + 1))
 
     def _fit_linear(self, v_const: FloatArray, rng: np.random.Generator) -> FloatArray:
         """The hyperparameters with a linear trend profiled out (sets ``_lin``); with the mean "select", only when
@@ -545,7 +550,7 @@ class GP:
             logw = logw + log_prior  # (else uniform: the weights as before, to the bit)
         w = np.exp(logw - np.max(logw))
         keep = w > 1e-6
-        if c.bowl_loo:
+        if self._bowl_loo_due():
             self._bowl_loo = self._bowl_loo_lpd(Kinv, z, k1, R, a12, a22, safe, beta0, beta1, logw)
         p_bowl = 1.0
         if c.bowl_slope_sd > 0.0:
