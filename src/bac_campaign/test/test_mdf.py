@@ -178,6 +178,12 @@ def test_a_refused_mdf_file_gives_bac_s_message_only(tmp_path: Path, run: tuple[
     assert p.returncode == 2, p.stderr
     assert "the file is truncated or corrupt" in p.stderr
     assert "Exception ignored" not in p.stderr and "Traceback" not in p.stderr, p.stderr
+    # the frames are freed, but where asammdf refused the file stays on the cause, as a note
+    with pytest.raises(MdfError) as info:
+        read_mdf(truncated, ChannelMap.parse(CANAPE))
+    notes = getattr(info.value.__cause__, "__notes__", [])
+    assert info.value.__cause__ is not None and info.value.__cause__.__traceback__ is None
+    assert len(notes) == 1 and "where asammdf refused it" in notes[0] and "asammdf" in notes[0].split("\n", 1)[1]
 
 
 def test_rescore_p_values_are_yaml_and_checked(

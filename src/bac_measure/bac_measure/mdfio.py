@@ -36,6 +36,7 @@ import math
 import re
 import sys
 import threading
+import traceback
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from datetime import UTC, datetime
@@ -255,7 +256,12 @@ def _drop_half_built(exc: BaseException) -> None:
     (``AttributeError: ... '_file'``); Python prints that as "Exception ignored in MDF4.__del__" with a traceback,
     after bac's own message, whenever the object is freed. The object lives in the frames of the exception's
     traceback: dropping the traceback frees it here, where that one report is left out (any other goes to the
-    previous hook)."""
+    previous hook). Where asammdf failed is kept as text, a note on the exception, shown with bac's error wherever
+    a traceback is printed (a caller's ``logger.exception``, a test's report): a bug report on a file asammdf
+    refuses can still say where."""
+    frames = "".join(traceback.format_tb(exc.__traceback__))
+    if frames:
+        exc.add_note("where asammdf refused it (its frames were freed):\n" + frames.rstrip())
     with _HOOK_LOCK:  # two threads refusing files at once: each restores what it found, in order
         previous = sys.unraisablehook
 
