@@ -1,7 +1,9 @@
 """``bo_agent``: runs a calibration campaign (paper algorithm 1) through the graph.
 
 A thin node around :class:`bac_agent.campaign.Campaign`: it converts messages,
-declares the parameters, and executes the campaign's actions:
+declares the parameters (what they build, the optimizer and the campaign's
+configuration, is :func:`bac_agent.agent_setup.build_agent`, pure Python), and
+executes the campaign's actions:
 
 * ``Publish``  → ``bac/trial`` (bac_msgs/Trial, latched);
 * ``Apply``    → ``ecu_bridge/apply_calibration`` called asynchronously, waited for
@@ -21,8 +23,6 @@ import math
 import sys
 import threading
 import time
-from collections.abc import Mapping
-from pathlib import Path
 from typing import Any
 
 from builtin_interfaces.msg import Time as TimeMsg
@@ -31,58 +31,29 @@ from rclpy.clock import Clock
 from rclpy.clock_type import ClockType
 from rclpy.duration import Duration
 
-from bac_agent.bo.baselines import GridStrategy, RandomStrategy
-from bac_agent.bo.constraints import parse_limits
-from bac_agent.bo.engine import ACQUISITIONS, RULES, Engine, EngineConfig
-from bac_agent.bo.gp import MEANS, GPConfig
-from bac_agent.bo.space import SearchSpace
+from bac_agent.agent_setup import BACKSTOP_RUN_TIMEOUT_S, STRATEGIES, AgentSettings, build_agent, make_verifier
+from bac_agent.bo.engine import ACQUISITIONS, RULES
+from bac_agent.bo.gp import MEANS
 from bac_agent.bo.warp import WARPS
 from bac_agent.campaign import (
     Action,
     Apply,
     AwaitRun,
     Campaign,
-    CampaignConfig,
     Finish,
     Kind,
     Log,
-    Optimizer,
     Publish,
     State,
     TrialStatus,
 )
-from bac_agent.journal import Journal
-from bac_agent.transfer import load_outcome_sources, load_source
-from bac_agent.transfer import summary as source_summary
 from bac_common.contracts import SRV_APPLY_CALIBRATION, SRV_READ_CALIBRATION, TOPIC_RUN_SCORE, TOPIC_TRIAL
 from bac_common.errors import BacError
-from bac_common.paramspace import CalibrationDefinition
-from bac_common.paths import resolve_definition
 from bac_common.rosnode import QOS_EVENTS, QOS_LATCHED, BacNode, run_node
 from bac_msgs.msg import Calibration, RunScore, Trial
 from bac_msgs.srv import ApplyCalibration, ReadCalibration
 
-STRATEGIES = ("bo", "grid", "random")
 FINAL_ACK_S = 2.0  # the longest the agent waits at the end for subscribers to acknowledge the last bac/trial
-BACKSTOP_RUN_TIMEOUT_S = 3600.0  # run_timeout_s 0: the segmenter's verdict decides; this only guards a dead chain
-
-
-def make_verifier(defn: CalibrationDefinition) -> Any:
-    """Check the raw values the ECU echoed against the expansion of what was asked (within one LSB)."""
-
-    def verify(params: Mapping[str, float], applied: Mapping[str, float]) -> str | None:
-        if not applied:
-            return None  # the bridge's success already says the ECU acknowledged these values
-        expected = defn.expand(params)
-        bad = []
-        for name, value in applied.items():
-            if name in expected:
-                tol = defn.parameter(name).resolution * 1.01
-                if abs(float(value) - expected[name]) > tol:
-                    bad.append(f"{name}={value:g} (asked {expected[name]:g})")
-        return ", ".join(bad) or None
-
-    return verify
 
 
 class BoAgentNode(BacNode):
@@ -297,122 +268,50 @@ class BoAgentNode(BacNode):
             "resume", True, "continue the campaign in campaign_dir's journal (false: refuse an existing one)", True
         )
 
-        self.definition = CalibrationDefinition.load(resolve_definition(definition_file))
-        cdir = Path(campaign_dir).expanduser()
-        cid = campaign_id or cdir.resolve().name
-        journal = Journal(cdir)
-        if len(journal) and not resume:
-            journal.close()
-            raise BacError(f"{cdir} already holds a campaign journal and resume is false: choose a new campaign_dir")
-        source = load_source(prior_source, self.definition) if prior_source and self.strategy == "bo" else None
-        prior_info = source_summary(source, SearchSpace.from_definition(self.definition)) if source else {}
-        # what the same source knows of the limited outcomes (an earlier campaign's measured outcomes; a reduce
-        # output's simulated runs' outcomes, result.json schema 2): each outcome's model starts from it
-        started = journal.events[0] if len(journal) else {}
-        started_config = started.get("config") if started.get("event") == "campaign_started" else None
-        outcome_sources = (
-            load_outcome_sources(prior_source, self.definition, [limit.name for limit in parse_limits(constraints)])
-            if source is not None
-            and constraints
-            # a campaign started before outcome priors existed (its journal has no such key) resumes as it ran
-            and not (isinstance(started_config, dict) and "outcome_priors" not in started_config)
-            else {}
-        )
-        # with a transfer prior the first trial is the prior's optimum (the model's, not the file's best guess)
-        initial_points = (
-            (dict(self.definition.best_guess),)
-            if start_from == "guess" and self.definition.best_guess and source is None
-            else ()
-        )
-        # a campaign started before the safe start (its journal has no such key) resumes as it ran
-        safe_calibration = (
-            self.definition.baseline_tuned()
-            if safe_start
-            and constraints
-            and self.strategy == "bo"
-            and not (isinstance(started_config, dict) and "safe_start" not in started_config)
-            else None
-        )
-        optimizer: Optimizer
-        if self.strategy == "grid":
-            grid = GridStrategy(self.definition, grid_size, seed)
-            budget = grid.budget
-            optimizer = grid
-        elif self.strategy == "random":
-            optimizer = RandomStrategy(self.definition, budget, seed)
-        else:
-            optimizer = Engine(
-                self.definition,
-                EngineConfig(
-                    budget=budget,
-                    n_initial=n_initial,
-                    seed=seed,
-                    acquisition=acquisition,
-                    recommend_beta=recommend_beta,
-                    recommend_rule=recommend_rule,
-                    output_warp=output_warp,
-                    design_margin=design_margin,
-                    initial_points=initial_points,
-                    gp=GPConfig(mean=gp_mean, bowl_loo=gp_bowl_loo),
-                    bowl_runs=bowl_runs,
-                    prior=source.to_dict() if source is not None else None,
-                    prior_weight=prior_weight,
-                    prior_runs=prior_runs,
-                    prior_average=prior_average,
-                    constraints=tuple(constraints),
-                    constraint_level=constraint_level,
-                    outcome_priors={k: v.to_dict() for k, v in outcome_sources.items()} or None,
-                    safe_start=safe_calibration,
-                ),
-            )
-        cfg = CampaignConfig(
-            campaign_id=cid,
-            budget=budget,
+        settings = AgentSettings(
+            definition_file=definition_file,
+            campaign_dir=campaign_dir,
+            campaign_id=campaign_id,
             strategy=self.strategy,
+            budget=budget,
+            n_initial=n_initial,
             seed=seed,
+            acquisition=acquisition,
+            recommend_beta=recommend_beta,
+            recommend_rule=recommend_rule,
+            gp_mean=gp_mean,
+            bowl_runs=bowl_runs,
+            gp_bowl_loo=gp_bowl_loo,
+            output_warp=output_warp,
+            design_margin=design_margin,
+            start_from=start_from,
+            prior_source=prior_source,
+            prior_weight=prior_weight,
+            prior_runs=prior_runs,
+            prior_average=prior_average,
+            constraints=tuple(constraints),
+            constraint_level=constraint_level,
+            safe_start=safe_start,
+            grid_size=grid_size,
             max_attempts=max_attempts,
-            apply_retries=apply_retries,
             apply_timeout_s=apply_timeout,
-            run_timeout_s=run_timeout or BACKSTOP_RUN_TIMEOUT_S,
+            apply_retries=apply_retries,
+            run_timeout_s=run_timeout,
             confirmation_run=confirmation,
             max_consecutive_failures=max_failures,
             busy_retry_s=busy_retry,
             busy_timeout_s=busy_timeout,
             link_retry_s=link_retry,
             link_timeout_s=link_timeout,
-            extra={
-                "n_initial": n_initial,
-                "grid_size": grid_size,
-                "definition_file": str(definition_file),
-                "acquisition": acquisition,
-                "recommend_beta": recommend_beta,
-                "recommend_rule": recommend_rule,
-                "gp_mean": gp_mean,
-                "gp_bowl_loo": gp_bowl_loo,
-                "bowl_runs": optimizer.bowl_runs if isinstance(optimizer, Engine) else 0,
-                "output_warp": output_warp,
-                "design_margin": design_margin,
-                "start_from": start_from,
-                "initial_points": [dict(p) for p in initial_points],
-                "prior_source": prior_source,
-                "prior_summary": prior_info,
-                "prior": source.to_dict() if source is not None else None,
-                "prior_weight": prior_weight,
-                "prior_runs": prior_runs,
-                "prior_average": prior_average,
-                "constraints": constraints,
-                "constraint_level": constraint_level,
-                # what the prior source knew of the limited outcomes: each surface (a refit models as the agent did)
-                "outcome_priors": {k: v.to_dict() for k, v in outcome_sources.items()},
-                # the calibration trial 1 drives and the design grows from (issue 23; {} = none)
-                "safe_start": dict(safe_calibration or {}),
-            },
-            outcome_limits=tuple(constraints),
+            resume=resume,
         )
+        setup = build_agent(settings)  # the pure part: definition, journal, optimizer, configuration
+        self.definition = setup.definition
+        journal = setup.journal
         self.campaign = Campaign(
-            optimizer,
+            setup.optimizer,
             journal,
-            cfg,
+            setup.config,
             clock=lambda: self.get_clock().now().nanoseconds * 1e-9,
             definition=self.definition.to_dict(),
             verify_applied=make_verifier(self.definition),
@@ -447,21 +346,8 @@ class BoAgentNode(BacNode):
         self._tick = self.create_timer(
             0.05, self._on_tick, callback_group=self._group, clock=Clock(clock_type=ClockType.STEADY_TIME)
         )
-        self.get_logger().info(
-            f"bo_agent: definition '{self.definition.name}' ({', '.join(optimizer.names)}), strategy {self.strategy}, "
-            f"budget {budget}, campaign '{cid}' in {cdir}"
-        )
-        if prior_info:
-            self.get_logger().info(
-                f"transfer prior: {prior_info['label']}; its optimum {prior_info['optimum']} "
-                f"(J {prior_info['optimum_j']:.4g}) is trial 1"
-            )
-        if constraints:
-            self.get_logger().info(f"outcome limits: {', '.join(constraints)} (level {constraint_level:g})")
-        if outcome_sources:
-            self.get_logger().info("outcome priors: " + "; ".join(src.label for src in outcome_sources.values()))
-        elif source is not None and constraints:
-            self.get_logger().info("outcome priors: none (the prior source records no limited outcome)")
+        for line in setup.log_lines():
+            self.get_logger().info(line)
 
     # --- actions ----------------------------------------------------------------------------------
     def _do(self, actions: list[Action]) -> None:
