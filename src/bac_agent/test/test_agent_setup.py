@@ -89,3 +89,19 @@ def test_the_verifier_accepts_an_echo_within_one_lsb_and_names_what_differs() ->
     off = {**expected, name: expected[name] + 3 * defn.parameter(name).resolution}
     problem = verify(params, off)
     assert problem is not None and problem.startswith(f"{name}=")
+
+
+def test_a_prior_source_that_cannot_be_read_closes_the_journal_it_opened(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    closed: list[Path] = []
+    real_close = Journal.close
+
+    def close(self: Journal) -> None:
+        closed.append(self.dir)
+        real_close(self)
+
+    monkeypatch.setattr(Journal, "close", close)
+    with pytest.raises(BacError, match="nowhere"):
+        build_agent(AgentSettings(campaign_dir=str(tmp_path / "c"), prior_source=str(tmp_path / "nowhere")))
+    assert closed == [tmp_path / "c"]
