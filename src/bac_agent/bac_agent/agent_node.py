@@ -61,36 +61,45 @@ class BoAgentNode(BacNode):
 
     def __init__(self, **kwargs: Any) -> None:
         super().__init__("bo_agent", **kwargs)
+        D = AgentSettings()  # the parameters' defaults: one place for the node and build_agent
         definition_file = self.declare_str(
             "definition_file",
-            "controller_i",
+            D.definition_file,
             "calibration definition (YAML path, or the name of a shipped definition)",
             read_only=True,
         )
         campaign_dir = self.declare_str(
-            "campaign_dir", "campaigns/default", "campaign folder: journal.jsonl, recommendation.json", read_only=True
+            "campaign_dir", D.campaign_dir, "campaign folder: journal.jsonl, recommendation.json", read_only=True
         )
         campaign_id = self.declare_str(
-            "campaign_id", "", "campaign id carried by every run (default: the campaign folder's name)", read_only=True
+            "campaign_id",
+            D.campaign_id,
+            "campaign id carried by every run (default: the campaign folder's name)",
+            read_only=True,
         )
         self.strategy = self.declare_str(
-            "strategy", "bo", "how calibrations are chosen", choices=STRATEGIES, read_only=True
+            "strategy", D.strategy, "how calibrations are chosen", choices=STRATEGIES, read_only=True
         )
-        budget = self.declare_int("budget", 15, "trials of the campaign (bo, random)", 1, 10_000, read_only=True)
+        budget = self.declare_int("budget", D.budget, "trials of the campaign (bo, random)", 1, 10_000, read_only=True)
         n_initial = self.declare_int(
-            "n_initial", 0, "space-filling initial trials (0 = automatic: 5 for d <= 4, else d + 1)", 0, 1000, True
+            "n_initial",
+            D.n_initial,
+            "space-filling initial trials (0 = automatic: 5 for d <= 4, else d + 1)",
+            0,
+            1000,
+            True,
         )
-        seed = self.declare_int("seed", 0, "random seed of the optimizer", 0, 2**31 - 1, read_only=True)
+        seed = self.declare_int("seed", D.seed, "random seed of the optimizer", 0, 2**31 - 1, read_only=True)
         acquisition = self.declare_str(
             "acquisition",
-            "nei",
+            D.acquisition,
             "bo: how the next calibration is chosen (nei: noisy expected improvement, ei: EI over the best mean)",
             choices=ACQUISITIONS,
             read_only=True,
         )
         recommend_beta = self.declare_float(
             "recommend_beta",
-            0.0,
+            D.recommend_beta,
             "bo: the recommendation minimizes posterior mean + beta * std (0: the paper's argmin of the mean)",
             0.0,
             5.0,
@@ -98,7 +107,7 @@ class BoAgentNode(BacNode):
         )
         recommend_rule = self.declare_str(
             "recommend_rule",
-            "mean",
+            D.recommend_rule,
             "bo: the recommendation is the argmin of the posterior mean over the box (mean: the paper, the best on "
             "the tuning split), the driven calibration with the best posterior mean (observed) or with the best "
             "measured J (best_run); with outcome limits always within them",
@@ -107,14 +116,14 @@ class BoAgentNode(BacNode):
         )
         gp_mean = self.declare_str(
             "gp_mean",
-            "bowl",
+            D.gp_mean,
             "bo: the GP's prior mean (bowl: a bowl-shaped trend for the first runs, then a constant; constant; zero)",
             choices=MEANS,
             read_only=True,
         )
         bowl_runs = self.declare_int(
             "bowl_runs",
-            0,
+            D.bowl_runs,
             "bo with gp_mean bowl: runs the bowl-shaped trend lasts (0 = automatic: the initial design + 1; "
             "campaigns started before 2026-11-24 07:15 used twice the initial design: set it to resume them)",
             0,
@@ -123,21 +132,21 @@ class BoAgentNode(BacNode):
         )
         gp_bowl_loo = self.declare_bool(
             "gp_bowl_loo",
-            True,
+            D.gp_bowl_loo,
             "bo with gp_mean bowl: keep the bowl only while it predicts the runs, left out one at a time, better "
             "than a constant mean (from 2d + 1 runs, at least 5); false: as before 2026-11-24 (late)",
             True,
         )
         output_warp = self.declare_str(
             "output_warp",
-            "yeo-johnson",
+            D.output_warp,
             "bo: the GP sees the runs through a fitted Yeo-Johnson transform (yeo-johnson) or as told (none)",
             choices=WARPS,
             read_only=True,
         )
         design_margin = self.declare_float(
             "design_margin",
-            0.1,
+            D.design_margin,
             "bo: the initial design spans [m, 1 - m] of every parameter's range (0: the whole range)",
             0.0,
             0.49,
@@ -145,7 +154,7 @@ class BoAgentNode(BacNode):
         )
         start_from = self.declare_str(
             "start_from",
-            "guess",
+            D.start_from,
             "bo: guess = the first trial is the definition's best_guess when it has one (the simulation phase's "
             "optimum, written by bac reduce; the paper's best-guess initialization), then the initial design; "
             "design = the initial design alone",
@@ -154,7 +163,7 @@ class BoAgentNode(BacNode):
         )
         prior_source = self.declare_str(
             "prior_source",
-            "",
+            D.prior_source,
             "bo: a transfer prior: a bac reduce output (its folder or result.json: the simulation phase's surrogate "
             "through this definition) or an earlier campaign's folder (its runs); its optimum is the first trial and "
             "its shape the model's prior mean while the runs support it; with constraints, what its runs reported "
@@ -162,11 +171,16 @@ class BoAgentNode(BacNode):
             read_only=True,
         )
         prior_weight = self.declare_float(
-            "prior_weight", 0.5, "bo: prior probability that the transfer prior describes this car", 0.01, 0.99, True
+            "prior_weight",
+            D.prior_weight,
+            "bo: prior probability that the transfer prior describes this car",
+            0.01,
+            0.99,
+            True,
         )
         prior_runs = self.declare_int(
             "prior_runs",
-            0,
+            D.prior_runs,
             "bo with prior_source: runs told up to which the prior's shape may be the model's prior mean, then the "
             "car's runs alone (0 = no limit: as long as the runs support it)",
             0,
@@ -175,7 +189,7 @@ class BoAgentNode(BacNode):
         )
         prior_average = self.declare_bool(
             "prior_average",
-            True,
+            D.prior_average,
             "bo with prior_source: while the runs support the prior, the acquisition averages the models with and "
             "without it by the transfer weight (false: the model with the prior alone, as before 2026-11-24)",
             True,
@@ -184,7 +198,7 @@ class BoAgentNode(BacNode):
             c
             for c in self.declare_str_list(
                 "constraints",
-                [],
+                list(D.constraints),
                 "limits on what a run measures besides J, e.g. peak_accel_z<=6.5 (RunScore outcomes): bo never "
                 "proposes a calibration likely to break one (constraint_level) and recommends within them; a run "
                 "that breaks one is booked and shown",
@@ -194,7 +208,7 @@ class BoAgentNode(BacNode):
         ]
         constraint_level = self.declare_float(
             "constraint_level",
-            0.05,
+            D.constraint_level,
             "bo: the largest probability of breaking an outcome limit a proposal or the recommendation may have",
             0.001,
             0.5,
@@ -202,16 +216,22 @@ class BoAgentNode(BacNode):
         )
         safe_start = self.declare_bool(
             "safe_start",
-            False,
+            D.safe_start,
             "bo with constraints: trial 1 is the definition's baseline (the ECU's reference calibration, assumed to "
             "keep the limits) and the initial design grows from it within what the outcome models allow (only while "
             "a limited outcome has no prior)",
             True,
         )
-        grid_size = self.declare_int("grid_size", 4, "levels per dimension of the grid strategy", 1, 100, True)
-        max_attempts = self.declare_int("max_attempts", 3, "runs per trial before it is given up", 1, 100)
-        apply_timeout = self.declare_float("apply_timeout_s", 10.0, "time limit of one apply, s", 0.1, 600.0)
-        apply_retries = self.declare_int("apply_retries", 2, "further apply tries after a failed one", 0, 20)
+        grid_size = self.declare_int(
+            "grid_size", D.grid_size, "levels per dimension of the grid strategy", 1, 100, True
+        )
+        max_attempts = self.declare_int("max_attempts", D.max_attempts, "runs per trial before it is given up", 1, 100)
+        apply_timeout = self.declare_float(
+            "apply_timeout_s", D.apply_timeout_s, "time limit of one apply, s", 0.1, 600.0
+        )
+        apply_retries = self.declare_int(
+            "apply_retries", D.apply_retries, "further apply tries after a failed one", 0, 20
+        )
         self.expected_trial_subscribers = self.declare_int(
             "expected_trial_subscribers",
             0,
@@ -228,22 +248,32 @@ class BoAgentNode(BacNode):
         )
         run_timeout = self.declare_float(
             "run_timeout_s",
-            0.0,
+            D.run_timeout_s,
             "ROS time from READY_TO_DRIVE to a score before the run counts invalid, s; 0 = the measurement chain "
             f"decides (run_segmenter's run timeout, derived from the segment) and the agent waits at most "
             f"{BACKSTOP_RUN_TIMEOUT_S:g} s (a dead chain)",
             0.0,
             1e6,
         )
-        confirmation = self.declare_bool("confirmation_run", False, "drive the recommendation once more before DONE")
+        confirmation = self.declare_bool(
+            "confirmation_run", D.confirmation_run, "drive the recommendation once more before DONE"
+        )
         max_failures = self.declare_int(
-            "max_consecutive_failures", 3, "failed trials in a row that end the campaign", 1, 1000
+            "max_consecutive_failures",
+            D.max_consecutive_failures,
+            "failed trials in a row that end the campaign",
+            1,
+            1000,
         )
         busy_retry = self.declare_float(
-            "busy_retry_s", 2.0, "wait before asking a busy ECU (vehicle moving) again, s", 0.05, 600.0
+            "busy_retry_s", D.busy_retry_s, "wait before asking a busy ECU (vehicle moving) again, s", 0.05, 600.0
         )
         busy_timeout = self.declare_float(
-            "busy_timeout_s", 120.0, "ROS time an ECU may stay busy before the apply counts as failed, s", 0.0, 1e6
+            "busy_timeout_s",
+            D.busy_timeout_s,
+            "ROS time an ECU may stay busy before the apply counts as failed, s",
+            0.0,
+            1e6,
         )
         self.link_wait_s = self.declare_float(
             "link_wait_s",
@@ -254,18 +284,22 @@ class BoAgentNode(BacNode):
             86400.0,
         )
         link_retry = self.declare_float(
-            "link_retry_s", 2.0, "the ECU link is down (ERROR_BUS): ask again after this long, paused, s", 0.05, 600.0
+            "link_retry_s",
+            D.link_retry_s,
+            "the ECU link is down (ERROR_BUS): ask again after this long, paused, s",
+            0.05,
+            600.0,
         )
         link_timeout = self.declare_float(
             "link_timeout_s",
-            600.0,
+            D.link_timeout_s,
             "ROS time the ECU link may stay down mid-campaign (paused, no trial fails) before the campaign stops, "
             "resumable, s",
             0.0,
             1e6,
         )
         resume = self.declare_bool(
-            "resume", True, "continue the campaign in campaign_dir's journal (false: refuse an existing one)", True
+            "resume", D.resume, "continue the campaign in campaign_dir's journal (false: refuse an existing one)", True
         )
 
         settings = AgentSettings(
