@@ -42,15 +42,7 @@ from bac_agent.bo.acquisition import NoisyEI, log_ei, log_ei_with_grad
 from bac_agent.bo.constraints import OutcomeLimit, OutcomeModels, parse_limits, violations
 from bac_agent.bo.design import candidates, default_n_initial, initial_design
 from bac_agent.bo.gp import GP, GPConfig, Hyper
-from bac_agent.bo.prior import (
-    SourceSurface,
-    TransferFit,
-    TransferSettings,
-    fit_with_source,
-    flattest_direction,
-    probe_point,
-    without_source,
-)
+from bac_agent.bo.prior import SourceSurface, TransferFit, TransferSettings, fit_with_source, without_source
 from bac_agent.bo.space import SearchSpace
 from bac_agent.bo.warp import WARPS, OutputWarp
 from bac_common.errors import BacError
@@ -176,19 +168,6 @@ class EngineConfig:
     # tuning split of bench/transfer.py: a source right in shape but not at its optimum held the runs near its own
     # optimum (road_c1 > 15 runs with the simulator's prior; 4.5 averaged); docs/agent.md
     prior_average: bool = True
-    # once the runs reject the source during the engine's own initial design (fewer runs told than its design
-    # size): the points of the engine's own design that no run covers yet (each run made takes the design point
-    # nearest to it), until as many runs are made as the design has, then the model; False: the model right after
-    # the prior's shorter design (before 2026-11-25). Issue 23, bench/transfer.py: a misleading source rejected at
-    # run 2-3 left the model three runs, one of them in the wrong corner (docs/agent.md)
-    prior_fill: bool = False
-    # > 0: with a transfer prior, the second run lies this far (unit cube) from the source's optimum along the
-    # direction in which the source's J rises least (prior.probe_point): where a car's optimum moves most from the
-    # simulator's; 0: a spread point of the prior's design (before 2026-11-25)
-    prior_probe: float = 0.0
-    # > 0: the source's trend may be moved along its flattest direction at its optimum (prior.flattest_direction)
-    # by t ~ N(0, prior_shift²) (unit cube), integrated out (prior.shifted_source); 0: the source where it is
-    prior_shift: float = 0.0
     # --- outcome constraints (bo/constraints.py): limits on measured outcomes besides J, e.g.
     # {"name": "max_travel_mm", "bound": 60.0, "upper": True}; a proposal's probability of breaking any is at
     # most constraint_level, and so is the recommendation's
@@ -383,8 +362,6 @@ class Engine:
                 remaining.remove(min(remaining, key=lambda i: float(np.sum((self._design[i] - g) ** 2))))
             self._design = np.vstack([guesses[:n_g], self._design[remaining]])
             self._n_guess = n_g
-            if self._guess_kind == KIND_PRIOR and self.config.prior_probe > 0.0 and self._design.shape[0] >= 3:
-                self._probe_design()
         self._n_safe = 0
         if self.safe_start_used:
             self._start_safe()
@@ -402,24 +379,6 @@ class Engine:
         drop = min(rows, key=lambda i: float(np.sum((self._design[i] - u) ** 2)))
         self._design = np.vstack([u[None, :], np.delete(self._design, drop, axis=0)])
         self._n_safe = 1
-
-    def _shift_dir(self) -> FloatArray | None:
-        """The source's flattest direction at its optimum (``prior_shift``), computed once."""
-        if not hasattr(self, "_shift_v"):
-            assert self._source is not None
-            self._shift_v = flattest_direction(self._source, self._source.argmin(self.config.seed))
-        return self._shift_v
-
-    def _probe_design(self) -> None:
-        """``prior_probe``: the second run a step from the source's optimum along its flattest direction
-        (``prior.probe_point``), in place of the design point nearest to it."""
-        assert self._source is not None
-        v = probe_point(self._source, self._design[0], self.config.prior_probe)
-        if v is None:
-            return
-        rest = list(range(1, self._design.shape[0]))
-        rest.remove(min(rest, key=lambda i: float(np.sum((self._design[i] - v) ** 2))))
-        self._design = np.vstack([self._design[:1], v[None, :], self._design[rest]])
 
     def _source_argmin_allowed(self, fallback: FloatArray) -> FloatArray:
         """The source's best calibration among those the outcome priors allow (Sobol candidates and the source's
@@ -534,11 +493,6 @@ class Engine:
                 s = self._suggest(u, KIND_SAFE)
             else:
                 s = self._suggest(u, self._guess_kind if k - self._n_safe < self._n_guess else KIND_INITIAL)
-        if s is None and self.config.prior_fill:
-            u_fill = self._fill_point(k)
-            if u_fill is not None:
-                self._acq_info["design_fill"] = "the runs reject the transfer prior: the engine's own design"
-                s = self._suggest(u_fill, KIND_INITIAL)
         if s is None:
             if not self._can_model():
                 safe = self._safe_set()
@@ -548,35 +502,6 @@ class Engine:
                 s = self._suggest(self._maximize_acquisition(), KIND_OPTIMIZED)
         self.pending.append(dict(s.params))
         return s
-
-    def _fill_point(self, k: int) -> FloatArray | None:
-        """``prior_fill``: with a transfer prior the runs reject (weight < 0.5) while fewer runs are made (``k``: told,
-        failed and pending) than the engine's own initial design has, the first point of that design that no run
-        covers (each run made takes the design point nearest to it, in the order made); else None. Not with a safe
-        start, nor where the outcome models expect the point to break a limit."""
-        n_own = self.config.n_initial or default_n_initial(self.space.dim, self.config.budget)
-        if self._source is None or self._n_safe or not self.observations or k >= n_own:
-            return None
-        if len(self.observations) > self.prior_runs:
-            return None
-        self._model()  # the fit weighs the source against the runs
-        if self.transfer is None or self.transfer.used:
-            return None
-        own = initial_design(n_own, self.space.dim, self.config.seed, self.config.design_margin)
-        made = [self.space.to_array(o.params) for o in self.observations]
-        made += [self.space.to_array(f.params) for f in self.failures]
-        made += [self.space.to_array(p) for p in self.pending]
-        remaining = list(range(n_own))
-        for u in self.space.to_unit(np.array(made)):
-            if not remaining:
-                return None
-            remaining.remove(min(remaining, key=lambda i: float(np.sum((own[i] - u) ** 2))))
-        if not remaining:
-            return None
-        u_fill = np.asarray(own[remaining[0]], dtype=float)
-        if self._outcomes_known() and not self._outcome_models().allowed(u_fill[None, :])[0]:
-            return None
-        return u_fill
 
     def _can_model(self) -> bool:
         """A model of J with a shape: two different runs, or a transfer prior the runs support (in use: it gives
@@ -765,8 +690,6 @@ class Engine:
                 self.config.prior_scale_sd,
                 self.config.prior_residual_os,
             )
-            if self.config.prior_shift > 0.0:
-                settings = replace(settings, shift_sd=self.config.prior_shift, shift_dir=self._shift_dir())
             gp, fit = fit_with_source(self.config.gp, X, y, self._source, settings, self.rng, self._gp.hyper)
             self.transfer = fit
             if fit.used:

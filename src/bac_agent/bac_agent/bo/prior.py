@@ -206,57 +206,6 @@ class SourceSurface:
             raise GPError(f"malformed source surface: {exc}") from exc
 
 
-def flattest_direction(source: SourceSurface, u: FloatArray, eps: float = 1e-3) -> FloatArray | None:
-    """The unit vector along which the source's J rises least from its optimum ``u`` (unit cube): the eigenvector
-    of the source's Hessian at ``u`` (central differences of its gradient) with the smallest eigenvalue, among the
-    dimensions free at ``u`` (a dimension at a bound its gradient pushes against is held); None when none is free.
-
-    Why: a car that differs a little from the simulator, J_car = J_src + e g, has its optimum at about
-    u - e H^-1 grad g (one Newton step): the shift is largest along the source's flattest direction, where its
-    optimum is least sure. A run along it tells the model where the car's optimum has moved."""
-    u = np.clip(np.asarray(u, dtype=float).ravel(), 0.0, 1.0)
-    d = u.size
-    g = source.standardized_and_grad(u[None, :])[1][0]
-    free = ~(((u <= 1e-6) & (g > 0.0)) | ((u >= 1.0 - 1e-6) & (g < 0.0)))
-    if not np.any(free):
-        return None
-    H = np.zeros((d, d))
-    for j in range(d):
-        lo, hi = max(u[j] - eps, 0.0), min(u[j] + eps, 1.0)
-        a, b = u.copy(), u.copy()
-        a[j], b[j] = lo, hi
-        G = source.standardized_and_grad(np.vstack([a, b]))[1]
-        H[:, j] = (G[1] - G[0]) / (hi - lo)
-    idx = np.flatnonzero(free)
-    Hf = 0.5 * (H[np.ix_(idx, idx)] + H[np.ix_(idx, idx)].T)
-    w, V = np.linalg.eigh(Hf)
-    v = np.zeros(d)
-    v[idx] = V[:, int(np.argmin(w))]
-    return np.asarray(v / np.linalg.norm(v), dtype=float)
-
-
-def probe_point(source: SourceSurface, u: FloatArray, step: float) -> FloatArray | None:
-    """The point ``step`` (unit cube) from the source's optimum ``u`` along its flattest direction
-    (``flattest_direction``), to the side with more room in the box (a shorter step where the box ends first);
-    None without a free direction or room."""
-    v = flattest_direction(source, u)
-    if v is None:
-        return None
-    u = np.clip(np.asarray(u, dtype=float).ravel(), 0.0, 1.0)
-
-    def room(direction: FloatArray) -> float:
-        t = np.where(direction > 1e-12, (1.0 - u) / np.where(direction > 1e-12, direction, 1.0), np.inf)
-        t = np.minimum(t, np.where(direction < -1e-12, -u / np.where(direction < -1e-12, direction, 1.0), np.inf))
-        return float(np.min(t))
-
-    r_plus, r_minus = room(v), room(-v)
-    sign = 1.0 if r_plus >= r_minus else -1.0
-    t = min(step, max(r_plus, r_minus))
-    if t <= 1e-6:
-        return None
-    return np.asarray(np.clip(u + sign * t * v, 0.0, 1.0), dtype=float)
-
-
 @dataclass(frozen=True)
 class PriorTrend:
     """The prior mean ``a + b · s(x)`` of the car's GP (standardized units of the car's runs)."""
@@ -264,21 +213,13 @@ class PriorTrend:
     source: SourceSurface
     a: float
     b: float
-    # the source moved by this vector (unit cube): the trend is a + b s(x - shift) (``shift_sd``); None: unmoved
-    shift: FloatArray | None = None
 
     def value(self, Xq: FloatArray) -> FloatArray:
-        if self.shift is None:
-            return self.a + self.b * self.source.standardized(Xq)
-        return self.a + self.b * self.source.standardized(np.clip(np.atleast_2d(Xq) - self.shift, 0.0, 1.0))
+        return self.a + self.b * self.source.standardized(Xq)
 
     def value_and_grad(self, Xq: FloatArray) -> tuple[FloatArray, FloatArray]:
-        if self.shift is None:
-            s, g = self.source.standardized_and_grad(Xq)
-            return self.a + self.b * s, self.b * g
-        V = np.atleast_2d(Xq) - self.shift
-        s, g = self.source.standardized_and_grad(np.clip(V, 0.0, 1.0))
-        return self.a + self.b * s, self.b * np.where((V >= 0.0) & (V <= 1.0), g, 0.0)
+        s, g = self.source.standardized_and_grad(Xq)
+        return self.a + self.b * s, self.b * g
 
 
 @dataclass(frozen=True)
@@ -379,43 +320,6 @@ class TransferSettings:
     weight: float = 0.5  # prior probability that the source describes this car
     scale_sd: float = 0.5  # prior sd of the scale b around 1
     residual_os: float = 0.25  # prior median of the residual GP's variance (source-standardized units)
-    # > 0 with ``shift_dir``: the source may be moved along that unit vector (the source's flattest direction at
-    # its optimum) by t ~ N(0, shift_sd²) (unit cube), integrated out on a grid (``shifted_source``)
-    shift_sd: float = 0.0
-    shift_dir: FloatArray | None = None
-
-
-SHIFT_GRID = 25  # points of the shift's grid over +- 3 prior sd
-
-
-def shifted_source(
-    X: FloatArray, z: FloatArray, source: SourceSurface, h1: Hyper, settings: TransferSettings
-) -> tuple[FloatArray | None, float]:
-    """The posterior mean shift (a vector, unit cube) of the source along ``settings.shift_dir`` given the runs ``z``
-    at ``X`` (source-standardized), and the log marginal likelihood of the model with the source with the shift
-    integrated out (its prior N(0, shift_sd²) on a grid of SHIFT_GRID points, the same restricted likelihood as
-    ``weigh_source``'s); (None, nan) without a shift."""
-    v = settings.shift_dir
-    if v is None or settings.shift_sd <= 0.0 or X.shape[0] < 2:
-        return None, math.nan
-    ts = np.linspace(-3.0 * settings.shift_sd, 3.0 * settings.shift_sd, SHIFT_GRID)
-    logp = -0.5 * (ts / settings.shift_sd) ** 2
-    logp -= float(np.logaddexp.reduce(logp))
-    K1 = _kernel(X, h1)
-    S = source.standardized(
-        np.clip(X[None, :, :] - ts[:, None, None] * v[None, None, :], 0.0, 1.0).reshape(-1, X.shape[1])
-    )
-    S = S.reshape(ts.size, X.shape[0])
-    lml = np.array(
-        [_restricted_log_likelihood(z - S[i], K1 + settings.scale_sd**2 * np.outer(S[i], S[i])) for i in range(ts.size)]
-    )
-    post = lml + logp
-    if not np.any(np.isfinite(post)):
-        return None, math.nan
-    log_marg = float(np.logaddexp.reduce(post[np.isfinite(post)]))
-    w = np.exp(np.where(np.isfinite(post), post - log_marg, -np.inf))
-    t = float(np.sum(w * ts))
-    return np.asarray(t * v, dtype=float), log_marg
 
 
 def fit_with_source(
@@ -443,14 +347,10 @@ def fit_with_source(
     gp1._set_data(X, y, scaling)
     z = gp1._z
     s = source.standardized(gp1.X)
-    shift: FloatArray | None = None
     if n >= 3:
         h0 = Hyper.from_vector(gp0._map_hyper(rng))
         gp1._offset = s
         h1 = Hyper.from_vector(gp1._map_hyper(rng))
-        shift, _ = shifted_source(gp1.X, z, source, h1, settings)
-        if shift is not None:
-            s = source.standardized(np.clip(gp1.X - shift, 0.0, 1.0))
         fit = weigh_source(gp1.X, z, s, h1, h0, settings.scale_sd, settings.weight)
         gp1._offset = fit.b * s
         gp1.hyper = h1
@@ -462,18 +362,8 @@ def fit_with_source(
         loc0, _ = gp0._prior(X.shape[1])
         loc1, _ = gp1._prior(X.shape[1])
         h0, h1 = Hyper.from_vector(loc0), Hyper.from_vector(loc1)
-    log_marg = math.nan
-    if settings.shift_dir is not None and settings.shift_sd > 0.0:
-        shift, log_marg = shifted_source(gp1.X, z, source, h1, settings)
-        s = source.standardized(np.clip(gp1.X - shift, 0.0, 1.0)) if shift is not None else source.standardized(gp1.X)
     fit = weigh_source(gp1.X, z, s, h1, h0, settings.scale_sd, settings.weight)
-    if math.isfinite(log_marg):  # the shift integrated out: the model with the source weighed by its marginal
-        lml0 = _restricted_log_likelihood(z, _kernel(gp1.X, h0))
-        lbf = log_marg - lml0 if math.isfinite(lml0) else math.inf
-        t = lbf + math.log(settings.weight / (1.0 - settings.weight))
-        w = 1.0 / (1.0 + math.exp(-t)) if t > -700 else 0.0
-        fit = replace(fit, weight=float(w), log_bayes_factor=float(lbf))
-    gp1.hyper = replace(h1, mean=0.0, bowl=None, prior=PriorTrend(source, fit.a, fit.b, shift))
+    gp1.hyper = replace(h1, mean=0.0, bowl=None, prior=PriorTrend(source, fit.a, fit.b))
     gp1._factorize(refit_mean=False)
     return gp1, fit
 
@@ -495,9 +385,6 @@ __all__ = [
     "TransferFit",
     "TransferSettings",
     "fit_with_source",
-    "flattest_direction",
-    "probe_point",
-    "shifted_source",
     "spread_subset",
     "weigh_source",
     "without_source",
