@@ -12,8 +12,12 @@ the argmin of the posterior mean) runs three ways on the same seeds and noise st
 
 Printed per family and pooled over the car families: median runs until the recommendation's true gap ≤ 0.05
 (budget + 1 when never), with a 90 % bootstrap interval, the share found after 1, 2 and 3 runs, and the gap of
-the simulator's own optimum on each car. LAST lines: ``transfer_sim_median_runs <x>`` (goal ≤ 2) and
-``transfer_misleading_extra_runs <x>`` (the misleading prior's median minus no prior's; goal ≤ 1).
+the simulator's own optimum on each car; with the ``none`` and ``misleading`` arms, per family the misleading
+prior's median minus no prior's with a 90 % interval that resamples the campaigns in pairs. ``--seed-list`` runs a
+**variant** with other seeds than the split's (each seed is one initial design of the engine: the split's two
+seeds are two designs per family, and a per-family median moves by runs with them). LAST lines:
+``transfer_sim_median_runs <x>`` (goal ≤ 2) and ``transfer_misleading_extra_runs <x>`` (the misleading prior's
+median minus no prior's; goal ≤ 1).
 
     nice -n 10 .venv/bin/python bench/transfer.py --split held-out
 """
@@ -22,6 +26,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
 import os
 import sys
 import time
@@ -108,6 +113,24 @@ def _ci(runs: np.ndarray, draws: int = 4000) -> tuple[float, float]:
     return float(np.quantile(m, 0.05)), float(np.quantile(m, 0.95))
 
 
+def _paired_extra(rows: list[dict[str, Any]], budget: int, draws: int = 4000) -> tuple[float, float, float]:
+    """The misleading prior's median runs minus no prior's over the same campaigns (family, instance, seed), with a
+    90 % bootstrap interval that resamples the campaigns in pairs (both arms share a campaign's car and noise)."""
+    runs: dict[tuple[str, int, int], dict[str, int | float]] = {}
+    for r in rows:
+        runs.setdefault((r["family"], r["instance"], r["seed"]), {})[r["arm"]] = min(
+            runs_to_optimum(r["gaps"]), budget + 1
+        )
+    pairs = np.array([[v["misleading"], v["none"]] for v in runs.values() if "misleading" in v and "none" in v])
+    if pairs.size == 0:
+        return math.nan, math.nan, math.nan
+    rng = np.random.default_rng(0)
+    idx = rng.integers(0, pairs.shape[0], (draws, pairs.shape[0]))
+    diff = np.median(pairs[idx, 0], axis=1) - np.median(pairs[idx, 1], axis=1)
+    point = float(np.median(pairs[:, 0]) - np.median(pairs[:, 1]))
+    return point, float(np.quantile(diff, 0.05)), float(np.quantile(diff, 0.95))
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--split", default="held-out", choices=sorted(pf.SPLITS))
@@ -115,6 +138,11 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--arms", default=",".join(ARMS))
     ap.add_argument("--instances", type=int, default=0)
     ap.add_argument("--seeds", type=int, default=0)
+    ap.add_argument(
+        "--seed-list",
+        default="",
+        help="comma list of seeds in place of the split's (a variant, not the split: more designs per instance)",
+    )
     ap.add_argument("--budget", type=int, default=15)
     ap.add_argument("--bac-config", default="")
     ap.add_argument("--workers", type=int, default=os.cpu_count() or 1)
@@ -124,7 +152,7 @@ def main(argv: list[str] | None = None) -> int:
     a = ap.parse_args(argv)
     split = pf.SPLITS[a.split]
     insts = split["instances"][: a.instances or None]
-    seeds = split["seeds"][: a.seeds or None]
+    seeds = [int(x) for x in a.seed_list.split(",") if x] if a.seed_list else split["seeds"][: a.seeds or None]
     fams = [f for f in a.families.split(",") if f]
     arms = [x for x in a.arms.split(",") if x]
     if a.grid_truth and a.split != "tuning":
@@ -136,13 +164,15 @@ def main(argv: list[str] | None = None) -> int:
     if a.from_json:  # e.g. one run per family: summarized together (the pooled line over all of them)
         results = [r for f in a.from_json.split(",") if f for r in json.loads(Path(f).read_text())["results"]]
         fams = list(dict.fromkeys(r["family"] for r in results))
+        seeds = sorted({int(r["seed"]) for r in results})
         print(f"# summarized {a.from_json}")
     else:
         with ProcessPoolExecutor(max_workers=a.workers) as ex:
             results = list(ex.map(_task, tasks))
     wall = time.perf_counter() - t0
     print(
-        f"# transfer, split {a.split}: instances {insts[0]}..{insts[-1]}, seeds {seeds}, budget {a.budget}, "
+        f"# transfer, split {a.split}{' (VARIANT: --seed-list)' if a.seed_list else ''}: instances "
+        f"{insts[0]}..{insts[-1]}, seeds {seeds}, budget {a.budget}, "
         f"rule (a); bac config {a.bac_config or 'defaults'}; wall {wall:.0f} s, {a.workers} workers, "
         f"load {os.getloadavg()[0]:.1f}"
     )
@@ -171,6 +201,10 @@ def main(argv: list[str] | None = None) -> int:
                 f"   {arm:<11} {shown:>5} {f'{lo:g}-{hi:g}':>9} {by[0]:>5.0%} {by[1]:>5.0%} {by[2]:>5.0%} "
                 f"{gend:>8.3f} {wtxt:>10} {stxt:>15} {len(rs):>4}"
             )
+        if "misleading" in arms and "none" in arms:
+            d, lo, hi = _paired_extra(rows, a.budget)
+            if math.isfinite(d):
+                print(f"   misleading - none: {d:+g} runs (90% CI {lo:+g} to {hi:+g}, campaigns resampled in pairs)")
     if not a.from_json:
         out = Path(a.out or f"bench/out/transfer_{a.split}.json")
         out.parent.mkdir(parents=True, exist_ok=True)
