@@ -237,6 +237,14 @@ class BoAgentNode(BacNode):
             "a limited outcome has no prior)",
             True,
         )
+        limit_trend = self.declare_bool(
+            "limit_trend",
+            True,
+            "bo with constraints: during the initial design a calibration is proposed only when the outcome's model "
+            "with a linear trend allows it too, and the least risky calibration (when none is within "
+            "constraint_level) is judged by that model; false: as before 2026-11-25",
+            True,
+        )
         grid_size = self.declare_int("grid_size", 4, "levels per dimension of the grid strategy", 1, 100, True)
         max_attempts = self.declare_int("max_attempts", 3, "runs per trial before it is given up", 1, 100)
         apply_timeout = self.declare_float("apply_timeout_s", 10.0, "time limit of one apply, s", 0.1, 600.0)
@@ -363,6 +371,7 @@ class BoAgentNode(BacNode):
                     constraint_level=constraint_level,
                     outcome_priors={k: v.to_dict() for k, v in outcome_sources.items()} or None,
                     safe_start=safe_calibration,
+                    limit_trend=limit_trend,
                 ),
             )
         cfg = CampaignConfig(
@@ -406,6 +415,8 @@ class BoAgentNode(BacNode):
                 "outcome_priors": {k: v.to_dict() for k, v in outcome_sources.items()},
                 # the calibration trial 1 drives and the design grows from (issue 23; {} = none)
                 "safe_start": dict(safe_calibration or {}),
+                # the retreat's trend judges the design and the least risky calibrations (issue 23, 2026-11-25)
+                "limit_trend": limit_trend,
             },
             outcome_limits=tuple(constraints),
         )
