@@ -222,6 +222,14 @@ class BoAgentNode(BacNode):
             "a limited outcome has no prior)",
             True,
         )
+        limit_trend = self.declare_bool(
+            "limit_trend",
+            D.limit_trend,
+            "bo with constraints: during the initial design a calibration is proposed only when the outcome's model "
+            "with a linear trend allows it too, and the least risky calibration (when none is within "
+            "constraint_level) is judged by that model; false: as before 2026-11-25",
+            True,
+        )
         grid_size = self.declare_int(
             "grid_size", D.grid_size, "levels per dimension of the grid strategy", 1, 100, True
         )
@@ -326,6 +334,7 @@ class BoAgentNode(BacNode):
             constraints=tuple(constraints),
             constraint_level=constraint_level,
             safe_start=safe_start,
+            limit_trend=limit_trend,
             grid_size=grid_size,
             max_attempts=max_attempts,
             apply_timeout_s=apply_timeout,

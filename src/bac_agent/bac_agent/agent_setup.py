@@ -61,6 +61,7 @@ class AgentSettings:
     constraints: tuple[str, ...] = ()
     constraint_level: float = 0.05
     safe_start: bool = False
+    limit_trend: bool = True
     grid_size: int = 4
     max_attempts: int = 3
     apply_timeout_s: float = 10.0
@@ -208,6 +209,7 @@ def _build(s: AgentSettings, definition: CalibrationDefinition, cdir: Path, cid:
                 constraint_level=s.constraint_level,
                 outcome_priors={k: v.to_dict() for k, v in outcome_sources.items()} or None,
                 safe_start=safe_calibration,
+                limit_trend=s.limit_trend,
             ),
         )
     cfg = CampaignConfig(
@@ -251,6 +253,8 @@ def _build(s: AgentSettings, definition: CalibrationDefinition, cdir: Path, cid:
             "outcome_priors": {k: v.to_dict() for k, v in outcome_sources.items()},
             # the calibration trial 1 drives and the design grows from (issue 23; {} = none)
             "safe_start": dict(safe_calibration or {}),
+            # the retreat's trend judges the design and the least risky calibrations (issue 23, 2026-11-25)
+            "limit_trend": s.limit_trend,
         },
         outcome_limits=tuple(constraints),
     )

@@ -538,6 +538,9 @@ class Campaign:
         if all(isinstance(c, dict) and not c.get("prior") for c in confs):
             for c in confs:  # without a transfer prior the model average changes nothing (outside review D2)
                 c.pop("prior_average", None)  # type: ignore[union-attr]
+        if all(isinstance(c, dict) and not c.get("constraints") for c in confs):
+            for c in confs:  # without outcome limits the retreat's trend changes nothing
+                c.pop("limit_trend", None)  # type: ignore[union-attr]
         problems, changed = config_differences(journaled, mine)
         if problems:
             raise CampaignError(
@@ -1003,7 +1006,8 @@ RESUME_MAY_CHANGE = frozenset(
 # configuration keys added after campaigns were journaled without them, with the value such a campaign ran with: a
 # journal without the key is compared as if it held that value, so it resumes when the agent keeps it (issue 23,
 # 2026-11-24: no outcome priors, no limit on the transfer prior's runs, no safe start, no model average, the bowl
-# unchecked by leave-one-out)
+# unchecked by leave-one-out; 2026-11-25: the outcome limits' least risky calibrations and design without the
+# retreat's trend)
 ADDED_LATER: Mapping[str, Any] = {
     "recommend_rule": "mean",
     "outcome_priors": {},
@@ -1011,6 +1015,7 @@ ADDED_LATER: Mapping[str, Any] = {
     "safe_start": {},
     "prior_average": False,
     "gp_bowl_loo": False,
+    "limit_trend": False,
 }
 _MISSING = object()
 

@@ -559,6 +559,11 @@ LIMITS_REFUSED: dict[str, tuple[str, Callable[[], CampaignConfig]]] = {
         "config.prior_average: journaled false, this agent true",
         lambda: config_limits(extra={**config_limits().extra, "prior_average": True}),
     ),
+    "the retreat's trend": (
+        # a journal from before limit_trend ran without it (campaign.ADDED_LATER)
+        "config.limit_trend: journaled false, this agent true",
+        lambda: config_limits(extra={**config_limits().extra, "limit_trend": True}),
+    ),
 }
 
 
@@ -755,6 +760,19 @@ def test_the_model_average_does_not_refuse_a_resume_without_a_prior(tmp_path: Pa
         chain.step()
     chain.c.journal.close()
     again = start(tmp_path, Clock(), cfg=config(extra=_extra(prior_average=True)))
+    assert again.pending is not None
+    (resumed,) = [e for e in again.c.journal.events if e["event"] == "campaign_resumed"]
+    assert resumed["changed"] == []
+
+
+def test_the_retreats_trend_does_not_refuse_a_resume_without_limits(tmp_path: Path) -> None:
+    """limit_trend is journaled whatever the limits; without any it changes nothing, so a campaign journaled before
+    it existed (no key: ADDED_LATER's false) resumes with the default (true)."""
+    chain = start(tmp_path, Clock())
+    for _ in range(3):
+        chain.step()
+    chain.c.journal.close()
+    again = start(tmp_path, Clock(), cfg=config(extra=_extra(limit_trend=True)))
     assert again.pending is not None
     (resumed,) = [e for e in again.c.journal.events if e["event"] == "campaign_resumed"]
     assert resumed["changed"] == []
