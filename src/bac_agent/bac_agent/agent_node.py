@@ -31,7 +31,14 @@ from rclpy.clock import Clock
 from rclpy.clock_type import ClockType
 from rclpy.duration import Duration
 
-from bac_agent.agent_setup import BACKSTOP_RUN_TIMEOUT_S, STRATEGIES, AgentSettings, build_agent, make_verifier
+from bac_agent.agent_setup import (
+    BACKSTOP_RUN_TIMEOUT_S,
+    START_FROM,
+    STRATEGIES,
+    AgentSettings,
+    build_agent,
+    make_verifier,
+)
 from bac_agent.bo.engine import ACQUISITIONS, RULES
 from bac_agent.bo.gp import MEANS
 from bac_agent.bo.warp import WARPS
@@ -158,7 +165,7 @@ class BoAgentNode(BacNode):
             "bo: guess = the first trial is the definition's best_guess when it has one (the simulation phase's "
             "optimum, written by bac reduce; the paper's best-guess initialization), then the initial design; "
             "design = the initial design alone",
-            choices=("guess", "design"),
+            choices=START_FROM,
             read_only=True,
         )
         prior_source = self.declare_str(

@@ -11,7 +11,7 @@ that feature's key) resumes as it ran, without the feature.
 
 from __future__ import annotations
 
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -31,6 +31,7 @@ from bac_common.paramspace import CalibrationDefinition
 from bac_common.paths import resolve_definition
 
 STRATEGIES = ("bo", "grid", "random")
+START_FROM = ("guess", "design")
 BACKSTOP_RUN_TIMEOUT_S = 3600.0  # run_timeout_s 0: the segmenter's verdict decides; this only guards a dead chain
 
 
@@ -110,7 +111,7 @@ class AgentSetup:
         return lines
 
 
-def make_verifier(defn: CalibrationDefinition) -> Any:
+def make_verifier(defn: CalibrationDefinition) -> Callable[[Mapping[str, float], Mapping[str, float]], str | None]:
     """Check the raw values the ECU echoed against the expansion of what was asked (within one LSB)."""
 
     def verify(params: Mapping[str, float], applied: Mapping[str, float]) -> str | None:
@@ -135,6 +136,8 @@ def build_agent(s: AgentSettings) -> AgentSetup:
     is false; a prior source that cannot be read raises its own error (``TransferError``)."""
     if s.strategy not in STRATEGIES:
         raise BacError(f"unknown strategy {s.strategy!r}: one of {', '.join(STRATEGIES)}")
+    if s.start_from not in START_FROM:
+        raise BacError(f"unknown start_from {s.start_from!r}: one of {', '.join(START_FROM)}")
     definition = CalibrationDefinition.load(resolve_definition(s.definition_file))
     cdir = Path(s.campaign_dir).expanduser()
     cid = s.campaign_id or cdir.resolve().name

@@ -49,12 +49,38 @@ def test_a_grid_campaign_takes_the_grid_s_budget(tmp_path: Path) -> None:
     assert setup.config.extra["bowl_runs"] == 0
 
 
-def test_an_existing_journal_is_refused_without_resume_and_left_closed(tmp_path: Path) -> None:
+def _record_closes(monkeypatch: pytest.MonkeyPatch) -> list[Path]:
+    closed: list[Path] = []
+    real_close = Journal.close
+
+    def close(self: Journal) -> None:
+        closed.append(self.dir)
+        real_close(self)
+
+    monkeypatch.setattr(Journal, "close", close)
+    return closed
+
+
+def test_an_existing_journal_is_refused_without_resume_and_left_closed(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
     _journal_started(tmp_path, {})
+    closed = _record_closes(monkeypatch)
     with pytest.raises(BacError, match="already holds a campaign journal and resume is false"):
         build_agent(AgentSettings(campaign_dir=str(tmp_path), resume=False))
-    with pytest.raises(BacError, match="unknown strategy 'grid_search'"):
-        build_agent(AgentSettings(campaign_dir=str(tmp_path), strategy="grid_search"))
+    assert closed == [tmp_path]
+
+
+@pytest.mark.parametrize(
+    ("settings", "message"),
+    [({"strategy": "grid_search"}, "unknown strategy 'grid_search'"), ({"start_from": "desing"}, "unknown start_from")],
+)
+def test_an_unknown_choice_is_refused_before_anything_is_opened(
+    tmp_path: Path, settings: dict[str, str], message: str
+) -> None:
+    with pytest.raises(BacError, match=message):
+        build_agent(AgentSettings(campaign_dir=str(tmp_path / "c"), **settings))  # type: ignore[arg-type]
+    assert not (tmp_path / "c").exists()
 
 
 def test_the_safe_start_is_the_baseline_but_not_for_a_journal_started_before_it(tmp_path: Path) -> None:
@@ -94,14 +120,115 @@ def test_the_verifier_accepts_an_echo_within_one_lsb_and_names_what_differs() ->
 def test_a_prior_source_that_cannot_be_read_closes_the_journal_it_opened(
     tmp_path: Path, monkeypatch: pytest.MonkeyPatch
 ) -> None:
-    closed: list[Path] = []
-    real_close = Journal.close
-
-    def close(self: Journal) -> None:
-        closed.append(self.dir)
-        real_close(self)
-
-    monkeypatch.setattr(Journal, "close", close)
+    closed = _record_closes(monkeypatch)
     with pytest.raises(BacError, match="nowhere"):
         build_agent(AgentSettings(campaign_dir=str(tmp_path / "c"), prior_source=str(tmp_path / "nowhere")))
     assert closed == [tmp_path / "c"]
+
+
+def _definition_with_guess(tmp_path: Path) -> Path:
+    """controller_i with a best guess, as bac reduce writes one."""
+    text = resolve_definition("controller_i").read_text()
+    path = tmp_path / "guessed.yaml"
+    path.write_text(text.rstrip("\n") + "\nbest_guess: {damping_front: 0.2, damping_rear: 0.3}\n")
+    return path
+
+
+def _earlier_campaign(path: Path) -> Path:
+    """An earlier campaign's folder: 15 scored runs of J and of the travel."""
+    with Journal(path) as j:
+        j.append("campaign_started", campaign_id="earlier", names=["damping_front", "damping_rear"], stamp=0.0)
+        k = 0
+        for a in (0.1, 0.3, 0.5, 0.7, 0.9):
+            for b in (0.2, 0.5, 0.8):
+                k += 1
+                j.append(
+                    "trial_scored",
+                    campaign_id="earlier",
+                    trial_id=k,
+                    params={"damping_front": a, "damping_rear": b},
+                    j=1.0 + (a - 0.3) ** 2 + (b - 0.6) ** 2,
+                    outcomes={"max_travel_mm": 80.0 - 40.0 * a},
+                    stamp=float(k),
+                )
+    return path
+
+
+def test_the_best_guess_is_trial_1_unless_the_design_is_asked_for_or_a_prior_gives_trial_1(tmp_path: Path) -> None:
+    defn = str(_definition_with_guess(tmp_path))
+    guess = {"damping_front": 0.2, "damping_rear": 0.3}
+    runs = {
+        "guess": AgentSettings(definition_file=defn, campaign_dir=str(tmp_path / "a")),
+        "design": AgentSettings(definition_file=defn, campaign_dir=str(tmp_path / "b"), start_from="design"),
+        "prior": AgentSettings(
+            definition_file=defn,
+            campaign_dir=str(tmp_path / "c"),
+            prior_source=str(_earlier_campaign(tmp_path / "earlier")),
+        ),
+    }
+    built = {k: build_agent(v) for k, v in runs.items()}
+    for setup in built.values():
+        setup.journal.close()
+    assert built["guess"].config.extra["initial_points"] == [guess]
+    assert built["design"].config.extra["initial_points"] == []
+    assert built["prior"].config.extra["initial_points"] == []  # the prior's optimum is trial 1
+    assert built["prior"].prior_info and built["prior"].config.extra["prior"] is not None
+    assert any(line.startswith("transfer prior: ") for line in built["prior"].log_lines())
+
+
+def test_outcome_priors_come_from_the_source_but_not_for_a_journal_started_before_them(tmp_path: Path) -> None:
+    source = str(_earlier_campaign(tmp_path / "earlier"))
+    limit = ("max_travel_mm<=60",)
+    new = build_agent(AgentSettings(campaign_dir=str(tmp_path / "new"), prior_source=source, constraints=limit))
+    new.journal.close()
+    assert list(new.outcome_sources) == ["max_travel_mm"]
+    assert list(new.config.extra["outcome_priors"]) == ["max_travel_mm"]
+    assert any(line.startswith("outcome priors: ") and "none" not in line for line in new.log_lines())
+    assert isinstance(new.optimizer, Engine) and new.optimizer.config.outcome_priors
+    _journal_started(tmp_path / "old", {"constraints": list(limit)})  # no "outcome_priors" key: ran without
+    old = build_agent(AgentSettings(campaign_dir=str(tmp_path / "old"), prior_source=source, constraints=limit))
+    old.journal.close()
+    assert old.outcome_sources == {} and old.config.extra["outcome_priors"] == {}
+    assert "outcome priors: none (the prior source records no limited outcome)" in old.log_lines()
+    # a prior on another strategy than bo is not loaded at all, nor is a safe start used
+    rnd = build_agent(
+        AgentSettings(
+            campaign_dir=str(tmp_path / "rnd"),
+            strategy="random",
+            prior_source=source,
+            constraints=limit,
+            safe_start=True,
+        )
+    )
+    rnd.journal.close()
+    assert rnd.prior_info == {} and rnd.config.extra["prior"] is None and rnd.config.extra["safe_start"] == {}
+
+
+def test_the_node_passes_every_setting_it_declares() -> None:
+    """bo_agent builds AgentSettings(...) by hand: a field added later and forgotten there would silently keep its
+    default whatever the user set. Every field must be passed, and each must be a parameter the node declares."""
+    import ast
+    import dataclasses
+    import importlib.util
+
+    spec = importlib.util.find_spec("bac_agent.agent_node")  # its source only: the node itself needs rclpy
+    assert spec is not None and spec.origin is not None
+    tree = ast.parse(Path(spec.origin).read_text())
+    calls = [
+        n
+        for n in ast.walk(tree)
+        if isinstance(n, ast.Call) and getattr(n.func, "id", None) == "AgentSettings" and n.keywords
+    ]
+    assert len(calls) == 1
+    passed = {kw.arg for kw in calls[0].keywords}
+    assert passed == {f.name for f in dataclasses.fields(AgentSettings)}
+    declared = {
+        n.args[0].value
+        for n in ast.walk(tree)
+        if isinstance(n, ast.Call)
+        and isinstance(n.func, ast.Attribute)
+        and n.func.attr.startswith("declare_")
+        and n.args
+        and isinstance(n.args[0], ast.Constant)
+    }
+    assert passed <= declared, passed - declared

@@ -259,9 +259,10 @@ def _drop_half_built(exc: BaseException) -> None:
     previous hook). Where asammdf failed is kept as text, a note on the exception, shown with bac's error wherever
     a traceback is printed (a caller's ``logger.exception``, a test's report): a bug report on a file asammdf
     refuses can still say where."""
-    frames = "".join(traceback.format_tb(exc.__traceback__))
-    if frames:
-        exc.add_note("where asammdf refused it (its frames were freed):\n" + frames.rstrip())
+    if exc.__traceback__ is not None:  # the whole chain, as Python would print it: asammdf may fail in a cause
+        exc.add_note(
+            "where asammdf refused it (its frames were freed):\n" + "".join(traceback.format_exception(exc)).rstrip()
+        )
     with _HOOK_LOCK:  # two threads refusing files at once: each restores what it found, in order
         previous = sys.unraisablehook
 
