@@ -141,3 +141,15 @@ def test_an_engine_with_the_warp_runs_and_saves_it() -> None:
     again = Engine.from_json(eng.to_json())
     assert again.config.gp.warp and again.config.gp.warp_bounds == (0.1, 10.0)
     assert again.recommend().params == pytest.approx(r.params, abs=1e-9)
+
+
+def test_the_warp_waits_for_warp_runs() -> None:
+    X, y = _kink(12, seed=6)
+    late = GPConfig(warp=True, warp_runs=10)
+    early = GP(late).fit(X[:9], y[:9], np.random.default_rng(0))
+    plain = GP(GPConfig()).fit(X[:9], y[:9], np.random.default_rng(0))
+    assert early.hyper is not None and plain.hyper is not None
+    assert early.hyper.warp is None and early.config.warp  # the fit without it, the configuration kept
+    np.testing.assert_array_equal(early.hyper.lengthscales, plain.hyper.lengthscales)
+    full = GP(late).fit(X, y, np.random.default_rng(0))
+    assert full.hyper is not None and full.hyper.warp is not None

@@ -113,6 +113,7 @@ class GPConfig:
     warp: bool = False
     warp_sd: float = math.sqrt(0.75)
     warp_bounds: tuple[float, float] = (0.1, 10.0)
+    warp_runs: int = 0  # the warp is learned from this many runs on (the identity before)
     draws: int = 8  # draws from the prior, screened by their objective
     restarts: int = 1  # best draws optimized, besides the prior mode and the previous fit
     maxiter: int = 200
@@ -512,6 +513,13 @@ class GP:
         With the bowl mean: the kernel's hyperparameters with a constant mean, the bowl under that
         kernel, the hyperparameters again on what the bowl leaves, and the bowl again.
         """
+        if self.config.warp and np.atleast_2d(X).shape[0] < self.config.warp_runs:
+            warped = self.config  # (GPConfig.warp_runs) too few runs to learn the warp: this fit without it
+            self.config = replace(warped, warp=False)
+            try:
+                return self.fit(X, y, rng)
+            finally:
+                self.config = warped
         self._set_data(X, y)
         rng = rng if rng is not None else np.random.default_rng(0)
         self._offset = 0.0
