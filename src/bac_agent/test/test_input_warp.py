@@ -153,3 +153,29 @@ def test_the_warp_waits_for_warp_runs() -> None:
     np.testing.assert_array_equal(early.hyper.lengthscales, plain.hyper.lengthscales)
     full = GP(late).fit(X, y, np.random.default_rng(0))
     assert full.hyper is not None and full.hyper.warp is not None
+
+
+def test_ls_select_keeps_the_kernel_that_predicts_the_runs_left_out_better() -> None:
+    """GPConfig.ls_select (issue 23, opt-in): the fit under the configured and under a tighter lengthscale prior,
+    the one with the better leave-one-out density kept, as it would be fitted alone."""
+    from dataclasses import replace
+
+    rng = np.random.default_rng(3)
+    X = rng.random((7, 2))
+    chosen = set()
+    for y in (np.sin(9.0 * X[:, 0]) + 0.3 * X[:, 1], 0.8 * X[:, 0] - X[:, 1] + 0.05 * rng.standard_normal(7)):
+        cfg = GPConfig(mean="constant", ls_select=0.3)
+        sel = GP(cfg).fit(X, y, np.random.default_rng(0))
+        assert sel.hyper is not None and sel.config.ls_select == 0.3
+        seed = int(np.random.default_rng(0).integers(2**63 - 1))
+        fits = [
+            GP(replace(cfg, ls_select=0.0, **kw)).fit(X, y, np.random.default_rng(seed))  # type: ignore[arg-type]
+            for kw in ({}, {"ls_scale": 0.3})
+        ]
+        loos = [f.loo_log_predictive(f.hyper.to_vector(), False) for f in fits if f.hyper is not None]
+        kept = fits[int(np.argmax(loos))]
+        assert kept.hyper is not None
+        np.testing.assert_array_equal(sel.hyper.lengthscales, kept.hyper.lengthscales)
+        np.testing.assert_array_equal(sel.predict(X)[0], kept.predict(X)[0])
+        chosen.add(int(np.argmax(loos)))
+    assert chosen == {0, 1}  # the wiggly runs keep the wide prior's short lengthscale, the tilt the tight prior's

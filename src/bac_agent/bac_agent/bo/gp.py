@@ -114,6 +114,10 @@ class GPConfig:
     warp_sd: float = math.sqrt(0.75)
     warp_bounds: tuple[float, float] = (0.1, 10.0)
     warp_runs: int = 0  # the warp is learned from this many runs on (the identity before)
+    # > 0 (issue 23, opt-in): the kernel is fitted twice, under the lengthscale prior of sd ls_scale and under one of
+    # this sd (tighter: lengthscales held near the median, which carry the runs' trend on), and the fit whose kernel
+    # predicts the runs left out one at a time better (constant mean) is kept
+    ls_select: float = 0.0
     draws: int = 8  # draws from the prior, screened by their objective
     restarts: int = 1  # best draws optimized, besides the prior mode and the previous fit
     maxiter: int = 200
@@ -513,6 +517,8 @@ class GP:
         With the bowl mean: the kernel's hyperparameters with a constant mean, the bowl under that
         kernel, the hyperparameters again on what the bowl leaves, and the bowl again.
         """
+        if self.config.ls_select > 0.0:
+            return self._fit_ls_select(X, y, rng)
         if self.config.warp and np.atleast_2d(X).shape[0] < self.config.warp_runs:
             warped = self.config  # (GPConfig.warp_runs) too few runs to learn the warp: this fit without it
             self.config = replace(warped, warp=False)
@@ -562,6 +568,27 @@ class GP:
             self._factorize(refit_mean=False)
         else:
             self._factorize(refit_mean=True)
+        return self
+
+    def _fit_ls_select(self, X: FloatArray, y: FloatArray, rng: np.random.Generator | None) -> GP:
+        """GPConfig.ls_select: the fit under the configured and under the tighter lengthscale prior, whichever
+        kernel has the better leave-one-out log predictive density of the runs (a constant mean re-estimated)."""
+        c = self.config
+        seed = int((rng if rng is not None else np.random.default_rng(0)).integers(2**63 - 1))
+        best: tuple[float, GP] | None = None
+        for cfg in (replace(c, ls_select=0.0), replace(c, ls_scale=c.ls_select, ls_select=0.0)):
+            gp = GP(cfg, hyper=self.hyper).fit(X, y, np.random.default_rng(seed))
+            assert gp.hyper is not None
+            try:
+                loo = gp.loo_log_predictive(gp.hyper.to_vector(), False)
+            except np.linalg.LinAlgError:
+                loo = -math.inf
+            if best is None or loo > best[0]:
+                best = (loo, gp)
+        assert best is not None
+        for k, v in vars(best[1]).items():
+            if k != "config":
+                setattr(self, k, v)
         return self
 
     def _bowl_loo_due(self) -> bool:
