@@ -98,13 +98,13 @@ class NoisyEI:
         h = gp.hyper
         if h is None or gp.X.shape[0] == 0:
             raise ValueError("NoisyEI needs a fitted GP")
-        self.X = gp.X
+        self.X = h.kernel_inputs(gp.X)  # as the kernel sees them (GPConfig.warp; gp.X itself without it)
         self.ls = h.lengthscales
         self.os = h.outputscale
         self.hyper = h
         n = self.X.shape[0]
         K = matern52_from_r2(sq_dist(self.X, self.X, self.ls), self.os)
-        mu_b, _ = gp.predict_std_units(self.X)
+        mu_b, _ = gp.predict_std_units(gp.X)
         # posterior covariance of f at X: K - K (K + s2 I)^-1 K, sampled through its eigendecomposition
         # (positive semidefinite up to round-off; negative eigenvalues clipped)
         V = sla.solve_triangular(gp._L, K, lower=True, check_finite=False)
@@ -128,14 +128,14 @@ class NoisyEI:
         else:  # pragma: no cover - K + 1e-1*os*I is always positive definite
             raise ValueError("kernel matrix not positive definite")
         self.A = np.asarray(
-            sla.cho_solve((self._L0, True), F - h.mean_at(self.X)[:, None], check_finite=False), dtype=float
+            sla.cho_solve((self._L0, True), F - h.mean_at(gp.X)[:, None], check_finite=False), dtype=float
         )
         self.log_s = math.log(S)
 
     def __call__(self, Xq: FloatArray) -> FloatArray:
         """log NEI at the rows of ``Xq`` (m, d), standardized units."""
         Xq = np.atleast_2d(Xq)
-        Ks = matern52_from_r2(sq_dist(Xq, self.X, self.ls), self.os)
+        Ks = matern52_from_r2(sq_dist(self.hyper.kernel_inputs(Xq), self.X, self.ls), self.os)
         mu = self.hyper.mean_at(Xq)[:, None] + Ks @ self.A  # (m, S): each draw's noise-free conditional mean
         sd = np.sqrt(latent_var(self._L0, Ks, self.os))  # the same for every draw
         lei = log_ei(mu, sd[:, None], self.best[None, :])
@@ -145,7 +145,8 @@ class NoisyEI:
         """log NEI (m,) and its gradient w.r.t. the rows of ``Xq`` (m, d)."""
         Xq = np.atleast_2d(Xq)
         m, d = Xq.shape
-        r2 = sq_dist(Xq, self.X, self.ls)
+        Uq, Jq = self.hyper.kernel_inputs_grad(Xq)  # (GPConfig.warp; Xq itself and None without it)
+        r2 = sq_dist(Uq, self.X, self.ls)
         Ks = matern52_from_r2(r2, self.os)
         m0, dm0 = self.hyper.mean_and_grad(Xq)
         mu = m0[:, None] + Ks @ self.A  # (m, S)
@@ -155,8 +156,11 @@ class NoisyEI:
         FA = Fk @ self.A  # (m, S)
         # sum_n Fk[m, n] A[n, s] X[n, :] as one batched matrix product (m, S, n) @ (n, d)
         FAX = np.matmul((Fk[:, :, None] * self.A[None, :, :]).transpose(0, 2, 1), self.X)
-        dmu = dm0[:, None, :] - (Xq[:, None, :] * FA[:, :, None] - FAX) * il2
-        sd, dsd = latent_sd_with_grad(Xq, self.X, self._L0, Ks, Fk, il2, self.os)
+        dk = (Uq[:, None, :] * FA[:, :, None] - FAX) * il2
+        dmu = dm0[:, None, :] - (dk if Jq is None else dk * Jq[:, None, :])
+        sd, dsd = latent_sd_with_grad(Uq, self.X, self._L0, Ks, Fk, il2, self.os)
+        if Jq is not None:
+            dsd = dsd * Jq
         lei, g = log_ei_with_grad(
             mu.ravel(),
             np.repeat(sd, S),

@@ -255,7 +255,7 @@ class EngineConfig:
         gp = dict(data.pop("gp", {}) or {})
         if "maxiter" in gp and "bowl_loo" not in gp:  # a whole GPConfig saved before bowl_loo existed: it ran without
             gp["bowl_loo"] = False
-        for k in ("ls_bounds", "os_bounds"):
+        for k in ("ls_bounds", "os_bounds", "warp_bounds"):
             if k in gp:
                 gp[k] = tuple(gp[k])
         return cls(**data, gp=GPConfig(**gp))

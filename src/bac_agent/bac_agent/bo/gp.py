@@ -105,6 +105,19 @@ class GPConfig:
     # engine's own design: the LOO of 3 or 4 runs cost road_c1 on the tuning split, and in 3-D that of 5 or 6 runs
     # cost Hartmann-3, docs/agent.md; the bowl lasts d + 2 runs beyond 4-D, so it is never dropped there)
     bowl_loo_runs: int = 0
+    # a learned input warping (issue 23, opt-in): the kernel sees each input through a Kumaraswamy CDF
+    # 1 − (1 − x^a)^b (BoTorch's `Warp`), its concentrations a, b per dimension learned with the other
+    # hyperparameters under log-normal priors around 1 (the identity) of this sd (BoTorch's tutorial: √0.75) and
+    # within warp_bounds; a, b < 1 stretch the region near the bound 0 or 1, so that a kink or an optimum at a face
+    # or a corner can be resolved. The prior mean (the bowl) stays in the raw coordinates
+    warp: bool = False
+    warp_sd: float = math.sqrt(0.75)
+    warp_bounds: tuple[float, float] = (0.1, 10.0)
+    warp_runs: int = 0  # the warp is learned from this many runs on (the identity before)
+    # > 0 (issue 23, opt-in): the kernel is fitted twice, under the lengthscale prior of sd ls_scale and under one of
+    # this sd (tighter: lengthscales held near the median, which carry the runs' trend on), and the fit whose kernel
+    # predicts the runs left out one at a time better (constant mean) is kept
+    ls_select: float = 0.0
     draws: int = 8  # draws from the prior, screened by their objective
     restarts: int = 1  # best draws optimized, besides the prior mode and the previous fit
     maxiter: int = 200
@@ -118,11 +131,33 @@ class GPConfig:
             raise GPError(
                 f"bowl_slope_sd must be >= 0 and bowl_faces in [0, 1), got {self.bowl_slope_sd}, {self.bowl_faces}"
             )
+        lo, hi = self.warp_bounds
+        if not (self.warp_sd > 0.0 and 0.0 < lo <= 1.0 <= hi < math.inf):
+            raise GPError(f"warp_sd must be > 0 and warp_bounds contain 1, got {self.warp_sd}, {self.warp_bounds}")
         if self.bowl_centres < 1 or not self.bowl_tip > 0.0 or not self.bowl_temper > 0.0:
             raise GPError(
                 f"bowl_centres must be >= 1 and bowl_tip, bowl_temper > 0, got {self.bowl_centres}, "
                 f"{self.bowl_tip}, {self.bowl_temper}"
             )
+
+
+WARP_EPS = 1e-7  # the warp's inputs are mapped into [eps, 1 − eps] first (BoTorch's Warp: finite derivatives)
+
+
+def kumaraswamy(X: FloatArray, a: FloatArray, b: FloatArray) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray]:
+    """The Kumaraswamy CDF u = 1 − (1 − x^a)^b per column of X (n, d) with concentrations a, b (d,), of
+    x = eps + (1 − 2 eps)·clip(X, 0, 1); returns u and its derivatives du/dX, du/d log a, du/d log b (each (n, d))."""
+    x = WARP_EPS + (1.0 - 2.0 * WARP_EPS) * np.clip(X, 0.0, 1.0)
+    lx = np.log(x)
+    p = np.exp(a * lx)  # x^a
+    q = 1.0 - p
+    lq = np.log(q)
+    qb = np.exp(b * lq)  # (1 − x^a)^b
+    common = b * (qb / q) * p  # b q^(b−1) x^a
+    du_dx = (1.0 - 2.0 * WARP_EPS) * common * a / x
+    du_dla = common * a * lx
+    du_dlb = -b * qb * lq
+    return 1.0 - qb, du_dx, du_dla, du_dlb
 
 
 def boundary_centres(d: int, m: int, seed: int) -> FloatArray:
@@ -222,6 +257,22 @@ class Hyper:
     prior: Trend | None = None
     # a linear trend's slope over the unit cube (GPConfig.mean "linear" or "select"), added to ``mean``
     slope: FloatArray | None = None
+    # the input warping's concentrations (2, d): rows a, b of the Kumaraswamy CDF the kernel sees each input
+    # through (GPConfig.warp); None: the kernel sees the inputs themselves
+    warp: FloatArray | None = None
+
+    def kernel_inputs(self, X: FloatArray) -> FloatArray:
+        """The inputs as the kernel sees them: X itself, or warped (``warp``)."""
+        if self.warp is None:
+            return X
+        return kumaraswamy(np.atleast_2d(X), self.warp[0], self.warp[1])[0]
+
+    def kernel_inputs_grad(self, X: FloatArray) -> tuple[FloatArray, FloatArray | None]:
+        """The kernel's inputs and their derivative w.r.t. X, elementwise (None: the identity)."""
+        if self.warp is None:
+            return X, None
+        u, du, _, _ = kumaraswamy(np.atleast_2d(X), self.warp[0], self.warp[1])
+        return u, du
 
     def mean_at(self, Xq: FloatArray) -> FloatArray:
         """The prior mean at the rows of ``Xq`` (standardized units)."""
@@ -249,11 +300,17 @@ class Hyper:
         return v, g
 
     def to_vector(self) -> FloatArray:
-        return np.concatenate([np.log(self.lengthscales), [math.log(self.outputscale), math.log(self.noise)]])
+        v = np.concatenate([np.log(self.lengthscales), [math.log(self.outputscale), math.log(self.noise)]])
+        return v if self.warp is None else np.concatenate([v, np.log(self.warp).ravel()])
 
     @classmethod
-    def from_vector(cls, v: FloatArray) -> Hyper:
+    def from_vector(cls, v: FloatArray, d: int | None = None) -> Hyper:
+        """From log-hyperparameters; with ``d`` and 3d + 2 of them, the last 2d are the warp's (GPConfig.warp)."""
         v = np.asarray(v, dtype=float)
+        if d is not None and v.size == 3 * d + 2:
+            return cls(
+                np.exp(v[:d]), float(math.exp(v[d])), float(math.exp(v[d + 1])), warp=np.exp(v[d + 2 :]).reshape(2, d)
+            )
         return cls(np.exp(v[:-2]), float(math.exp(v[-2])), float(math.exp(v[-1])))
 
     def to_dict(self) -> dict[str, Any]:
@@ -264,6 +321,7 @@ class Hyper:
             "mean": self.mean,
             "bowl": self.bowl.to_dict() if self.bowl is not None else None,
             **({"slope": self.slope.tolist()} if self.slope is not None else {}),
+            **({"warp": self.warp.tolist()} if self.warp is not None else {}),
         }
 
     @classmethod
@@ -275,6 +333,7 @@ class Hyper:
             float(d.get("mean", 0.0)),
             Bowl.from_dict(d["bowl"]) if d.get("bowl") else None,
             slope=np.asarray(d["slope"], dtype=float) if d.get("slope") is not None else None,
+            warp=np.asarray(d["warp"], dtype=float) if d.get("warp") is not None else None,
         )
 
 
@@ -300,6 +359,8 @@ class GP:
         c = self.config
         loc = np.concatenate([np.full(d, c.ls_loc + c.ls_dim_scale * math.log(d)), [c.os_loc, c.noise_loc]])
         scale = np.concatenate([np.full(d, c.ls_scale), [c.os_scale, c.noise_scale]])
+        if c.warp:  # the warp's log-concentrations a, b: around 0 (the identity)
+            loc, scale = np.concatenate([loc, np.zeros(2 * d)]), np.concatenate([scale, np.full(2 * d, c.warp_sd)])
         return loc, scale
 
     def _prior_cached(self, d: int) -> tuple[FloatArray, FloatArray]:
@@ -312,10 +373,15 @@ class GP:
     def _bounds(self, d: int) -> list[tuple[float, float]]:
         c = self.config
         ls = (math.log(c.ls_bounds[0]), math.log(c.ls_bounds[1]))
-        return [ls] * d + [
-            (math.log(c.os_bounds[0]), math.log(c.os_bounds[1])),
-            (math.log(c.noise_floor), math.log(c.noise_ceiling)),
-        ]
+        warp = [(math.log(c.warp_bounds[0]), math.log(c.warp_bounds[1]))] * (2 * d if c.warp else 0)
+        return (
+            [ls] * d
+            + [
+                (math.log(c.os_bounds[0]), math.log(c.os_bounds[1])),
+                (math.log(c.noise_floor), math.log(c.noise_ceiling)),
+            ]
+            + warp
+        )
 
     # --- data ------------------------------------------------------------------------
     def _set_data(self, X: FloatArray, y: FloatArray, scaling: tuple[float, float] | None = None) -> None:
@@ -343,7 +409,10 @@ class GP:
         """
         X, z = self.X, self._z - self._offset
         n, d = X.shape
-        if D2 is None:
+        if self.config.warp:  # the kernel's inputs warped by v's concentrations (v[d + 2:]): D2 of them
+            U, _, dUa, dUb = kumaraswamy(X, np.exp(v[d + 2 : 2 * d + 2]), np.exp(v[2 * d + 2 :]))
+            D2 = ((U[:, None, :] - U[None, :, :]) ** 2).reshape(-1, d)
+        elif D2 is None:
             D2 = self._d2()
         ls2 = np.exp(2.0 * v[:d])
         s2 = math.exp(v[d])
@@ -375,6 +444,13 @@ class GP:
         g_os = 0.5 * float(np.sum(W * Kf))
         g_sn = 0.5 * sn2 * float(np.trace(W))
         grad = np.concatenate([g_ls, [g_os, g_sn]])
+        if self.config.warp:
+            # d r²_ij/dθ_k = 2 (u_ik − u_jk)(∂u_ik − ∂u_jk)/ℓ_k² and dk/dr² = −F/2, so with M = W∘F (symmetric)
+            # d mll/dθ_k = −½ Σ_ij M_ij (u_ik − u_jk)(∂u_ik − ∂u_jk)/ℓ_k² = −Σ_i u_ik (m_i ∂u_ik − (M ∂U)_ik)/ℓ_k²
+            m = M.sum(axis=1)[:, None]
+            g_a = -np.sum(U * (m * dUa - M @ dUa), axis=0) / ls2
+            g_b = -np.sum(U * (m * dUb - M @ dUb), axis=0) / ls2
+            grad = np.concatenate([grad, g_a, g_b])
         loc, scale = self._prior_cached(d)
         lp = -0.5 * float(np.sum(((v - loc) / scale) ** 2))
         glp = -(v - loc) / scale**2
@@ -409,9 +485,10 @@ class GP:
         Closed form (universal kriging, Dubrule 1983; R&W 2006 §5.4.2 with the trend's coefficients integrated
         out): with P = K⁻¹ − K⁻¹H(HᵀK⁻¹H)⁻¹HᵀK⁻¹, run i's left-out residual is (Pz)ᵢ/Pᵢᵢ and its variance 1/Pᵢᵢ.
         """
-        h = Hyper.from_vector(v)
+        h = Hyper.from_vector(v, self.X.shape[1])
         n = self.X.shape[0]
-        K = matern52_from_r2(sq_dist(self.X, self.X, h.lengthscales), h.outputscale)
+        U = h.kernel_inputs(self.X)
+        K = matern52_from_r2(sq_dist(U, U, h.lengthscales), h.outputscale)
         K.flat[:: n + 1] += h.noise + 1e-10 * h.outputscale
         Kinv = sla.cho_solve((np.linalg.cholesky(K), True), np.eye(n), check_finite=False)
         H = self._trend_basis() if linear else np.ones((n, 1))
@@ -440,6 +517,15 @@ class GP:
         With the bowl mean: the kernel's hyperparameters with a constant mean, the bowl under that
         kernel, the hyperparameters again on what the bowl leaves, and the bowl again.
         """
+        if self.config.ls_select > 0.0:
+            return self._fit_ls_select(X, y, rng)
+        if self.config.warp and np.atleast_2d(X).shape[0] < self.config.warp_runs:
+            warped = self.config  # (GPConfig.warp_runs) too few runs to learn the warp: this fit without it
+            self.config = replace(warped, warp=False)
+            try:
+                return self.fit(X, y, rng)
+            finally:
+                self.config = warped
         self._set_data(X, y)
         rng = rng if rng is not None else np.random.default_rng(0)
         self._offset = 0.0
@@ -450,7 +536,7 @@ class GP:
         bowl = None
         v_const = v
         if self.config.mean == "bowl" and self.X.shape[0] >= 3:
-            h0 = Hyper.from_vector(v)
+            h0 = Hyper.from_vector(v, self.X.shape[1])
             ls0 = h0.lengthscales
             scale = np.clip(ls0 / math.exp(float(np.mean(np.log(ls0)))), 1.0 / 3.0, 3.0)
             bowl = self._fit_bowl(h0, scale)
@@ -459,7 +545,7 @@ class GP:
                 self.hyper = h0  # the next fit starts from it
                 v = self._map_hyper(rng)
                 self._offset = 0.0
-                bowl = self._fit_bowl(Hyper.from_vector(v), scale)
+                bowl = self._fit_bowl(Hyper.from_vector(v, self.X.shape[1]), scale)
             if bowl is not None and self._bowl_loo_due():
                 try:
                     const_loo = self.loo_log_predictive(v_const, False)
@@ -468,7 +554,7 @@ class GP:
                 self._const_loo = const_loo  # (shown by bench diagnostics)
                 if const_loo > self._bowl_loo + self.config.bowl_loo_margin:
                     bowl, v = None, v_const
-        self.hyper = Hyper.from_vector(v)
+        self.hyper = Hyper.from_vector(v, self.X.shape[1])
         if bowl is not None and self.config.bowl_slope_sd > 0.0:
             # the bowl's weights carry its probability against a constant mean: the constant given that trend
             self.hyper = replace(self.hyper, bowl=bowl)
@@ -484,6 +570,27 @@ class GP:
             self._factorize(refit_mean=True)
         return self
 
+    def _fit_ls_select(self, X: FloatArray, y: FloatArray, rng: np.random.Generator | None) -> GP:
+        """GPConfig.ls_select: the fit under the configured and under the tighter lengthscale prior, whichever
+        kernel has the better leave-one-out log predictive density of the runs (a constant mean re-estimated)."""
+        c = self.config
+        seed = int((rng if rng is not None else np.random.default_rng(0)).integers(2**63 - 1))
+        best: tuple[float, GP] | None = None
+        for cfg in (replace(c, ls_select=0.0), replace(c, ls_scale=c.ls_select, ls_select=0.0)):
+            gp = GP(cfg, hyper=self.hyper).fit(X, y, np.random.default_rng(seed))
+            assert gp.hyper is not None
+            try:
+                loo = gp.loo_log_predictive(gp.hyper.to_vector(), False)
+            except np.linalg.LinAlgError:
+                loo = -math.inf
+            if best is None or loo > best[0]:
+                best = (loo, gp)
+        assert best is not None
+        for k, v in vars(best[1]).items():
+            if k != "config":
+                setattr(self, k, v)
+        return self
+
     def _bowl_loo_due(self) -> bool:
         """GPConfig.bowl_loo compares the bowl with a constant mean at this many runs (bowl_loo_runs; 0: 2d + 1 and
         at least 5)."""
@@ -493,7 +600,7 @@ class GP:
     def _fit_linear(self, v_const: FloatArray, rng: np.random.Generator) -> FloatArray:
         """The hyperparameters with a linear trend profiled out (sets ``_lin``); with the mean "select", only when
         the linear trend predicts the runs left out one at a time better than the constant (``v_const``'s fit)."""
-        self.hyper = Hyper.from_vector(v_const)  # a start of the linear fit
+        self.hyper = Hyper.from_vector(v_const, self.X.shape[1])  # a start of the linear fit
         self._lin = True
         v_lin = self._map_hyper(rng)
         if self.config.mean == "select":
@@ -516,7 +623,8 @@ class GP:
         c = self.config
         X, z = self.X, self._z
         n, d = X.shape
-        K = matern52_from_r2(sq_dist(X, X, h.lengthscales), h.outputscale)
+        U = h.kernel_inputs(X)
+        K = matern52_from_r2(sq_dist(U, U, h.lengthscales), h.outputscale)
         K.flat[:: n + 1] += h.noise + 1e-10 * h.outputscale
         try:
             Kinv = sla.cho_solve((np.linalg.cholesky(K), True), np.eye(n), check_finite=False)
@@ -625,6 +733,7 @@ class GP:
         lo = np.array([b[0] for b in bounds])
         hi = np.array([b[1] for b in bounds])
         warm = self.hyper is not None and self.hyper.lengthscales.shape[0] == d
+        warm = warm and self.hyper is not None and self.hyper.to_vector().size == loc.size  # (GPConfig.warp)
         if warm_only and warm:
             assert self.hyper is not None
             starts = [np.clip(self.hyper.to_vector(), lo, hi)]
@@ -633,7 +742,7 @@ class GP:
         if warm:
             assert self.hyper is not None
             starts.append(np.clip(self.hyper.to_vector(), lo, hi))
-        draws = [np.clip(loc + scale * rng.standard_normal(d + 2) * 0.7, lo, hi) for _ in range(self.config.draws)]
+        draws = [np.clip(loc + scale * rng.standard_normal(loc.size) * 0.7, lo, hi) for _ in range(self.config.draws)]
         D2 = self._d2()
         if draws:
             # screen the prior draws by their objective; optimize only from the best ones
@@ -679,7 +788,7 @@ class GP:
             self.hyper = hyper
         if self.hyper is None:
             loc, _ = self._prior(self.X.shape[1])
-            self.hyper = Hyper.from_vector(loc)
+            self.hyper = Hyper.from_vector(loc, self.X.shape[1])
         self._factorize(refit_mean=False)
         return self
 
@@ -688,7 +797,8 @@ class GP:
         assert self.hyper is not None
         h = self.hyper
         n = self.X.shape[0]
-        K = matern52_from_r2(sq_dist(self.X, self.X, h.lengthscales), h.outputscale)
+        U = h.kernel_inputs(self.X)
+        K = matern52_from_r2(sq_dist(U, U, h.lengthscales), h.outputscale)
         jitter = 1e-10 * h.outputscale
         for _ in range(6):
             try:
@@ -726,7 +836,7 @@ class GP:
         assert self.hyper is not None
         h = self.hyper
         Xq = np.atleast_2d(np.asarray(Xq, dtype=float))
-        Ks = matern52_from_r2(sq_dist(Xq, self.X, h.lengthscales), h.outputscale)
+        Ks = matern52_from_r2(sq_dist(h.kernel_inputs(Xq), h.kernel_inputs(self.X), h.lengthscales), h.outputscale)
         mu = h.mean_at(Xq) + Ks @ self._alpha
         return mu, latent_var(self._L, Ks, h.outputscale)
 
@@ -738,26 +848,29 @@ class GP:
         assert self.hyper is not None
         h = self.hyper
         Xq = np.atleast_2d(np.asarray(Xq, dtype=float))
-        Ks = matern52_from_r2(sq_dist(Xq, self.X, h.lengthscales), h.outputscale)
+        Ks = matern52_from_r2(sq_dist(h.kernel_inputs(Xq), h.kernel_inputs(self.X), h.lengthscales), h.outputscale)
         return np.asarray(h.mean_at(Xq) + Ks @ self._alpha, dtype=float)
 
     def _mean_with_grad(
         self, Xq: FloatArray
     ) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray, FloatArray, FloatArray]:
-        """Standardized mean and its gradient, with what the std's gradient reuses: (Xq, mu, dmu, Ks, F, il2)."""
+        """Standardized mean and its gradient, with what the std's gradient reuses: (Uq, mu, dmu, Ks, F, il2), Uq the
+        query points as the kernel sees them (Hyper.kernel_inputs: Xq itself without a warp)."""
         if not self.fitted:
             raise GPError("the GP has no data yet")
         assert self.hyper is not None
         h = self.hyper
         Xq = np.atleast_2d(np.asarray(Xq, dtype=float))
         il2 = 1.0 / h.lengthscales**2
-        r2 = sq_dist(Xq, self.X, h.lengthscales)
+        Uq, Jq = h.kernel_inputs_grad(Xq)
+        r2 = sq_dist(Uq, h.kernel_inputs(self.X), h.lengthscales)
         Ks = matern52_from_r2(r2, h.outputscale)
         F = matern52_dr2_factor(r2, h.outputscale)
         m0, dm0 = h.mean_and_grad(Xq)
         Fa = F * self._alpha[None, :]
-        dmu = dm0 - (Xq * Fa.sum(axis=1)[:, None] - Fa @ self.X) * il2
-        return Xq, np.asarray(m0 + Ks @ self._alpha, dtype=float), np.asarray(dmu, dtype=float), Ks, F, il2
+        dk = (Uq * Fa.sum(axis=1)[:, None] - Fa @ h.kernel_inputs(self.X)) * il2
+        dmu = dm0 - (dk if Jq is None else dk * Jq)
+        return Uq, np.asarray(m0 + Ks @ self._alpha, dtype=float), np.asarray(dmu, dtype=float), Ks, F, il2
 
     def predict_mean_with_grad(self, Xq: FloatArray) -> tuple[FloatArray, FloatArray]:
         """Standardized posterior mean and its gradient w.r.t. the query points: (m,), (m, d)."""
@@ -771,10 +884,12 @@ class GP:
 
     def predict_with_grad(self, Xq: FloatArray) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray]:
         """Standardized mean, std and their gradients w.r.t. the query points: (m,), (m,), (m, d), (m, d)."""
-        Xq, mu, dmu, Ks, F, il2 = self._mean_with_grad(Xq)
-        assert self.hyper is not None
-        sd, dsd = latent_sd_with_grad(Xq, self.X, self._L, Ks, F, il2, self.hyper.outputscale)
-        return mu, sd, dmu, dsd
+        Uq, mu, dmu, Ks, F, il2 = self._mean_with_grad(Xq)
+        h = self.hyper
+        assert h is not None
+        sd, dsd = latent_sd_with_grad(Uq, h.kernel_inputs(self.X), self._L, Ks, F, il2, h.outputscale)
+        Jq = h.kernel_inputs_grad(np.atleast_2d(Xq))[1] if h.warp is not None else None
+        return mu, sd, dmu, (dsd if Jq is None else dsd * Jq)
 
 
 def latent_var(L: FloatArray, Ks: FloatArray, outputscale: float) -> FloatArray:

@@ -339,7 +339,7 @@ def fit_with_source(
     """
     n = X.shape[0]
     scaling = (source.loc, source.scale)
-    cfg0 = replace(config, mean="constant")
+    cfg0 = replace(config, mean="constant", warp=False)  # (the input warping is not learned with a source)
     cfg1 = replace(cfg0, os_loc=math.log(settings.residual_os))
     gp0 = GP(cfg0, hyper=previous)
     gp1 = GP(cfg1, hyper=previous)
