@@ -234,7 +234,8 @@ class BoAgentNode(BacNode):
             D.limit_trend,
             "bo with constraints: during the initial design a calibration is proposed only when the outcome's model "
             "with a linear trend allows it too, and the least risky calibration (when none is within "
-            "constraint_level) is judged by that model; false: as before 2026-11-25",
+            "constraint_level) is judged by that model (no effect with safe_start or when every limit has an outcome "
+            "prior); false: as before 2026-11-25, and a campaign journaled without it resumes without it",
             True,
         )
         grid_size = self.declare_int(

@@ -181,6 +181,8 @@ def _build(s: AgentSettings, definition: CalibrationDefinition, cdir: Path, cid:
         and not (isinstance(started_config, dict) and "safe_start" not in started_config)
         else None
     )
+    # a campaign started before limit_trend (its journal has no such key) resumes as it ran: without it
+    limit_trend = s.limit_trend and not (isinstance(started_config, dict) and "limit_trend" not in started_config)
     budget = s.budget
     optimizer: Optimizer
     if s.strategy == "grid":
@@ -212,7 +214,7 @@ def _build(s: AgentSettings, definition: CalibrationDefinition, cdir: Path, cid:
                 constraint_level=s.constraint_level,
                 outcome_priors={k: v.to_dict() for k, v in outcome_sources.items()} or None,
                 safe_start=safe_calibration,
-                limit_trend=s.limit_trend,
+                limit_trend=limit_trend,
             ),
         )
     cfg = CampaignConfig(
@@ -257,7 +259,7 @@ def _build(s: AgentSettings, definition: CalibrationDefinition, cdir: Path, cid:
             # the calibration trial 1 drives and the design grows from (issue 23; {} = none)
             "safe_start": dict(safe_calibration or {}),
             # the retreat's trend judges the design and the least risky calibrations (issue 23, 2026-11-25)
-            "limit_trend": s.limit_trend,
+            "limit_trend": limit_trend,
         },
         outcome_limits=tuple(constraints),
     )

@@ -232,3 +232,18 @@ def test_the_node_passes_every_setting_it_declares() -> None:
         and isinstance(n.args[0], ast.Constant)
     }
     assert passed <= declared, passed - declared
+
+
+def test_limit_trend_is_passed_journaled_and_off_for_a_journal_started_before_it(tmp_path: Path) -> None:
+    limit = ("max_travel_mm<=60",)
+    for flag in (True, False):
+        setup = build_agent(AgentSettings(campaign_dir=str(tmp_path / str(flag)), constraints=limit, limit_trend=flag))
+        setup.journal.close()
+        assert isinstance(setup.optimizer, Engine)
+        assert setup.optimizer.config.limit_trend is flag and setup.config.extra["limit_trend"] is flag
+    # a journal whose campaign_started has no "limit_trend" key ran without it: it resumes without it (not refused)
+    _journal_started(tmp_path / "old", {"constraints": list(limit)})
+    old = build_agent(AgentSettings(campaign_dir=str(tmp_path / "old"), constraints=limit))
+    old.journal.close()
+    assert isinstance(old.optimizer, Engine) and old.optimizer.config.limit_trend is False
+    assert old.config.extra["limit_trend"] is False

@@ -187,7 +187,7 @@ class EngineConfig:
     # bo/constraints.py RETREAT_TREND_SD) judges more than the retreat (issue 23, 2026-11-25): during the initial
     # design a calibration is proposed only when it allows it too (a MAP fit to a few runs in one corner is confident
     # far beyond them: design points at the opposite face broke the limit by 8-15 mm with a predicted probability of
-    # 0.02-0.05), and whenever no calibration is within the level, also after a run kept the limits (a run that broke
+    # 2e-7), and whenever no calibration is within the level, also after a run kept the limits (a run that broke
     # a limit but measured inside it ended the retreat, and the constant-mean model's least risky calibrations then
     # hugged that run). Not with a safe start (its safe set bounds the proposals). Chosen on the tuning instances of
     # bench/outcome_limits.py (12 seeds: 12.2 % -> 11.2 % of the runs broke the limit, every final recommendation
