@@ -104,7 +104,9 @@ class TurboConfig:
             raise ValueError(f"need budget >= 2, batch >= 1, n_initial >= 0; got {self.budget}, {self.batch}")
         if not 0 < self.length_min <= self.length_init <= self.length_max:
             raise ValueError("need 0 < length_min <= length_init <= length_max")
-        GPConfig(**dict(self.gp))  # checked here, not in a worker
+        gp = GPConfig(**dict(self.gp))  # checked here, not in a worker
+        if gp.warp or gp.ls_select:  # the trust region's Thompson draws use the kernel on the raw inputs, one fit
+            raise ValueError("the simulation phase's TuRBO takes neither gp.warp nor gp.ls_select (engine options)")
 
     def gp_config(self) -> GPConfig:
         return GPConfig(**dict(self.gp))

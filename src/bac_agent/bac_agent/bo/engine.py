@@ -1210,7 +1210,15 @@ def _hyper_state(h: Hyper | None) -> dict[str, Any] | None:
     """The part of fitted hyperparameters the next fit starts from (Engine.ask_state), as JSON."""
     if h is None:
         return None
-    return {"lengthscales": h.lengthscales.tolist(), "outputscale": h.outputscale, "noise": h.noise, "mean": h.mean}
+    state: dict[str, Any] = {
+        "lengthscales": h.lengthscales.tolist(),
+        "outputscale": h.outputscale,
+        "noise": h.noise,
+        "mean": h.mean,
+    }
+    if h.warp is not None:  # GPConfig.warp: the next fit starts from the learned warp too
+        state["warp"] = h.warp.tolist()
+    return state
 
 
 def _hyper_of_state(h: Mapping[str, Any] | None) -> Hyper | None:
@@ -1221,4 +1229,5 @@ def _hyper_of_state(h: Mapping[str, Any] | None) -> Hyper | None:
         float(h["outputscale"]),
         float(h["noise"]),
         float(h.get("mean", 0.0)),
+        warp=np.asarray(h["warp"], dtype=float) if h.get("warp") is not None else None,
     )

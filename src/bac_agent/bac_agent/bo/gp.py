@@ -134,6 +134,13 @@ class GPConfig:
         lo, hi = self.warp_bounds
         if not (self.warp_sd > 0.0 and 0.0 < lo <= 1.0 <= hi < math.inf):
             raise GPError(f"warp_sd must be > 0 and warp_bounds contain 1, got {self.warp_sd}, {self.warp_bounds}")
+        if self.warp_runs < 0:
+            raise GPError(f"warp_runs must be >= 0 (0: the warp from the first fit), got {self.warp_runs}")
+        if not (self.ls_select == 0.0 or 0.0 < self.ls_select < self.ls_scale):
+            raise GPError(
+                f"ls_select must be 0 (off) or a lengthscale prior sd tighter than ls_scale {self.ls_scale:g}, got "
+                f"{self.ls_select}"
+            )
         if self.bowl_centres < 1 or not self.bowl_tip > 0.0 or not self.bowl_temper > 0.0:
             raise GPError(
                 f"bowl_centres must be >= 1 and bowl_tip, bowl_temper > 0, got {self.bowl_centres}, "
