@@ -201,18 +201,14 @@ class BoAgentNode(BacNode):
             "without it by the transfer weight (false: the model with the prior alone, as before 2026-11-24)",
             True,
         )
-        constraints = [
-            c
-            for c in self.declare_str_list(
-                "constraints",
-                list(D.constraints),
-                "limits on what a run measures besides J, e.g. peak_accel_z<=6.5 (RunScore outcomes): bo never "
-                "proposes a calibration likely to break one (constraint_level) and recommends within them; a run "
-                "that breaks one is booked and shown",
-                read_only=True,
-            )
-            if c.strip()
-        ]
+        constraints = self.declare_str_list(
+            "constraints",
+            list(D.constraints),
+            "limits on what a run measures besides J, e.g. peak_accel_z<=6.5 (RunScore outcomes): bo never "
+            "proposes a calibration likely to break one (constraint_level) and recommends within them; a run "
+            "that breaks one is booked and shown",
+            read_only=True,
+        )
         constraint_level = self.declare_float(
             "constraint_level",
             D.constraint_level,

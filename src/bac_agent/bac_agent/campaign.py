@@ -531,16 +531,11 @@ class Campaign:
             if isinstance(conf, Mapping):
                 side["config"] = {**ADDED_LATER, **conf}
         confs = [side.get("config") for side in (journaled, mine)]
-        if all(isinstance(c, dict) and c.get("gp_mean", "bowl") != "bowl" for c in confs):
-            for c in confs:  # without the bowl its length changes nothing: not a reason to refuse a resume
-                c.pop("bowl_runs", None)  # type: ignore[union-attr]
-                c.pop("gp_bowl_loo", None)  # type: ignore[union-attr]
-        if all(isinstance(c, dict) and not c.get("prior") for c in confs):
-            for c in confs:  # without a transfer prior the model average changes nothing (outside review D2)
-                c.pop("prior_average", None)  # type: ignore[union-attr]
-        if all(isinstance(c, dict) and not c.get("constraints") for c in confs):
-            for c in confs:  # without outcome limits the retreat's trend changes nothing
-                c.pop("limit_trend", None)  # type: ignore[union-attr]
+        for inert, keys in INERT_UNLESS:  # keys that change nothing on both sides: not a reason to refuse
+            if all(isinstance(c, dict) and inert(c) for c in confs):
+                for c in confs:
+                    for k in keys:
+                        c.pop(k, None)  # type: ignore[union-attr]
         problems, changed = config_differences(journaled, mine)
         if problems:
             raise CampaignError(
@@ -1017,6 +1012,14 @@ ADDED_LATER: Mapping[str, Any] = {
     "gp_bowl_loo": False,
     "limit_trend": False,
 }
+# configuration keys that change nothing where what they act on is absent, with the test for that absence: a
+# difference in them does not refuse a resume (the bowl's length and leave-one-out check without the bowl; the model
+# average without a transfer prior, outside review D2; the retreat's trend without outcome limits)
+INERT_UNLESS: tuple[tuple[Callable[[Mapping[str, Any]], bool], tuple[str, ...]], ...] = (
+    (lambda c: c.get("gp_mean", "bowl") != "bowl", ("bowl_runs", "gp_bowl_loo")),
+    (lambda c: not c.get("prior"), ("prior_average",)),
+    (lambda c: not c.get("constraints"), ("limit_trend",)),
+)
 _MISSING = object()
 
 

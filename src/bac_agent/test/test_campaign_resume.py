@@ -751,28 +751,16 @@ def test_the_bowl_length_does_not_refuse_a_resume_without_the_bowl(tmp_path: Pat
     assert resumed["changed"] == []
 
 
-def test_the_model_average_does_not_refuse_a_resume_without_a_prior(tmp_path: Path) -> None:
-    """prior_average is journaled whatever the prior; without one it changes nothing, so a campaign journaled
-    before it existed (no key: ADDED_LATER's false) resumes with the default (true) (outside review D2: every such
-    journal was refused)."""
+@pytest.mark.parametrize("key", ["prior_average", "limit_trend"])
+def test_a_key_that_changes_nothing_here_does_not_refuse_a_resume(tmp_path: Path, key: str) -> None:
+    """prior_average and limit_trend are journaled whatever the prior and the limits; without a prior, without
+    limits, they change nothing, so a campaign journaled before they existed (no key: ADDED_LATER's false) resumes
+    with the default (true) (outside review D2: every such journal was refused)."""
     chain = start(tmp_path, Clock())
     for _ in range(3):
         chain.step()
     chain.c.journal.close()
-    again = start(tmp_path, Clock(), cfg=config(extra=_extra(prior_average=True)))
-    assert again.pending is not None
-    (resumed,) = [e for e in again.c.journal.events if e["event"] == "campaign_resumed"]
-    assert resumed["changed"] == []
-
-
-def test_the_retreats_trend_does_not_refuse_a_resume_without_limits(tmp_path: Path) -> None:
-    """limit_trend is journaled whatever the limits; without any it changes nothing, so a campaign journaled before
-    it existed (no key: ADDED_LATER's false) resumes with the default (true)."""
-    chain = start(tmp_path, Clock())
-    for _ in range(3):
-        chain.step()
-    chain.c.journal.close()
-    again = start(tmp_path, Clock(), cfg=config(extra=_extra(limit_trend=True)))
+    again = start(tmp_path, Clock(), cfg=config(extra=_extra(**{key: True})))
     assert again.pending is not None
     (resumed,) = [e for e in again.c.journal.events if e["event"] == "campaign_resumed"]
     assert resumed["changed"] == []
