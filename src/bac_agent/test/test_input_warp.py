@@ -108,7 +108,7 @@ def test_without_the_warp_the_model_is_the_plain_one() -> None:
     np.testing.assert_allclose(pinned.hyper.warp, 1.0)
     np.testing.assert_allclose(pinned.hyper.lengthscales, plain.hyper.lengthscales, rtol=1e-4)
     np.testing.assert_allclose(pinned.predict(Q)[0], plain.predict(Q)[0], rtol=1e-5, atol=1e-6)
-    # the same hyperparameters with the warp dropped: the warp was the only difference
+    # the learned warp survives the saved state (to_dict, JSON, from_dict)
     back = Hyper.from_dict(json.loads(json.dumps(pinned.hyper.to_dict())))
     np.testing.assert_array_equal(back.warp, pinned.hyper.warp)
     with pytest.raises(GPError, match="warp"):
