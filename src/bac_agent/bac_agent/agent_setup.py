@@ -133,7 +133,8 @@ def build_agent(s: AgentSettings) -> AgentSetup:
     """Load the definition and the prior sources, open the journal, build the optimizer and the configuration.
 
     Raises :class:`BacError` (the journal closed again) when the campaign folder holds a journal and ``resume``
-    is false; a prior source that cannot be read raises its own error (``TransferError``)."""
+    is false; a prior source that cannot be read raises its own error (``TransferError``), the journal closed
+    and, if it was empty, removed with the campaign folder if this call created it (nothing is left to resume)."""
     if s.strategy not in STRATEGIES:
         raise BacError(f"unknown strategy {s.strategy!r}: one of {', '.join(STRATEGIES)}")
     if s.start_from not in START_FROM:
@@ -141,7 +142,11 @@ def build_agent(s: AgentSettings) -> AgentSetup:
     definition = CalibrationDefinition.load(resolve_definition(s.definition_file))
     cdir = Path(s.campaign_dir).expanduser()
     cid = s.campaign_id or cdir.resolve().name
+    # a refused build removes an empty journal and a folder this call created: a wrong prior_source leaves no
+    # empty journal.jsonl behind (before 2026-11-25 it did)
+    created_dir = not cdir.exists()
     journal = Journal(cdir)
+    empty_at_open = len(journal) == 0 and journal.path.stat().st_size == 0
     if len(journal) and not s.resume:
         journal.close()
         raise BacError(f"{cdir} already holds a campaign journal and resume is false: choose a new campaign_dir")
@@ -149,7 +154,16 @@ def build_agent(s: AgentSettings) -> AgentSetup:
         return _build(s, definition, cdir, cid, journal)
     except BaseException:
         journal.close()
+        _remove_if_empty(journal.path if empty_at_open else None, cdir if created_dir else None)
         raise
+
+
+def _remove_if_empty(path: Path | None, folder: Path | None) -> None:
+    """Remove a journal file and a campaign folder a refused build created, if still empty (nothing else)."""
+    if path is not None and path.exists() and path.stat().st_size == 0:
+        path.unlink()
+    if folder is not None and folder.is_dir() and not any(folder.iterdir()):
+        folder.rmdir()
 
 
 def _build(s: AgentSettings, definition: CalibrationDefinition, cdir: Path, cid: str, journal: Journal) -> AgentSetup:

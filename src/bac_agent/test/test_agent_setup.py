@@ -117,13 +117,31 @@ def test_the_verifier_accepts_an_echo_within_one_lsb_and_names_what_differs() ->
     assert problem is not None and problem.startswith(f"{name}=")
 
 
-def test_a_prior_source_that_cannot_be_read_closes_the_journal_it_opened(
+def test_a_prior_source_that_cannot_be_read_closes_the_journal_it_opened_and_leaves_nothing(
     tmp_path: Path, monkeypatch: pytest.MonkeyPatch
 ) -> None:
     closed = _record_closes(monkeypatch)
     with pytest.raises(BacError, match="nowhere"):
         build_agent(AgentSettings(campaign_dir=str(tmp_path / "c"), prior_source=str(tmp_path / "nowhere")))
     assert closed == [tmp_path / "c"]
+    assert not (tmp_path / "c").exists()  # the folder it created, with its empty journal, is gone
+    # a folder that was there keeps its other files; only the empty journal this start made is removed
+    kept = tmp_path / "k"
+    kept.mkdir()
+    (kept / "notes.txt").write_text("the driver's notes")
+    with pytest.raises(BacError, match="nowhere"):
+        build_agent(AgentSettings(campaign_dir=str(kept), prior_source=str(tmp_path / "nowhere")))
+    assert sorted(p.name for p in kept.iterdir()) == ["notes.txt"]
+    # and the settings, mended, start the campaign there
+    build_agent(AgentSettings(campaign_dir=str(kept))).journal.close()
+
+
+def test_a_refused_resume_leaves_the_journal_as_it_was(tmp_path: Path) -> None:
+    _journal_started(tmp_path, {})
+    before = (tmp_path / "journal.jsonl").read_bytes()
+    with pytest.raises(BacError, match="nowhere"):
+        build_agent(AgentSettings(campaign_dir=str(tmp_path), resume=True, prior_source=str(tmp_path / "nowhere")))
+    assert (tmp_path / "journal.jsonl").read_bytes() == before
 
 
 def _definition_with_guess(tmp_path: Path) -> Path:
