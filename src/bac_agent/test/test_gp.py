@@ -414,3 +414,28 @@ def test_bowl_loo_keeps_the_bowl_on_a_cone_and_drops_it_on_a_tilt() -> None:
     dropped3 = GP(GPConfig(bowl_loo=True, bowl_loo_runs=5)).fit(X3, y, np.random.default_rng(0))
     assert kept3.hyper is not None and kept3.hyper.bowl is not None
     assert dropped3.hyper is not None and dropped3.hyper.bowl is None
+
+
+@pytest.mark.parametrize(
+    ("change", "message"),
+    [
+        ({"warp": [[1.0, 1.0, 1.0]]}, r"warp of shape \(1, 3\) \(expected \(2, 2\)"),
+        ({"warp": [[1.0, 1.0], [1.0, -0.5]]}, r"warp of shape \(2, 2\) \(expected \(2, 2\), positive\)"),
+        ({"slope": [0.1, 0.2, 0.3]}, r"slope of shape \(3,\) \(expected \(2,\)\)"),
+        ({"lengthscales": [0.3, 0.0]}, r"lengthscales \[0.3, 0.0\]"),
+        ({"noise": -1e-3}, r"noise -0.001 \(positive\)"),
+    ],
+)
+def test_saved_hyperparameters_that_do_not_fit_together_are_refused_by_name(
+    change: dict[str, object], message: str
+) -> None:
+    good = {
+        "lengthscales": [0.3, 0.5],
+        "outputscale": 1.2,
+        "noise": 1e-3,
+        "slope": [0.1, -0.2],
+        "warp": [[1, 2], [3, 4]],
+    }
+    Hyper.from_dict(good)  # reads
+    with pytest.raises(GPError, match=message):
+        Hyper.from_dict({**good, **change})

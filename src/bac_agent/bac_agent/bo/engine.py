@@ -41,7 +41,7 @@ from scipy.optimize import minimize
 from bac_agent.bo.acquisition import NoisyEI, log_ei, log_ei_with_grad
 from bac_agent.bo.constraints import OutcomeLimit, OutcomeModels, parse_limits, violations
 from bac_agent.bo.design import candidates, default_n_initial, initial_design
-from bac_agent.bo.gp import GP, GPConfig, Hyper
+from bac_agent.bo.gp import GP, GPConfig, GPError, Hyper
 from bac_agent.bo.prior import SourceSurface, TransferFit, TransferSettings, fit_with_source, without_source
 from bac_agent.bo.space import SearchSpace
 from bac_agent.bo.warp import WARPS, OutputWarp
@@ -1172,7 +1172,7 @@ class Engine:
             eng.rng.bit_generator.state = data["rng"]
             if data.get("hyper"):
                 eng._gp.hyper = Hyper.from_dict(data["hyper"])
-        except (KeyError, TypeError) as exc:
+        except (KeyError, TypeError, GPError) as exc:
             raise EngineError(f"malformed engine state: {exc}") from exc
         return eng
 

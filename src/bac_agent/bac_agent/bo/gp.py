@@ -333,8 +333,11 @@ class Hyper:
 
     @classmethod
     def from_dict(cls, d: dict[str, Any]) -> Hyper:
-        return cls(
-            np.asarray(d["lengthscales"], dtype=float),
+        """Read :meth:`to_dict`'s output back; a saved state whose shapes do not fit together (the lengthscales'
+        dimension against the slope's and the warp's (2, d)) or whose scales are not positive raises GPError."""
+        ls = np.asarray(d["lengthscales"], dtype=float)
+        h = cls(
+            ls,
             float(d["outputscale"]),
             float(d["noise"]),
             float(d.get("mean", 0.0)),
@@ -342,6 +345,19 @@ class Hyper:
             slope=np.asarray(d["slope"], dtype=float) if d.get("slope") is not None else None,
             warp=np.asarray(d["warp"], dtype=float) if d.get("warp") is not None else None,
         )
+        dim = ls.size
+        problems = []
+        if ls.ndim != 1 or dim == 0 or not np.all(np.isfinite(ls) & (ls > 0)):
+            problems.append(f"lengthscales {ls.tolist()} (positive, one per dimension)")
+        if not (h.outputscale > 0 and h.noise > 0 and math.isfinite(h.outputscale) and math.isfinite(h.noise)):
+            problems.append(f"outputscale {h.outputscale}, noise {h.noise} (positive)")
+        if h.slope is not None and h.slope.shape != (dim,):
+            problems.append(f"slope of shape {h.slope.shape} (expected ({dim},))")
+        if h.warp is not None and (h.warp.shape != (2, dim) or not np.all(np.isfinite(h.warp) & (h.warp > 0))):
+            problems.append(f"warp of shape {h.warp.shape} (expected (2, {dim}), positive)")
+        if problems:
+            raise GPError("saved hyperparameters do not fit together: " + "; ".join(problems))
+        return h
 
 
 @dataclass
