@@ -232,3 +232,55 @@ def test_limit_trend_reads_back_false_from_a_state_saved_before_it() -> None:
     assert not Engine.from_state_dict(state).config.limit_trend
     # an override dict without it gets the default
     assert EngineConfig.from_dict({"budget": 5}).limit_trend
+
+
+# --- limit_trend_far (issue 23, 2026-11-25; opt-in) -----------------------------------------------------------------
+
+FAR_RUNS = (
+    ((0.9, 0.57), 1.0),
+    ((0.78, 0.65), 0.9),
+    ((0.86, 0.84), 0.95),
+    ((0.7, 0.9), 0.85),
+    ((0.95, 0.75), 1.05),
+    ((0.72, 0.7), 0.83),
+)
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_after_the_design_a_calibration_far_from_every_run_is_judged_by_the_trend_with_limit_trend_far(
+    seed: int,
+) -> None:
+    # travel 80 - 40 a, limit 60 (kept where a >= 0.5); six runs on the stiff side (a 0.7-0.95, 42-52 mm), J better
+    # towards a = 0. Far from the runs the constant-mean model reverts to the runs' mean (~47 mm): the acquisition
+    # proposed a = 0.39, 0.41 from every run, at a predicted 49.6 +- 4.1 mm (p 0.006), whose travel is 64.3 mm
+    # (the later runs of bench/outcome_limits.py that broke the limit far from every run). With limit_trend_far 0.2
+    # a calibration farther than 0.2 from every run must be allowed by the retreat's trend model too: the proposal
+    # stays within 0.2 of the runs and keeps the limit
+    def ask(far: float) -> np.ndarray:
+        eng = Engine(
+            {"a": (0.0, 1.0), "b": (0.0, 1.0)},
+            EngineConfig(budget=20, seed=seed, constraints=("travel<=60",), limit_trend_far=far),
+        )
+        for (a, b), j in FAR_RUNS:
+            eng.tell({"a": a, "b": b}, j, {"travel": 80.0 - 40.0 * a})
+        s = eng.ask_with_info()
+        assert s.kind == "optimized" and "no_safe_candidate" not in s.info
+        return np.array([s.params["a"], s.params["b"]])
+
+    X = np.array([r[0] for r in FAR_RUNS])
+    before, after = ask(0.0), ask(0.2)
+    assert 80.0 - 40.0 * before[0] > 62.0, before  # the default: off, as before
+    assert np.min(np.linalg.norm(X - after, axis=1)) <= 0.2 + 1e-9, after
+    assert 80.0 - 40.0 * after[0] <= 60.0, after
+
+
+def test_limit_trend_far_is_validated_and_reads_back_off_from_a_state_saved_before_it() -> None:
+    with pytest.raises(EngineError, match="limit_trend_far"):
+        EngineConfig(limit_trend_far=-0.1)
+    with pytest.raises(EngineError, match="limit_trend_far"):
+        EngineConfig(limit_trend_far=float("nan"))
+    eng = Engine({"a": (0.0, 1.0)}, EngineConfig(budget=5, constraints=("travel<=44",), limit_trend_far=0.2))
+    state = eng.state_dict()
+    assert Engine.from_state_dict(state).config.limit_trend_far == 0.2
+    del state["config"]["limit_trend_far"]  # an engine state written before it: off, as it ran
+    assert Engine.from_state_dict(state).config.limit_trend_far == 0.0
