@@ -258,9 +258,9 @@ def test_with_a_safe_start_the_retreats_trend_is_not_used(seed: int, monkeypatch
     calls = []
     real = OutcomeModels.retreat_prob
 
-    def spy(self: OutcomeModels, U: np.ndarray, measured: bool = True) -> np.ndarray:
+    def spy(self: OutcomeModels, U: np.ndarray) -> np.ndarray:
         calls.append(np.atleast_2d(U).shape[0])
-        return real(self, U, measured)
+        return real(self, U)
 
     monkeypatch.setattr(OutcomeModels, "retreat_prob", spy)
     on = _whole_campaign(seed, safe_start=SAFE, limit_trend_far=0.1)

@@ -289,14 +289,12 @@ class OutcomeModel:
         mean = float(np.mean(v))
         return mean, max(float(np.std(v)), abs(self.limit.bound - mean), 1e-6 * max(1.0, abs(mean)))
 
-    def retreat_prob(self, U: FloatArray, measured: bool = True, margin: bool = False) -> FloatArray:
+    def retreat_prob(self, U: FloatArray) -> FloatArray:
         """The probability that a run at the rows of ``U`` breaks the limit under the model with a linear trend (see
-        RETREAT_TREND_SD; the outcome's own model with a source, before a run, or with the trend off); ``measured``
-        False: that the calibration's true outcome is beyond it (the latent variance alone); ``margin``: the latent
-        mean's distance beyond the limit instead (in the runs' spread; the own model's: in its scale)."""
+        RETREAT_TREND_SD; the outcome's own model with a source, before a run, or with the trend off)."""
         U = np.atleast_2d(U)
         if self.source is not None or self._data is None or RETREAT_TREND_SD <= 0.0:
-            return self.margin(U) if margin else self.prob_violation(U, measured)
+            return self.prob_violation(U)
         X, v = self._data
         mean, spread = self._few_run_scale(v)
         z = (v - mean) / spread
@@ -317,10 +315,8 @@ class OutcomeModel:
         mu = beta + V @ (z - beta)
         R = 1.0 - V @ one
         var = kss - np.sum(V * ks, axis=1) + R * R / a
+        sd = np.sqrt(np.maximum(var, 1e-12) + h.noise)
         b = (self.limit.bound - mean) / spread
-        if margin:  # the latent mean's distance beyond the limit (in the values' spread)
-            return np.asarray(mu - b if self.limit.upper else b - mu, dtype=float)
-        sd = np.sqrt(np.maximum(var, 1e-12) + (h.noise if measured else 0.0))
         t = (b - mu) / sd if self.limit.upper else (mu - b) / sd
         return np.asarray(1.0 - ndtr(t), dtype=float)
 
@@ -477,15 +473,6 @@ class OutcomeModel:
         ratio = np.exp(-0.5 * t * t - 0.5 * math.log(2.0 * math.pi) - lf)  # φ(t) / Φ(t)
         return np.asarray(lf, dtype=float), np.asarray(ratio[:, None] * dt, dtype=float)
 
-    def margin(self, U: FloatArray) -> FloatArray:
-        """The posterior mean's distance beyond the limit, in the model's scale (negative: within it)."""
-        if not self.fitted:
-            return np.zeros(np.atleast_2d(U).shape[0])
-        mu, _ = self.predict(U)
-        _, scale = self._scaling()
-        d = (mu - self.limit.bound) if self.limit.upper else (self.limit.bound - mu)
-        return np.asarray(d / scale, dtype=float)
-
     def predict(self, U: FloatArray) -> tuple[FloatArray, FloatArray]:
         """Posterior mean and std of the outcome, in its units."""
         if not self.fitted:
@@ -538,16 +525,12 @@ class OutcomeModels:
             return np.zeros((U.shape[0], 0))
         return np.column_stack([m.prob_violation(U, measured) for m in self.models])
 
-    def retreat_prob(self, U: FloatArray, measured: bool = True, margin: bool = False) -> FloatArray:
-        """(m,): the largest probability that a run breaks a limit, under the retreat's models (RETREAT_TREND_SD;
-        ``measured`` False: that the true outcome is beyond it; ``margin``: the largest latent mean's distance beyond
-        a limit instead, in each outcome's spread)."""
+    def retreat_prob(self, U: FloatArray) -> FloatArray:
+        """(m,): the largest probability that a run breaks a limit, under the retreat's models (RETREAT_TREND_SD)."""
         U = np.atleast_2d(U)
         if not self.models:
             return np.zeros(U.shape[0])
-        return np.asarray(
-            np.max(np.column_stack([m.retreat_prob(U, measured, margin) for m in self.models]), axis=1), dtype=float
-        )
+        return np.asarray(np.max(np.column_stack([m.retreat_prob(U) for m in self.models]), axis=1), dtype=float)
 
     def allowed(self, U: FloatArray, measured: bool = True) -> NDArray[np.bool_]:
         """Points whose probability of breaking any limit is at most the level."""

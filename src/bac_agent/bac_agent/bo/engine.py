@@ -60,9 +60,7 @@ KIND_RANDOM = "random"
 KIND_GRID = "grid"
 ACQUISITIONS = ("ei", "nei")
 RULES = ("mean", "observed", "best_run")  # Engine.recommend(rule)
-LIMIT_FALLBACKS = ("measured", "latent", "avoid", "mean")  # EngineConfig.limit_fallback
 TREND_MODEL = "the retreat's model with a linear trend"  # named in the least risky calibration's warning
-FALLBACK_AVOID_RADIUS = 0.05  # unit cube: limit_fallback "avoid" keeps this far from a run that broke a limit
 # a safe start's design grows from the runs that kept every limit by steps (SafeOpt's safe set, Sui et al. 2015: a
 # calibration is safe when a safe run's margin to the limit exceeds the Lipschitz constant times the distance), not
 # by the outcome model's extrapolation alone: fitted to a few runs close together it is confident far beyond them
@@ -204,13 +202,6 @@ class EngineConfig:
     # of 3600 (seeds 0-35), final keeps and gaps as before; a small gain, measured in 2-D only (in many dimensions
     # nearly every candidate is that far from every run): not the default (docs/agent.md)
     limit_trend_far: float = 0.0
-    # how the least risky calibration is ranked after a run kept the limits, when no calibration is within the level
-    # (issue 23, 2026-11-25; the deadlock where a limit lies within a run's scatter of the best outcome anywhere):
-    # "measured" (as before) the probability that a run measures beyond a limit; "latent" that the calibration's true
-    # outcome is beyond it (the run noise left out: it is the same everywhere and pulls every probability to 0.5);
-    # "avoid" as "measured" but never within FALLBACK_AVOID_RADIUS of a run that measured beyond a limit while
-    # other candidates remain
-    limit_fallback: str = "measured"
 
     def __post_init__(self) -> None:
         if self.budget < 1:
@@ -243,10 +234,6 @@ class EngineConfig:
             raise EngineError(f"constraint_level must be in (0, 1), got {self.constraint_level}")
         if not (math.isfinite(self.limit_trend_far) and self.limit_trend_far >= 0.0):
             raise EngineError(f"limit_trend_far must be >= 0 (0 = off), got {self.limit_trend_far}")
-        if self.limit_fallback not in LIMIT_FALLBACKS:
-            raise EngineError(
-                f"limit_fallback must be one of {', '.join(LIMIT_FALLBACKS)}, got {self.limit_fallback!r}"
-            )
         limited = {lim.name for lim in parse_limits(self.constraints)}
         unknown = sorted(set(self.outcome_priors or {}) - limited)
         if unknown:
@@ -710,40 +697,12 @@ class Engine:
             f"{' under ' + model if model else ''})"
         )
 
-    @property
-    def _risk_model(self) -> str:
-        """The model that ranks the least risky calibrations after a run kept the limits (see _fallback_risk)."""
-        what = "that its true outcome breaks a limit, " if self.config.limit_fallback == "latent" else ""
-        return f"{what}{TREND_MODEL}" if self._limit_trend else what.rstrip(", ")
-
-    def _fallback_p(self, u: FloatArray, outc: OutcomeModels) -> float:
-        """The probability said with the least risky calibration ``u`` (1, d): of the model that chose it."""
-        latent = self.config.limit_fallback == "latent"
+    def _fallback_risk(self, cand: FloatArray, outc: OutcomeModels) -> FloatArray:
+        """The risk by which the least risky calibration is chosen when none is within the level: with limit_trend the
+        retreat's model's probability, else the outcome models'."""
         if self._limit_trend:
-            return float(outc.retreat_prob(u, not latent)[0])
-        return float(outc.prob_violation(u, not latent).max())
-
-    def _fallback_risk(self, cand: FloatArray, outc: OutcomeModels, avoid: bool = True) -> FloatArray:
-        """The risk by which the least risky calibration is chosen when none is within the level (limit_trend: the
-        retreat's model's; limit_fallback: see EngineConfig)."""
-        measured = self.config.limit_fallback != "latent"
-        if self.config.limit_fallback == "mean":
-            if self._limit_trend:
-                return outc.retreat_prob(cand, margin=True)
-            return np.asarray(np.max(np.column_stack([m.margin(cand) for m in outc.models]), axis=1), dtype=float)
-        if self._limit_trend:
-            risk = outc.retreat_prob(cand, measured)
-        else:
-            risk = outc.prob_violation(cand, measured).max(axis=1)
-        if avoid and self.config.limit_fallback == "avoid" and self.observations:
-            broke = ~outc.observed_ok([o.outcomes for o in self.observations])
-            if np.any(broke):
-                B = self._obs_unit()[broke]
-                d2 = np.min(np.sum((cand[:, None, :] - B[None, :, :]) ** 2, axis=2), axis=1)
-                near = d2 < FALLBACK_AVOID_RADIUS**2
-                if not np.all(near):
-                    risk = np.where(near, np.inf, risk)
-        return np.asarray(risk, dtype=float)
+            return outc.retreat_prob(cand)
+        return np.asarray(outc.prob_violation(cand).max(axis=1), dtype=float)
 
     def _random_allowed(self) -> FloatArray:
         """A random point, within the outcome limits' level when they are modelled."""
@@ -775,6 +734,10 @@ class Engine:
                 info["transfer"] = self._transfer_dict()
         if self._outcomes_known():
             info["outcomes"] = self._outcome_models().describe(U)
+            if "no_safe_candidate" in info:  # the user is told what the model expects there, with the numbers
+                info["no_safe_candidate"] += "; the outcome models predict there " + ", ".join(
+                    f"{lim}: {v['mean']:.4g} +- {v['std']:.2g}" for lim, v in info["outcomes"].items()
+                )
         return Suggestion(params, kind, mean, std, info)
 
     def _obs_unit(self) -> FloatArray:
@@ -970,7 +933,7 @@ class Engine:
                     self._no_safe_candidate(float(outc.prob_violation(safe[0]).max(axis=1).min()))
                     return np.asarray(safe[0][int(np.argmax(safe[1]))], dtype=float)
             i = int(np.argmin(worst))
-            self._no_safe_candidate(self._fallback_p(cand[i : i + 1], outc), self._risk_model)
+            self._no_safe_candidate(float(worst[i]), TREND_MODEL if self._limit_trend else "")
             return np.asarray(cand[i], dtype=float)
         acq = np.where(ok, acq_values(cand), -np.inf)
         order = np.argsort(-acq)
