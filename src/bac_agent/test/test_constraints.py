@@ -284,3 +284,48 @@ def test_limit_trend_far_is_validated_and_reads_back_off_from_a_state_saved_befo
     assert Engine.from_state_dict(state).config.limit_trend_far == 0.2
     del state["config"]["limit_trend_far"]  # an engine state written before it: off, as it ran
     assert Engine.from_state_dict(state).config.limit_trend_far == 0.0
+
+
+# --- the least risky calibration's warning, the safe start without the trend (issue 23, 2026-11-25) ------------------
+
+JUST_INSIDE_RUNS = (
+    ((0.2, 0.5), 70.0, 1.0),
+    ((0.5, 0.2), 66.5, 0.9),
+    ((0.8, 0.5), 62.8, 0.95),
+    ((0.5, 0.8), 66.0, 0.97),
+    ((0.3, 0.3), 69.0, 1.1),
+)
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_the_least_risky_warning_gives_the_probability_of_the_model_that_chose_it(seed: int) -> None:
+    # nothing is within the level after a run kept the limit (the runs of the test above): the retreat's model with a
+    # linear trend chose the calibration (limit_trend), and the warning reported the constant-mean model's
+    # probability there (0.57 where the trend's is 0.34): it gives the trend model's, and names that model
+    eng = Engine({"a": (0.0, 1.0), "b": (0.0, 1.0)}, EngineConfig(budget=20, seed=seed, constraints=("travel<=63",)))
+    for (a, b), travel, j in JUST_INSIDE_RUNS:
+        eng.tell({"a": a, "b": b}, j, {"travel": travel})
+    s = eng.ask_with_info()
+    u = np.array([[s.params["a"], s.params["b"]]])
+    said = s.info["no_safe_candidate"]
+    p_trend = float(eng._outcomes.retreat_prob(u)[0])
+    p_const = float(eng._outcomes.prob_violation(u).max())
+    assert abs(p_trend - p_const) > 0.05, (p_trend, p_const)
+    assert f"({p_trend:.2f} under the retreat's model with a linear trend)" in said, (said, p_trend, p_const)
+    pred = s.info["outcomes"]["travel <= 63"]
+    assert said.endswith(f"; the outcome models predict there travel <= 63: {pred['mean']:.4g} +- {pred['std']:.2g}"), (
+        said
+    )
+    # without limit_trend the constant-mean model chooses, and its probability is said
+    old = Engine(
+        {"a": (0.0, 1.0), "b": (0.0, 1.0)},
+        EngineConfig(budget=20, seed=seed, constraints=("travel<=63",), limit_trend=False),
+    )
+    for (a, b), travel, j in JUST_INSIDE_RUNS:
+        old.tell({"a": a, "b": b}, j, {"travel": travel})
+    s_old = old.ask_with_info()
+    u_old = np.array([[s_old.params["a"], s_old.params["b"]]])
+    assert (
+        f"({float(old._outcomes.prob_violation(u_old).max()):.2f}); the outcome models predict there"
+        in s_old.info["no_safe_candidate"]
+    )

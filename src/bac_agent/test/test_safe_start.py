@@ -231,3 +231,41 @@ def test_every_proposal_as_the_ecu_holds_it_stays_in_the_safe_set(res: float) ->
             eng.tell(s.params, j_of(u) + 0.005 * rng.standard_normal(), {"max_travel_mm": travel_of(u) + rng.normal()})
     assert checked >= 30
     assert outside == []
+
+
+def _whole_campaign(seed: int, **over: object) -> list[tuple[float, float]]:
+    eng = _engine(seed, **over)
+    rng = np.random.default_rng(seed)
+    asked = []
+    for _ in range(eng.config.budget):
+        p = eng.ask()
+        u = np.array([p["a"], p["b"]])
+        asked.append((p["a"], p["b"]))
+        eng.tell(
+            p, j_of(u) + 0.005 * rng.standard_normal(), {"max_travel_mm": travel_of(u) + 1.0 * rng.standard_normal()}
+        )
+    return asked
+
+
+@pytest.mark.parametrize("seed", [0, 1])
+def test_with_a_safe_start_the_retreats_trend_is_not_used(seed: int, monkeypatch: pytest.MonkeyPatch) -> None:
+    # limit_trend (the retreat's model with a linear trend judging the design, the least risky calibrations and,
+    # with limit_trend_far, the calibrations far from every run) is not used with a safe start, whose safe set
+    # bounds the proposals (docs/agent.md, issue 23): a whole campaign asks the same with limit_trend on and off,
+    # and never consults the trend; without a safe start it does
+    from bac_agent.bo.constraints import OutcomeModels
+
+    calls = []
+    real = OutcomeModels.retreat_prob
+
+    def spy(self: OutcomeModels, U: np.ndarray) -> np.ndarray:
+        calls.append(np.atleast_2d(U).shape[0])
+        return real(self, U)
+
+    monkeypatch.setattr(OutcomeModels, "retreat_prob", spy)
+    on = _whole_campaign(seed, safe_start=SAFE, limit_trend_far=0.1)
+    assert not calls
+    off = _whole_campaign(seed, safe_start=SAFE, limit_trend_far=0.1, limit_trend=False)
+    assert on == off
+    _whole_campaign(seed)  # no safe start: the trend judges the design
+    assert calls

@@ -60,6 +60,7 @@ KIND_RANDOM = "random"
 KIND_GRID = "grid"
 ACQUISITIONS = ("ei", "nei")
 RULES = ("mean", "observed", "best_run")  # Engine.recommend(rule)
+TREND_MODEL = "the retreat's model with a linear trend"  # named in the least risky calibration's warning
 # a safe start's design grows from the runs that kept every limit by steps (SafeOpt's safe set, Sui et al. 2015: a
 # calibration is safe when a safe run's margin to the limit exceeds the Lipschitz constant times the distance), not
 # by the outcome model's extrapolation alone: fitted to a few runs close together it is confident far beyond them
@@ -551,8 +552,10 @@ class Engine:
         if not np.any(ok):
             # no run has kept every limit yet: the retreat (a linear trend gives it a direction); else the least risky
             # (with limit_trend judged by the retreat's model too)
-            i = int(np.argmin(outc.retreat_prob(cand) if self._trend_fallback() else p))
-            self._no_safe_candidate(float(p[i]))
+            trend = self._trend_fallback()
+            risk = outc.retreat_prob(cand) if trend else p
+            i = int(np.argmin(risk))
+            self._no_safe_candidate(float(risk[i]), TREND_MODEL if trend else "")
             return np.asarray(cand[i], dtype=float)
         d2 = np.where(ok, np.sum((cand - u) ** 2, axis=1), np.inf)
         return np.asarray(cand[int(np.argmin(d2))], dtype=float)
@@ -685,12 +688,21 @@ class Engine:
                 "those least likely to break them"
             )
 
-    def _no_safe_candidate(self, p_violation: float) -> None:
-        """Said with the proposal (the campaign logs it as a warning and journals it)."""
+    def _no_safe_candidate(self, p_violation: float, model: str = "") -> None:
+        """Said with the proposal (the campaign logs it as a warning and journals it); ``model``: the model whose
+        probability ``p_violation`` is, when not the outcome's own (the one that chose the calibration)."""
         self._acq_info["no_safe_candidate"] = (
             f"no calibration is predicted to keep every limit with probability >= "
-            f"{1 - self.config.constraint_level:g}; the least risky one ({p_violation:.2f})"
+            f"{1 - self.config.constraint_level:g}; the least risky one ({p_violation:.2f}"
+            f"{' under ' + model if model else ''})"
         )
+
+    def _fallback_risk(self, cand: FloatArray, outc: OutcomeModels) -> FloatArray:
+        """The risk by which the least risky calibration is chosen when none is within the level: with limit_trend the
+        retreat's model's probability, else the outcome models'."""
+        if self._limit_trend:
+            return outc.retreat_prob(cand)
+        return np.asarray(outc.prob_violation(cand).max(axis=1), dtype=float)
 
     def _random_allowed(self) -> FloatArray:
         """A random point, within the outcome limits' level when they are modelled."""
@@ -703,8 +715,9 @@ class Engine:
                 return np.asarray(cand[int(np.flatnonzero(ok)[0])], dtype=float)
             # the least risky; with limit_trend judged by the retreat's model (before: the constant-mean model's, the
             # calibration farthest from the runs after a run that broke a limit)
-            i = int(np.argmin(outc.retreat_prob(cand) if self._limit_trend else p))
-            self._no_safe_candidate(float(p[i]))
+            risk = outc.retreat_prob(cand) if self._limit_trend else p
+            i = int(np.argmin(risk))
+            self._no_safe_candidate(float(risk[i]), TREND_MODEL if self._limit_trend else "")
             return np.asarray(cand[i], dtype=float)
         return self.rng.random(self.space.dim)
 
@@ -721,6 +734,10 @@ class Engine:
                 info["transfer"] = self._transfer_dict()
         if self._outcomes_known():
             info["outcomes"] = self._outcome_models().describe(U)
+            if "no_safe_candidate" in info:  # the user is told what the model expects there, with the numbers
+                info["no_safe_candidate"] += "; the outcome models predict there " + ", ".join(
+                    f"{lim}: {v['mean']:.4g} +- {v['std']:.2g}" for lim, v in info["outcomes"].items()
+                )
         return Suggestion(params, kind, mean, std, info)
 
     def _obs_unit(self) -> FloatArray:
@@ -853,8 +870,9 @@ class Engine:
             # no run has kept every limit yet: look for the calibration most likely to keep them
             if not np.any(outc.allowed(cand) & ~self._near_failures(cand)):
                 # none is within the level: the retreat, in the direction the runs' values give (a linear trend)
-                i = int(np.argmin(np.where(self._near_failures(cand), np.inf, outc.retreat_prob(cand))))
-                self._no_safe_candidate(float(outc.prob_violation(cand[i : i + 1]).max()))
+                risk = np.where(self._near_failures(cand), np.inf, outc.retreat_prob(cand))
+                i = int(np.argmin(risk))
+                self._no_safe_candidate(float(risk[i]), TREND_MODEL)
                 self._acq_info["acquisition"] = "retreat (no run has kept every limit yet)"
                 return np.asarray(cand[i], dtype=float)
 
@@ -907,7 +925,7 @@ class Engine:
             if outc is None:
                 return self.rng.random(d)
             # nothing is within the level: the calibration least likely to break a limit
-            worst = outc.retreat_prob(cand) if self._limit_trend else outc.prob_violation(cand).max(axis=1)
+            worst = self._fallback_risk(cand, outc)
             worst = np.where(self._near_failures(cand), np.inf, worst)
             if safe is not None:
                 worst = np.where(_in_balls(self._snap(cand), *safe), worst, np.inf)
@@ -915,7 +933,7 @@ class Engine:
                     self._no_safe_candidate(float(outc.prob_violation(safe[0]).max(axis=1).min()))
                     return np.asarray(safe[0][int(np.argmax(safe[1]))], dtype=float)
             i = int(np.argmin(worst))
-            self._no_safe_candidate(float(outc.prob_violation(cand[i : i + 1]).max()))
+            self._no_safe_candidate(float(worst[i]), TREND_MODEL if self._limit_trend else "")
             return np.asarray(cand[i], dtype=float)
         acq = np.where(ok, acq_values(cand), -np.inf)
         order = np.argsort(-acq)
