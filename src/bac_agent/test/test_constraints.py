@@ -313,9 +313,9 @@ def test_the_least_risky_warning_gives_the_probability_of_the_model_that_chose_i
     assert abs(p_trend - p_const) > 0.05, (p_trend, p_const)
     assert f"({p_trend:.2f} under the retreat's model with a linear trend)" in said, (said, p_trend, p_const)
     pred = s.info["outcomes"]["travel <= 63"]
-    assert said.endswith(f"; the outcome models predict there travel <= 63: {pred['mean']:.4g} +- {pred['std']:.2g}"), (
-        said
-    )
+    assert said.endswith(
+        f"; each limit's own model (no trend) predicts there travel <= 63: {pred['mean']:.4g} +- {pred['std']:.2g}"
+    ), said
     # without limit_trend the constant-mean model chooses, and its probability is said
     old = Engine(
         {"a": (0.0, 1.0), "b": (0.0, 1.0)},
@@ -326,6 +326,6 @@ def test_the_least_risky_warning_gives_the_probability_of_the_model_that_chose_i
     s_old = old.ask_with_info()
     u_old = np.array([[s_old.params["a"], s_old.params["b"]]])
     assert (
-        f"({float(old._outcomes.prob_violation(u_old).max()):.2f}); the outcome models predict there"
+        f"({float(old._outcomes.prob_violation(u_old).max()):.2f}); each limit's own model (no trend) predicts there"
         in s_old.info["no_safe_candidate"]
     )

@@ -735,7 +735,7 @@ class Engine:
         if self._outcomes_known():
             info["outcomes"] = self._outcome_models().describe(U)
             if "no_safe_candidate" in info:  # the user is told what the model expects there, with the numbers
-                info["no_safe_candidate"] += "; the outcome models predict there " + ", ".join(
+                info["no_safe_candidate"] += "; each limit's own model (no trend) predicts there " + ", ".join(
                     f"{lim}: {v['mean']:.4g} +- {v['std']:.2g}" for lim, v in info["outcomes"].items()
                 )
         return Suggestion(params, kind, mean, std, info)
