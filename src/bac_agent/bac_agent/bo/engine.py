@@ -213,6 +213,11 @@ class EngineConfig:
             raise EngineError(f"recommend_rule must be one of {', '.join(RULES)}, got {self.recommend_rule!r}")
         if self.acquisition not in ACQUISITIONS:
             raise EngineError(f"acquisition must be one of {', '.join(ACQUISITIONS)}, got {self.acquisition!r}")
+        if self.gp.ls_average > 0.0 and self.acquisition != "nei":
+            raise EngineError(
+                f"gp.ls_average averages noisy EI over the two lengthscale priors' fits: it needs acquisition 'nei', "
+                f"got {self.acquisition!r}"
+            )
         if not 0.0 < self.prior_weight < 1.0:
             raise EngineError(f"prior_weight must be in (0, 1), got {self.prior_weight}")
         if not (self.prior_scale_sd > 0 and self.prior_residual_os > 0):
@@ -747,8 +752,60 @@ class Engine:
 
     def _predict_j(self, U: FloatArray) -> tuple[FloatArray, FloatArray]:
         """Posterior mean and std at unit-cube points, in J (through the output warp's inverse)."""
-        m, s = self._model().predict(U)
+        gp = self._model()
+        if self._members(gp) is None:
+            m, s = gp.predict(U)
+        else:
+            mu, var = self._mean_var(gp, U)
+            m, s = gp.y_mean + gp.y_std * mu, gp.y_std * np.sqrt(var)
         return self._warp.inverse_mean_std(m, s)
+
+    def _members(self, gp: GP) -> tuple[float, GP] | None:
+        """The model average over the two lengthscale priors (GPConfig.ls_average): (the tighter prior's weight,
+        its fit), ``gp`` being the other; None when ``gp`` is a single model (the option off, a transfer prior's
+        model, or a weight within 1e-6 of 0 or 1: then the model with the weight, to round-off)."""
+        alt = gp.alt
+        if alt is None or not 1e-6 < gp.alt_weight < 1.0 - 1e-6:
+            return None
+        return gp.alt_weight, alt
+
+    def _single(self, gp: GP) -> GP:
+        """The one model when the model average is a single model: ``gp``, or its tighter fit when its weight is
+        within 1e-6 of 1 (GPConfig.ls_average)."""
+        if gp.alt is not None and gp.alt_weight >= 1.0 - 1e-6:
+            return gp.alt
+        return gp
+
+    def _mean_var(self, gp: GP, U: FloatArray) -> tuple[FloatArray, FloatArray]:
+        """Posterior mean and variance (standardized units) of the model average: the mixture's moments."""
+        mem = self._members(gp)
+        if mem is None:
+            return self._single(gp).predict_std_units(U)
+        w, alt = mem
+        m0, v0 = gp.predict_std_units(U)
+        m1, v1 = alt.predict_std_units(U)
+        mu = (1.0 - w) * m0 + w * m1
+        var = (1.0 - w) * (v0 + m0 * m0) + w * (v1 + m1 * m1) - mu * mu
+        return mu, np.maximum(var, 1e-12 * min(v0.min(initial=1.0), v1.min(initial=1.0)))
+
+    def _mean_sd_grad(self, gp: GP, U: FloatArray) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray]:
+        """The model average's posterior mean, std and their gradients (standardized units; the mixture's std)."""
+        mem = self._members(gp)
+        if mem is None:
+            return self._single(gp).predict_with_grad(U)
+        w, alt = mem
+        m0, s0, dm0, ds0 = gp.predict_with_grad(U)
+        m1, s1, dm1, ds1 = alt.predict_with_grad(U)
+        mu = (1.0 - w) * m0 + w * m1
+        dmu = (1.0 - w) * dm0 + w * dm1
+        var = (1.0 - w) * (s0 * s0 + m0 * m0) + w * (s1 * s1 + m1 * m1) - mu * mu
+        dvar = (
+            2.0 * (1.0 - w) * (s0[:, None] * ds0 + m0[:, None] * dm0)
+            + 2.0 * w * (s1[:, None] * ds1 + m1[:, None] * dm1)
+            - 2.0 * mu[:, None] * dmu
+        )
+        sd = np.sqrt(np.maximum(var, 1e-300))
+        return mu, sd, dmu, dvar / (2.0 * sd[:, None])
 
     def _model_without_source(self, gp: GP) -> GP | None:
         """The other member of the transfer prior's model average (``prior_average``): the model the source was
@@ -779,13 +836,21 @@ class Engine:
         it (``alt``, 1 - w): the expected improvement under the model average (both in the source's units, so
         their improvements add), and its gradient. Pending points are fantasized in ``alt`` as in ``model``."""
         assert self.transfer is not None
-        alt = self._with_pending(alt)
-        nei1 = NoisyEI(model, self.config.nei_samples, self.rng, incumbents)
-        nei0 = NoisyEI(alt, self.config.nei_samples, self.rng, incumbents)
-        lw1, lw0 = math.log(self.transfer.weight), math.log1p(-self.transfer.weight)
         self._acq_info["acquisition"] = (
             f"noisy EI averaged over the models with the transfer prior ({self.transfer.weight:.3f}) and without it"
         )
+        w = self.transfer.weight
+        return self._nei_pair(model, alt, (math.log(w), math.log1p(-w)), incumbents)
+
+    def _nei_pair(
+        self, model: GP, alt: GP, log_w: tuple[float, float], incumbents: NDArray[np.bool_] | None
+    ) -> tuple[Callable[[FloatArray], FloatArray], Callable[[FloatArray], tuple[FloatArray, FloatArray]]]:
+        """log of the noisy EI averaged over two models, ``model`` (its pending asks already fantasized) and ``alt``
+        (fantasized here as ``model``), with the log weights ``log_w`` (model's, alt's), and its gradient."""
+        alt = self._with_pending(alt)
+        nei1 = NoisyEI(model, self.config.nei_samples, self.rng, incumbents)
+        nei0 = NoisyEI(alt, self.config.nei_samples, self.rng, incumbents)
+        lw1, lw0 = log_w
 
         def values(U: FloatArray) -> FloatArray:
             return np.asarray(np.logaddexp(lw1 + nei1(U), lw0 + nei0(U)), dtype=float)
@@ -802,7 +867,7 @@ class Engine:
         gp = self._model()
         d = self.space.dim
         X_obs = gp.X
-        mu_obs, _ = gp.predict_std_units(X_obs)
+        mu_obs, _ = self._mean_var(gp, X_obs)
         best = float(np.min(mu_obs))
         model = self._with_pending(gp)
         if self.pending:
@@ -847,9 +912,19 @@ class Engine:
             j_values: Callable[[FloatArray], FloatArray]
             j_grad: Callable[[FloatArray], tuple[FloatArray, FloatArray]]
             alt = self._model_without_source(gp)
+            ls_mix = self._members(gp)
             if self.config.acquisition == "nei" and alt is not None:
                 j_values, j_grad = self._averaged_nei(model, alt, incumbents)
+            elif self.config.acquisition == "nei" and ls_mix is not None:
+                # the model average over the two lengthscale priors (GPConfig.ls_average)
+                w_alt = ls_mix[0]
+                j_values, j_grad = self._nei_pair(model, ls_mix[1], (math.log1p(-w_alt), math.log(w_alt)), incumbents)
+                self._acq_info["acquisition"] = (
+                    f"noisy EI averaged over the lengthscale priors' fits (the tighter one {ls_mix[0]:.3f})"
+                )
             elif self.config.acquisition == "nei":
+                if gp.alt is not None:  # (GPConfig.ls_average, one fit's weight within 1e-6 of 1: that fit)
+                    model = self._with_pending(self._single(gp))
                 nei = NoisyEI(model, self.config.nei_samples, self.rng, incumbents)
                 j_values, j_grad = nei, nei.value_and_grad
             else:
@@ -1031,9 +1106,9 @@ class Engine:
         # a safe start: the recommendation too lies in the safe set (SafeOpt), within a safe step of a kept run
         safe = self._safe_set()
         if safe is not None:
-            kept_best = safe[0][int(np.argmin(gp.predict_std_units(safe[0])[0]))]
+            kept_best = safe[0][int(np.argmin(self._mean_var(gp, safe[0])[0]))]
             cand = np.vstack([cand, self._safe_ball_candidates(kept_best, *safe, rng=rng)])
-        mu, var = gp.predict_std_units(cand)
+        mu, var = self._mean_var(gp, cand)
         score = mu + beta * np.sqrt(var)
         if safe is not None:
             score = np.where(_in_balls(cand, *safe), score, np.inf)
@@ -1050,7 +1125,7 @@ class Engine:
 
         def f(flat: FloatArray) -> tuple[float, FloatArray]:
             U = flat.reshape(k, d)
-            m, s, dm, ds = gp.predict_with_grad(U)
+            m, s, dm, ds = self._mean_sd_grad(gp, U)
             val, grad = m + beta * s, dm + beta * ds
             if outc is not None:  # a penalty outside the level keeps the search where it may recommend
                 lf, glf = outc.log_feasible_and_grad(U, measured=False)
@@ -1064,7 +1139,7 @@ class Engine:
         if safe is not None:
             pts = _into_balls(pts, *safe)
         U = self._snap(pts)
-        m, v = gp.predict_std_units(U)
+        m, v = self._mean_var(gp, U)
         sc = m + beta * np.sqrt(v)
         if safe is not None:
             sc = np.where(_in_balls(U, *safe), sc, np.inf)
