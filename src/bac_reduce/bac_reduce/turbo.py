@@ -105,8 +105,10 @@ class TurboConfig:
         if not 0 < self.length_min <= self.length_init <= self.length_max:
             raise ValueError("need 0 < length_min <= length_init <= length_max")
         gp = GPConfig(**dict(self.gp))  # checked here, not in a worker
-        if gp.warp or gp.ls_select:  # the trust region's Thompson draws use the kernel on the raw inputs, one fit
-            raise ValueError("the simulation phase's TuRBO takes neither gp.warp nor gp.ls_select (engine options)")
+        if gp.warp or gp.ls_select or gp.ls_average:  # the trust region's Thompson draws: raw inputs, one fit
+            raise ValueError(
+                "the simulation phase's TuRBO takes neither gp.warp nor gp.ls_select nor gp.ls_average (engine options)"
+            )
 
     def gp_config(self) -> GPConfig:
         return GPConfig(**dict(self.gp))
