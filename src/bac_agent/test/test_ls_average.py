@@ -196,3 +196,16 @@ def test_bad_ls_average_settings_are_refused() -> None:
         GPConfig(ls_average=0.5, ls_average_temper=-1.0)
     with pytest.raises(EngineError, match="needs acquisition 'nei'"):
         EngineConfig(acquisition="ei", gp=GPConfig(ls_average=0.5))
+
+
+def test_the_tighter_prior_may_have_its_own_median() -> None:
+    """ls_average_median: the second fit's lengthscale prior is centred on this median (in any dimension)."""
+    X, y = _runs(1)
+    gp = GP(GPConfig(ls_average=0.3, ls_average_median=4.0, ls_dim_scale=0.5)).fit(X, y, np.random.default_rng(0))
+    assert gp.alt is not None and gp.alt.hyper is not None and gp.hyper is not None
+    loc, scale = gp.alt._prior(2)
+    np.testing.assert_allclose(np.exp(loc[:2]), 4.0, rtol=1e-12)
+    np.testing.assert_allclose(scale[:2], 0.3)
+    assert np.all(gp.alt.hyper.lengthscales > gp.hyper.lengthscales)
+    with pytest.raises(GPError, match="ls_average_median must be >= 0"):
+        GPConfig(ls_average=0.5, ls_average_median=-1.0)

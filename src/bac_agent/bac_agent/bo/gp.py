@@ -124,6 +124,7 @@ class GPConfig:
     # prior probability of 0.5 each; the engine averages the noisy EI and the posterior mean over the two (GP.alt)
     ls_average: float = 0.0
     ls_average_temper: float = 1.0
+    ls_average_median: float = 0.0  # > 0: the tighter prior's median lengthscale (0: the configured one's, √2)
     draws: int = 8  # draws from the prior, screened by their objective
     restarts: int = 1  # best draws optimized, besides the prior mode and the previous fit
     maxiter: int = 200
@@ -154,6 +155,10 @@ class GPConfig:
             )
         if self.ls_average > 0.0 and self.ls_select > 0.0:
             raise GPError("ls_average and ls_select are two uses of the tighter lengthscale prior: set one of them")
+        if not 0.0 <= self.ls_average_median < math.inf:
+            raise GPError(
+                f"ls_average_median must be >= 0 and finite (0: ls_loc's median), got {self.ls_average_median}"
+            )
         if not 0.0 <= self.ls_average_temper < math.inf:
             raise GPError(f"ls_average_temper must be >= 0 and finite (0: equal weights), got {self.ls_average_temper}")
         if self.bowl_centres < 1 or not self.bowl_tip > 0.0 or not self.bowl_temper > 0.0:
@@ -627,9 +632,16 @@ class GP:
         c = self.config
         seed = int((rng if rng is not None else np.random.default_rng(0)).integers(2**63 - 1))
         base = GP(replace(c, ls_average=0.0), hyper=self.hyper).fit(X, y, np.random.default_rng(seed))
-        alt = GP(replace(c, ls_scale=c.ls_average, ls_average=0.0), hyper=self.hyper)
+        alt_cfg = replace(c, ls_scale=c.ls_average, ls_average=0.0)
+        if c.ls_average_median > 0.0:  # (the median in any dimension: ls_dim_scale's log d taken off)
+            d = np.atleast_2d(X).shape[1]
+            alt_cfg = replace(alt_cfg, ls_loc=math.log(c.ls_average_median) - c.ls_dim_scale * math.log(d))
+        alt = GP(alt_cfg, hyper=self.hyper)
         alt.fit(X, y, np.random.default_rng(seed))
-        log_odds = c.ls_average_temper * (alt.log_evidence() - base.log_evidence())
+        # (temper 0: equal weights, the evidences not computed)
+        log_odds = c.ls_average_temper * (alt.log_evidence() - base.log_evidence()) if c.ls_average_temper else 0.0
+        if not math.isfinite(log_odds):  # (a Hessian that could not be evaluated: no preference)
+            log_odds = 0.0
         for k, v in vars(base).items():
             if k != "config":
                 setattr(self, k, v)
