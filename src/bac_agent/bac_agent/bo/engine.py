@@ -213,11 +213,6 @@ class EngineConfig:
             raise EngineError(f"recommend_rule must be one of {', '.join(RULES)}, got {self.recommend_rule!r}")
         if self.acquisition not in ACQUISITIONS:
             raise EngineError(f"acquisition must be one of {', '.join(ACQUISITIONS)}, got {self.acquisition!r}")
-        if self.gp.ls_average > 0.0 and self.acquisition != "nei":
-            raise EngineError(
-                f"gp.ls_average averages noisy EI over the two lengthscale priors' fits: it needs acquisition 'nei', "
-                f"got {self.acquisition!r}"
-            )
         if not 0.0 < self.prior_weight < 1.0:
             raise EngineError(f"prior_weight must be in (0, 1), got {self.prior_weight}")
         if not (self.prior_scale_sd > 0 and self.prior_residual_os > 0):
@@ -778,34 +773,11 @@ class Engine:
 
     def _mean_var(self, gp: GP, U: FloatArray) -> tuple[FloatArray, FloatArray]:
         """Posterior mean and variance (standardized units) of the model average: the mixture's moments."""
-        mem = self._members(gp)
-        if mem is None:
-            return self._single(gp).predict_std_units(U)
-        w, alt = mem
-        m0, v0 = gp.predict_std_units(U)
-        m1, v1 = alt.predict_std_units(U)
-        mu = (1.0 - w) * m0 + w * m1
-        var = (1.0 - w) * (v0 + m0 * m0) + w * (v1 + m1 * m1) - mu * mu
-        return mu, np.maximum(var, 1e-12 * min(v0.min(initial=1.0), v1.min(initial=1.0)))
+        return _mixture_mean_var(self._single(gp), self._members(gp), U)
 
     def _mean_sd_grad(self, gp: GP, U: FloatArray) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray]:
         """The model average's posterior mean, std and their gradients (standardized units; the mixture's std)."""
-        mem = self._members(gp)
-        if mem is None:
-            return self._single(gp).predict_with_grad(U)
-        w, alt = mem
-        m0, s0, dm0, ds0 = gp.predict_with_grad(U)
-        m1, s1, dm1, ds1 = alt.predict_with_grad(U)
-        mu = (1.0 - w) * m0 + w * m1
-        dmu = (1.0 - w) * dm0 + w * dm1
-        var = (1.0 - w) * (s0 * s0 + m0 * m0) + w * (s1 * s1 + m1 * m1) - mu * mu
-        dvar = (
-            2.0 * (1.0 - w) * (s0[:, None] * ds0 + m0[:, None] * dm0)
-            + 2.0 * w * (s1[:, None] * ds1 + m1[:, None] * dm1)
-            - 2.0 * mu[:, None] * dmu
-        )
-        sd = np.sqrt(np.maximum(var, 1e-300))
-        return mu, sd, dmu, dvar / (2.0 * sd[:, None])
+        return _mixture_sd_grad(self._single(gp), self._members(gp), U)
 
     def _model_without_source(self, gp: GP) -> GP | None:
         """The other member of the transfer prior's model average (``prior_average``): the model the source was
@@ -927,7 +899,7 @@ class Engine:
                     model = self._with_pending(self._single(gp))
                 nei = NoisyEI(model, self.config.nei_samples, self.rng, incumbents)
                 j_values, j_grad = nei, nei.value_and_grad
-            else:
+            elif gp.alt is None:
 
                 def j_values(U: FloatArray) -> FloatArray:
                     mu, var = model.predict_std_units(U)
@@ -935,6 +907,20 @@ class Engine:
 
                 def j_grad(U: FloatArray) -> tuple[FloatArray, FloatArray]:
                     return log_ei_with_grad(*model.predict_with_grad(U), best)
+
+            else:  # "ei" with GPConfig.ls_average: the EI of the model average's moments (pending asks in both fits)
+                mem = self._members(gp)
+                base = model if self._single(gp) is gp else self._with_pending(self._single(gp))
+                mix = None if mem is None else (mem[0], self._with_pending(mem[1]))
+                X_inc = X_obs if incumbents is None or not incumbents.any() else X_obs[incumbents[: X_obs.shape[0]]]
+                ei_best = float(np.min(_mixture_mean_var(base, mix, X_inc)[0]))
+
+                def j_values(U: FloatArray) -> FloatArray:
+                    mu, var = _mixture_mean_var(base, mix, U)
+                    return log_ei(mu, np.sqrt(var), ei_best)
+
+                def j_grad(U: FloatArray) -> tuple[FloatArray, FloatArray]:
+                    return log_ei_with_grad(*_mixture_sd_grad(base, mix, U), ei_best)
 
             if outc is None:
                 acq_values, acq_grad = j_values, j_grad
@@ -1258,6 +1244,40 @@ class Engine:
         except json.JSONDecodeError as exc:
             raise EngineError(f"engine state is not valid JSON: {exc}") from exc
         return cls.from_state_dict(data)
+
+
+def _mixture_mean_var(gp: GP, mix: tuple[float, GP] | None, U: FloatArray) -> tuple[FloatArray, FloatArray]:
+    """Mean and variance (standardized units) of ``gp`` alone (``mix`` None) or of the mixture of ``gp`` (weight
+    1 - w) and ``mix`` = (w, another GP on the same runs and scaling): the mixture's moments."""
+    if mix is None:
+        return gp.predict_std_units(U)
+    w, alt = mix
+    m0, v0 = gp.predict_std_units(U)
+    m1, v1 = alt.predict_std_units(U)
+    mu = (1.0 - w) * m0 + w * m1
+    var = (1.0 - w) * (v0 + m0 * m0) + w * (v1 + m1 * m1) - mu * mu
+    return mu, np.maximum(var, 1e-12 * min(v0.min(initial=1.0), v1.min(initial=1.0)))
+
+
+def _mixture_sd_grad(
+    gp: GP, mix: tuple[float, GP] | None, U: FloatArray
+) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray]:
+    """Mean, std and their gradients of ``gp`` alone or of the mixture (as :func:`_mixture_mean_var`)."""
+    if mix is None:
+        return gp.predict_with_grad(U)
+    w, alt = mix
+    m0, s0, dm0, ds0 = gp.predict_with_grad(U)
+    m1, s1, dm1, ds1 = alt.predict_with_grad(U)
+    mu = (1.0 - w) * m0 + w * m1
+    dmu = (1.0 - w) * dm0 + w * dm1
+    var = (1.0 - w) * (s0 * s0 + m0 * m0) + w * (s1 * s1 + m1 * m1) - mu * mu
+    dvar = (
+        2.0 * (1.0 - w) * (s0[:, None] * ds0 + m0[:, None] * dm0)
+        + 2.0 * w * (s1[:, None] * ds1 + m1[:, None] * dm1)
+        - 2.0 * mu[:, None] * dmu
+    )
+    sd = np.sqrt(np.maximum(var, 1e-300))
+    return mu, sd, dmu, dvar / (2.0 * sd[:, None])
 
 
 def _in_balls(U: FloatArray, centres: FloatArray, radii: FloatArray) -> NDArray[np.bool_]:
