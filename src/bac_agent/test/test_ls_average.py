@@ -147,7 +147,7 @@ def test_the_acquisition_is_the_noisy_ei_averaged_over_both_fits() -> None:
 
 
 def test_off_the_engine_is_as_before_and_one_weight_near_one_is_that_fit_alone() -> None:
-    plain = _engine(GPConfig())
+    plain = _engine(GPConfig(ls_average=0.0))
     assert plain._model().alt is None and plain._members(plain._model()) is None
     eng = _engine(GPConfig(ls_average=0.5))
     gp = eng._model()
@@ -187,11 +187,9 @@ def test_a_replayed_campaign_with_the_model_average_asks_what_it_asked() -> None
 
 def test_bad_ls_average_settings_are_refused() -> None:
     with pytest.raises(GPError, match="ls_average must be 0"):
-        GPConfig(ls_average=1.0)  # not tighter than ls_scale 1.0
+        GPConfig(ls_average=-0.5)
     with pytest.raises(GPError, match="ls_average must be 0"):
         GPConfig(ls_average=float("nan"))
-    with pytest.raises(GPError, match="set one of them"):
-        GPConfig(ls_average=0.5, ls_select=0.5)
     with pytest.raises(GPError, match="ls_average_temper must be >= 0"):
         GPConfig(ls_average=0.5, ls_average_temper=-1.0)
 
@@ -221,3 +219,18 @@ def test_plain_ei_with_the_model_average_is_the_ei_of_its_moments() -> None:
     G = np.random.default_rng(3).random((500, 2))
     m, v = eng._mean_var(gp, G)
     assert here >= np.max(log_ei(m, np.sqrt(v), float(np.min(mu_obs)))) - 1e-6  # the maximizer beats the candidates
+
+
+def test_the_default_is_the_average_with_equal_weights_and_an_old_saved_config_reads_back_without_it() -> None:
+    """The default since 2026-11-25 (the tuning split, docs/agent.md); an engine state saved before it (a whole
+    GPConfig without the key) ran one fit, and reads back so."""
+    cfg = EngineConfig()
+    assert cfg.gp.ls_average == 0.5 and cfg.gp.ls_average_temper == 0.0
+    assert EngineConfig.from_dict({"budget": 9}).gp.ls_average == 0.5
+    saved = cfg.to_dict()
+    assert EngineConfig.from_dict(saved).gp.ls_average == 0.5
+    del saved["gp"]["ls_average"]
+    assert EngineConfig.from_dict(saved).gp.ls_average == 0.0
+    # a campaign with the default fits both: the model average is in use
+    eng = _engine(GPConfig())
+    assert eng._members(eng._model()) == (0.5, eng._model().alt)

@@ -255,6 +255,8 @@ class EngineConfig:
         gp = dict(data.pop("gp", {}) or {})
         if "maxiter" in gp and "bowl_loo" not in gp:  # a whole GPConfig saved before bowl_loo existed: it ran without
             gp["bowl_loo"] = False
+        if "maxiter" in gp and "ls_average" not in gp:  # a whole GPConfig saved before ls_average was the default
+            gp["ls_average"] = 0.0
         for k in ("ls_bounds", "os_bounds", "warp_bounds"):
             if k in gp:
                 gp[k] = tuple(gp[k])
