@@ -144,6 +144,16 @@ class BoAgentNode(BacNode):
             "than a constant mean (from 2d + 1 runs, at least 5); false: as before 2026-11-24 (late)",
             True,
         )
+        gp_ls_average = self.declare_float(
+            "gp_ls_average",
+            D.gp_ls_average,
+            "bo: the GP is fitted under two lengthscale priors, of sd 1 and of this sd (tighter, median sqrt(2) both), "
+            "and the noisy EI and the posterior mean are averaged over the two fits (0: one fit, as before "
+            "2026-11-25; a campaign journaled without it resumes without it)",
+            0.0,
+            0.99,
+            read_only=True,
+        )
         output_warp = self.declare_str(
             "output_warp",
             D.output_warp,
@@ -328,6 +338,7 @@ class BoAgentNode(BacNode):
             gp_mean=gp_mean,
             bowl_runs=bowl_runs,
             gp_bowl_loo=gp_bowl_loo,
+            gp_ls_average=gp_ls_average,
             output_warp=output_warp,
             design_margin=design_margin,
             start_from=start_from,

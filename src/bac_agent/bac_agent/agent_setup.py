@@ -52,6 +52,7 @@ class AgentSettings:
     gp_mean: str = "bowl"
     bowl_runs: int = 0
     gp_bowl_loo: bool = True
+    gp_ls_average: float = 0.5
     output_warp: str = "yeo-johnson"
     design_margin: float = 0.1
     start_from: str = "guess"
@@ -197,6 +198,8 @@ def _build(s: AgentSettings, definition: CalibrationDefinition, cdir: Path, cid:
     )
     # a campaign started before limit_trend (its journal has no such key) resumes as it ran: without it
     limit_trend = s.limit_trend and not (isinstance(started_config, dict) and "limit_trend" not in started_config)
+    # a campaign started before the model average over two lengthscale priors (no such key) resumes without it
+    ls_average = 0.0 if isinstance(started_config, dict) and "gp_ls_average" not in started_config else s.gp_ls_average
     budget = s.budget
     optimizer: Optimizer
     if s.strategy == "grid":
@@ -218,7 +221,7 @@ def _build(s: AgentSettings, definition: CalibrationDefinition, cdir: Path, cid:
                 output_warp=s.output_warp,
                 design_margin=s.design_margin,
                 initial_points=initial_points,
-                gp=GPConfig(mean=s.gp_mean, bowl_loo=s.gp_bowl_loo),
+                gp=GPConfig(mean=s.gp_mean, bowl_loo=s.gp_bowl_loo, ls_average=ls_average),
                 bowl_runs=s.bowl_runs,
                 prior=source.to_dict() if source is not None else None,
                 prior_weight=s.prior_weight,
@@ -255,6 +258,8 @@ def _build(s: AgentSettings, definition: CalibrationDefinition, cdir: Path, cid:
             "recommend_rule": s.recommend_rule,
             "gp_mean": s.gp_mean,
             "gp_bowl_loo": s.gp_bowl_loo,
+            # the model average over the lengthscale priors of sd 1 and this (0: one fit; issue 23, 2026-11-25)
+            "gp_ls_average": ls_average,
             "bowl_runs": optimizer.bowl_runs if isinstance(optimizer, Engine) else 0,
             "output_warp": s.output_warp,
             "design_margin": s.design_margin,

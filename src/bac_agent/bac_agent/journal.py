@@ -194,6 +194,7 @@ def journaled_engine_options(started: Mapping[str, Any]) -> dict[str, Any]:
         "gp": {
             "mean": str(cfg.get("gp_mean", "constant") or "constant"),
             "bowl_loo": bool(cfg.get("gp_bowl_loo", False)),  # a journal from before it ran without it
+            "ls_average": float(cfg.get("gp_ls_average", 0.0) or 0.0),  # (the same)
         },
         "bowl_runs": int(cfg.get("bowl_runs", 0) or 0),
         "output_warp": str(cfg.get("output_warp", "none") or "none"),

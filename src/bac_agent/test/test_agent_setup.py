@@ -9,7 +9,7 @@ import pytest
 from bac_agent.agent_setup import BACKSTOP_RUN_TIMEOUT_S, AgentSettings, build_agent, make_verifier
 from bac_agent.bo.baselines import GridStrategy
 from bac_agent.bo.engine import Engine
-from bac_agent.journal import Journal
+from bac_agent.journal import Journal, journaled_engine_options
 from bac_common.errors import BacError
 from bac_common.paramspace import CalibrationDefinition
 from bac_common.paths import resolve_definition
@@ -265,3 +265,21 @@ def test_limit_trend_is_passed_journaled_and_off_for_a_journal_started_before_it
     old.journal.close()
     assert isinstance(old.optimizer, Engine) and old.optimizer.config.limit_trend is False
     assert old.config.extra["limit_trend"] is False
+
+
+def test_gp_ls_average_is_passed_journaled_and_off_for_a_journal_started_before_it(tmp_path: Path) -> None:
+    for sd in (0.5, 0.0):
+        setup = build_agent(AgentSettings(campaign_dir=str(tmp_path / str(sd)), gp_ls_average=sd))
+        setup.journal.close()
+        assert isinstance(setup.optimizer, Engine)
+        assert setup.optimizer.config.gp.ls_average == sd and setup.config.extra["gp_ls_average"] == sd
+    assert AgentSettings().gp_ls_average == 0.5  # the default (issue 23, 2026-11-25)
+    # a journal whose campaign_started has no "gp_ls_average" key ran one fit: it resumes so (not refused)
+    _journal_started(tmp_path / "old", {"budget": 15})
+    old = build_agent(AgentSettings(campaign_dir=str(tmp_path / "old")))
+    old.journal.close()
+    assert isinstance(old.optimizer, Engine) and old.optimizer.config.gp.ls_average == 0.0
+    assert old.config.extra["gp_ls_average"] == 0.0
+    # an offline refit of such a journal models as the campaign did
+    assert journaled_engine_options({"config": {}})["gp"]["ls_average"] == 0.0
+    assert journaled_engine_options({"config": {"gp_ls_average": 0.5}})["gp"]["ls_average"] == 0.5

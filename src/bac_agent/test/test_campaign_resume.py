@@ -632,6 +632,11 @@ REFUSED: dict[str, tuple[str, Refusal]] = {
         "config.gp_bowl_loo: journaled false, this agent true",
         lambda: (engine(), config(extra=_extra(gp_bowl_loo=True)), DEFINITION),
     ),
+    "model average over two lengthscale priors": (
+        # a journal from before gp_ls_average ran one fit (campaign.ADDED_LATER)
+        "config.gp_ls_average: journaled 0.0, this agent 0.5",
+        lambda: (engine(), config(extra=_extra(gp_ls_average=0.5)), DEFINITION),
+    ),
     "acquisition": (
         'config.acquisition: journaled "nei", this agent "ei"',
         lambda: (engine(), config(extra=_extra(acquisition="ei")), DEFINITION),

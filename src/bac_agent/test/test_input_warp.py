@@ -164,7 +164,7 @@ def test_ls_select_keeps_the_kernel_that_predicts_the_runs_left_out_better() -> 
     X = rng.random((7, 2))
     chosen = set()
     for y in (np.sin(9.0 * X[:, 0]) + 0.3 * X[:, 1], 0.8 * X[:, 0] - X[:, 1] + 0.05 * rng.standard_normal(7)):
-        cfg = GPConfig(mean="constant", ls_select=0.3)
+        cfg = GPConfig(mean="constant", ls_select=0.3, ls_average=0.0)
         sel = GP(cfg).fit(X, y, np.random.default_rng(0))
         assert sel.hyper is not None and sel.config.ls_select == 0.3
         seed = int(np.random.default_rng(0).integers(2**63 - 1))

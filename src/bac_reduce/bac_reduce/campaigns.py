@@ -81,7 +81,13 @@ class CampaignSettings:
     def engine_config(self, seed: int) -> EngineConfig:
         base = EngineConfig().to_dict()
         over = dict(self.engine)
-        gp = {**base.pop("gp"), **dict(over.pop("gp", {}) or {})}
+        # one GP fit (not the engine's model average over two lengthscale priors): J_mu, the transfer prior and the
+        # reports rebuild each campaign's posterior from its saved hyperparameters, which are one fit's
+        gp = {**base.pop("gp"), "ls_average": 0.0, **dict(over.pop("gp", {}) or {})}
+        if gp["ls_average"]:
+            raise ValueError(
+                "the simulation phase's campaigns take no gp.ls_average: J_mu is rebuilt from each campaign's one fit"
+            )
         base.update(over)
         base.update({"budget": self.trials, "n_initial": self.n_initial, "seed": int(seed), "gp": gp})
         return EngineConfig.from_dict(base)

@@ -104,12 +104,15 @@ class TurboConfig:
             raise ValueError(f"need budget >= 2, batch >= 1, n_initial >= 0; got {self.budget}, {self.batch}")
         if not 0 < self.length_min <= self.length_init <= self.length_max:
             raise ValueError("need 0 < length_min <= length_init <= length_max")
-        gp = GPConfig(**dict(self.gp))  # checked here, not in a worker
-        if gp.warp or gp.ls_select:  # the trust region's Thompson draws use the kernel on the raw inputs, one fit
-            raise ValueError("the simulation phase's TuRBO takes neither gp.warp nor gp.ls_select (engine options)")
+        gp = self.gp_config()  # checked here, not in a worker
+        if gp.warp or gp.ls_select or gp.ls_average:  # the trust region's Thompson draws: raw inputs, one fit
+            raise ValueError(
+                "the simulation phase's TuRBO takes neither gp.warp nor gp.ls_select nor gp.ls_average (engine options)"
+            )
 
     def gp_config(self) -> GPConfig:
-        return GPConfig(**dict(self.gp))
+        # one fit (the engine's model average over two lengthscale priors only when asked for: then refused)
+        return GPConfig(**{"ls_average": 0.0, **dict(self.gp)})
 
     def to_dict(self) -> dict[str, Any]:
         d = asdict(self)

@@ -92,6 +92,10 @@ def test_settings_are_checked() -> None:
         CampaignSettings(engine={"no_such_field": 1})
     cfg = CampaignSettings(trials=20, engine={"gp": {"maxiter": 7}, "acq_restarts": 3}).engine_config(5)
     assert (cfg.budget, cfg.seed, cfg.gp.maxiter, cfg.acq_restarts, cfg.gp.draws) == (20, 5, 7, 3, GPConfig().draws)
+    # one GP fit per campaign (J_mu is rebuilt from it), not the engine's default model average
+    assert cfg.gp.ls_average == 0.0 and GPConfig().ls_average > 0.0
+    with pytest.raises(ReductionError, match=r"take no gp\.ls_average"):
+        CampaignSettings(engine={"gp": {"ls_average": 0.5}})
 
 
 def test_split_groups_spreads_evenly() -> None:

@@ -101,9 +101,9 @@ def test_morris_finds_the_parameters_that_matter_over_the_box() -> None:
         global_sensitivity(obj.raw_j, d.parameter_names, bounds, "fast")
 
 
-@pytest.mark.parametrize("gp", [{"warp": True}, {"ls_select": 0.5}])
+@pytest.mark.parametrize("gp", [{"warp": True}, {"ls_select": 0.5}, {"ls_average": 0.5}])
 def test_turbo_refuses_the_engine_s_gp_options_it_cannot_use(gp: dict[str, object]) -> None:
     """The trust region's Thompson draws use the kernel on the raw inputs and one fit: an input warp or a second
     fit would silently be a different model (outside review)."""
-    with pytest.raises(ValueError, match=r"neither gp\.warp nor gp\.ls_select"):
+    with pytest.raises(ValueError, match=r"neither gp\.warp nor gp\.ls_select nor gp\.ls_average"):
         TurboConfig(gp=gp)

@@ -68,7 +68,9 @@ FloatArray = NDArray[np.float64]
 # Its MAP fit starts from the prior's mode and the last fit only (no screened prior draws: an outcome such as a
 # peak or a travel is one smooth response whose fits from a draw landed where the others did, and each start costs
 # as much as J's: issue 23's latency with two limits)
-OUTCOME_GP = GPConfig(mean="constant", ls_loc=math.log(0.5), noise_loc=-2.0, noise_scale=1.0, draws=0, restarts=0)
+OUTCOME_GP = GPConfig(
+    mean="constant", ls_loc=math.log(0.5), noise_loc=-2.0, noise_scale=1.0, draws=0, restarts=0, ls_average=0.0
+)
 
 # an outcome's source (the simulator's travel, peaks): priors of the trend a + b·s(x) and of the residual, in the
 # source's standardized units (its points' mean 0, spread 1); chosen on the tuning split of bench/outcome_limits.py

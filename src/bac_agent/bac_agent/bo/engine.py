@@ -266,6 +266,8 @@ class EngineConfig:
         gp = dict(data.pop("gp", {}) or {})
         if "maxiter" in gp and "bowl_loo" not in gp:  # a whole GPConfig saved before bowl_loo existed: it ran without
             gp["bowl_loo"] = False
+        if "maxiter" in gp and "ls_average" not in gp:  # a whole GPConfig saved before ls_average was the default
+            gp["ls_average"] = 0.0
         for k in ("ls_bounds", "os_bounds", "warp_bounds"):
             if k in gp:
                 gp[k] = tuple(gp[k])
@@ -784,8 +786,37 @@ class Engine:
 
     def _predict_j(self, U: FloatArray) -> tuple[FloatArray, FloatArray]:
         """Posterior mean and std at unit-cube points, in J (through the output warp's inverse)."""
-        m, s = self._model().predict(U)
+        gp = self._model()
+        if self._members(gp) is None:
+            m, s = gp.predict(U)
+        else:
+            mu, var = self._mean_var(gp, U)
+            m, s = gp.y_mean + gp.y_std * mu, gp.y_std * np.sqrt(var)
         return self._warp.inverse_mean_std(m, s)
+
+    def _members(self, gp: GP) -> tuple[float, GP] | None:
+        """The model average over the two lengthscale priors (GPConfig.ls_average): (the tighter prior's weight,
+        its fit), ``gp`` being the other; None when ``gp`` is a single model (the option off, a transfer prior's
+        model, or a weight within 1e-6 of 0 or 1: then the model with the weight, to round-off)."""
+        alt = gp.alt
+        if alt is None or not 1e-6 < gp.alt_weight < 1.0 - 1e-6:
+            return None
+        return gp.alt_weight, alt
+
+    def _single(self, gp: GP) -> GP:
+        """The one model when the model average is a single model: ``gp``, or its tighter fit when its weight is
+        within 1e-6 of 1 (GPConfig.ls_average)."""
+        if gp.alt is not None and gp.alt_weight >= 1.0 - 1e-6:
+            return gp.alt
+        return gp
+
+    def _mean_var(self, gp: GP, U: FloatArray) -> tuple[FloatArray, FloatArray]:
+        """Posterior mean and variance (standardized units) of the model average: the mixture's moments."""
+        return _mixture_mean_var(self._single(gp), self._members(gp), U)
+
+    def _mean_sd_grad(self, gp: GP, U: FloatArray) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray]:
+        """The model average's posterior mean, std and their gradients (standardized units; the mixture's std)."""
+        return _mixture_sd_grad(self._single(gp), self._members(gp), U)
 
     def _model_without_source(self, gp: GP) -> GP | None:
         """The other member of the transfer prior's model average (``prior_average``): the model the source was
@@ -816,13 +847,21 @@ class Engine:
         it (``alt``, 1 - w): the expected improvement under the model average (both in the source's units, so
         their improvements add), and its gradient. Pending points are fantasized in ``alt`` as in ``model``."""
         assert self.transfer is not None
-        alt = self._with_pending(alt)
-        nei1 = NoisyEI(model, self.config.nei_samples, self.rng, incumbents)
-        nei0 = NoisyEI(alt, self.config.nei_samples, self.rng, incumbents)
-        lw1, lw0 = math.log(self.transfer.weight), math.log1p(-self.transfer.weight)
         self._acq_info["acquisition"] = (
             f"noisy EI averaged over the models with the transfer prior ({self.transfer.weight:.3f}) and without it"
         )
+        w = self.transfer.weight
+        return self._nei_pair(model, alt, (math.log(w), math.log1p(-w)), incumbents)
+
+    def _nei_pair(
+        self, model: GP, alt: GP, log_w: tuple[float, float], incumbents: NDArray[np.bool_] | None
+    ) -> tuple[Callable[[FloatArray], FloatArray], Callable[[FloatArray], tuple[FloatArray, FloatArray]]]:
+        """log of the noisy EI averaged over two models, ``model`` (its pending asks already fantasized) and ``alt``
+        (fantasized here as ``model``), with the log weights ``log_w`` (model's, alt's), and its gradient."""
+        alt = self._with_pending(alt)
+        nei1 = NoisyEI(model, self.config.nei_samples, self.rng, incumbents)
+        nei0 = NoisyEI(alt, self.config.nei_samples, self.rng, incumbents)
+        lw1, lw0 = log_w
 
         def values(U: FloatArray) -> FloatArray:
             return np.asarray(np.logaddexp(lw1 + nei1(U), lw0 + nei0(U)), dtype=float)
@@ -839,7 +878,7 @@ class Engine:
         gp = self._model()
         d = self.space.dim
         X_obs = gp.X
-        mu_obs, _ = gp.predict_std_units(X_obs)
+        mu_obs, _ = self._mean_var(gp, X_obs)
         best = float(np.min(mu_obs))
         model = self._with_pending(gp)
         if self.pending:
@@ -885,12 +924,22 @@ class Engine:
             j_values: Callable[[FloatArray], FloatArray]
             j_grad: Callable[[FloatArray], tuple[FloatArray, FloatArray]]
             alt = self._model_without_source(gp)
+            ls_mix = self._members(gp)
             if self.config.acquisition == "nei" and alt is not None:
                 j_values, j_grad = self._averaged_nei(model, alt, incumbents)
+            elif self.config.acquisition == "nei" and ls_mix is not None:
+                # the model average over the two lengthscale priors (GPConfig.ls_average)
+                w_alt = ls_mix[0]
+                j_values, j_grad = self._nei_pair(model, ls_mix[1], (math.log1p(-w_alt), math.log(w_alt)), incumbents)
+                self._acq_info["acquisition"] = (
+                    f"noisy EI averaged over the lengthscale priors' fits (the tighter one {ls_mix[0]:.3f})"
+                )
             elif self.config.acquisition == "nei":
+                if gp.alt is not None:  # (GPConfig.ls_average, one fit's weight within 1e-6 of 1: that fit)
+                    model = self._with_pending(self._single(gp))
                 nei = NoisyEI(model, self.config.nei_samples, self.rng, incumbents)
                 j_values, j_grad = nei, nei.value_and_grad
-            else:
+            elif gp.alt is None:
 
                 def j_values(U: FloatArray) -> FloatArray:
                     mu, var = model.predict_std_units(U)
@@ -898,6 +947,20 @@ class Engine:
 
                 def j_grad(U: FloatArray) -> tuple[FloatArray, FloatArray]:
                     return log_ei_with_grad(*model.predict_with_grad(U), best)
+
+            else:  # "ei" with GPConfig.ls_average: the EI of the model average's moments (pending asks in both fits)
+                mem = self._members(gp)
+                base = model if self._single(gp) is gp else self._with_pending(self._single(gp))
+                mix = None if mem is None else (mem[0], self._with_pending(mem[1]))
+                X_inc = X_obs if incumbents is None or not incumbents.any() else X_obs[incumbents[: X_obs.shape[0]]]
+                ei_best = float(np.min(_mixture_mean_var(base, mix, X_inc)[0]))
+
+                def j_values(U: FloatArray) -> FloatArray:
+                    mu, var = _mixture_mean_var(base, mix, U)
+                    return log_ei(mu, np.sqrt(var), ei_best)
+
+                def j_grad(U: FloatArray) -> tuple[FloatArray, FloatArray]:
+                    return log_ei_with_grad(*_mixture_sd_grad(base, mix, U), ei_best)
 
             if outc is None:
                 acq_values, acq_grad = j_values, j_grad
@@ -1069,9 +1132,9 @@ class Engine:
         # a safe start: the recommendation too lies in the safe set (SafeOpt), within a safe step of a kept run
         safe = self._safe_set()
         if safe is not None:
-            kept_best = safe[0][int(np.argmin(gp.predict_std_units(safe[0])[0]))]
+            kept_best = safe[0][int(np.argmin(self._mean_var(gp, safe[0])[0]))]
             cand = np.vstack([cand, self._safe_ball_candidates(kept_best, *safe, rng=rng)])
-        mu, var = gp.predict_std_units(cand)
+        mu, var = self._mean_var(gp, cand)
         score = mu + beta * np.sqrt(var)
         if safe is not None:
             score = np.where(_in_balls(cand, *safe), score, np.inf)
@@ -1088,7 +1151,7 @@ class Engine:
 
         def f(flat: FloatArray) -> tuple[float, FloatArray]:
             U = flat.reshape(k, d)
-            m, s, dm, ds = gp.predict_with_grad(U)
+            m, s, dm, ds = self._mean_sd_grad(gp, U)
             val, grad = m + beta * s, dm + beta * ds
             if outc is not None:  # a penalty outside the level keeps the search where it may recommend
                 lf, glf = outc.log_feasible_and_grad(U, measured=False)
@@ -1102,7 +1165,7 @@ class Engine:
         if safe is not None:
             pts = _into_balls(pts, *safe)
         U = self._snap(pts)
-        m, v = gp.predict_std_units(U)
+        m, v = self._mean_var(gp, U)
         sc = m + beta * np.sqrt(v)
         if safe is not None:
             sc = np.where(_in_balls(U, *safe), sc, np.inf)
@@ -1221,6 +1284,40 @@ class Engine:
         except json.JSONDecodeError as exc:
             raise EngineError(f"engine state is not valid JSON: {exc}") from exc
         return cls.from_state_dict(data)
+
+
+def _mixture_mean_var(gp: GP, mix: tuple[float, GP] | None, U: FloatArray) -> tuple[FloatArray, FloatArray]:
+    """Mean and variance (standardized units) of ``gp`` alone (``mix`` None) or of the mixture of ``gp`` (weight
+    1 - w) and ``mix`` = (w, another GP on the same runs and scaling): the mixture's moments."""
+    if mix is None:
+        return gp.predict_std_units(U)
+    w, alt = mix
+    m0, v0 = gp.predict_std_units(U)
+    m1, v1 = alt.predict_std_units(U)
+    mu = (1.0 - w) * m0 + w * m1
+    var = (1.0 - w) * (v0 + m0 * m0) + w * (v1 + m1 * m1) - mu * mu
+    return mu, np.maximum(var, 1e-12 * min(v0.min(initial=1.0), v1.min(initial=1.0)))
+
+
+def _mixture_sd_grad(
+    gp: GP, mix: tuple[float, GP] | None, U: FloatArray
+) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray]:
+    """Mean, std and their gradients of ``gp`` alone or of the mixture (as :func:`_mixture_mean_var`)."""
+    if mix is None:
+        return gp.predict_with_grad(U)
+    w, alt = mix
+    m0, s0, dm0, ds0 = gp.predict_with_grad(U)
+    m1, s1, dm1, ds1 = alt.predict_with_grad(U)
+    mu = (1.0 - w) * m0 + w * m1
+    dmu = (1.0 - w) * dm0 + w * dm1
+    var = (1.0 - w) * (s0 * s0 + m0 * m0) + w * (s1 * s1 + m1 * m1) - mu * mu
+    dvar = (
+        2.0 * (1.0 - w) * (s0[:, None] * ds0 + m0[:, None] * dm0)
+        + 2.0 * w * (s1[:, None] * ds1 + m1[:, None] * dm1)
+        - 2.0 * mu[:, None] * dmu
+    )
+    sd = np.sqrt(np.maximum(var, 1e-300))
+    return mu, sd, dmu, dvar / (2.0 * sd[:, None])
 
 
 def _in_balls(U: FloatArray, centres: FloatArray, radii: FloatArray) -> NDArray[np.bool_]:

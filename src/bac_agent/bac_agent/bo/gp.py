@@ -116,8 +116,18 @@ class GPConfig:
     warp_runs: int = 0  # the warp is learned from this many runs on (the identity before)
     # > 0 (issue 23, opt-in): the kernel is fitted twice, under the lengthscale prior of sd ls_scale and under one of
     # this sd (tighter: lengthscales held near the median, which carry the runs' trend on), and the fit whose kernel
-    # predicts the runs left out one at a time better (constant mean) is kept
+    # predicts the runs left out one at a time better (constant mean) is kept (in place of ls_average's model average)
     ls_select: float = 0.0
+    # > 0: a Bayesian model average over two lengthscale priors: the kernel fitted under the prior of sd ls_scale
+    # and under one of this sd (meant tighter: lengthscales held near the median, which carry the runs' trend on
+    # to a face or a corner), each weighed by its evidence (the Laplace approximation of its marginal likelihood,
+    # hyperparameters integrated out) raised to ls_average_temper (0: equal weights), from a prior probability of
+    # 0.5 each; the engine averages the noisy EI and the posterior mean over the two (GP.alt). The default since
+    # 2026-11-25: 0.5 with equal weights, chosen on the tuning split of the problem families (docs/agent.md);
+    # 0: one fit, as before (an engine state saved before it reads back without it)
+    ls_average: float = 0.5
+    ls_average_temper: float = 0.0
+    ls_average_median: float = 0.0  # > 0: the tighter prior's median lengthscale (0: the configured one's, √2)
     draws: int = 8  # draws from the prior, screened by their objective
     restarts: int = 1  # best draws optimized, besides the prior mode and the previous fit
     maxiter: int = 200
@@ -141,6 +151,16 @@ class GPConfig:
                 f"ls_select must be 0 (off) or a lengthscale prior sd tighter than ls_scale {self.ls_scale:g}, got "
                 f"{self.ls_select}"
             )
+        if not 0.0 <= self.ls_average < math.inf:
+            raise GPError(
+                f"ls_average must be 0 (off) or the second lengthscale prior's sd (> 0), got {self.ls_average}"
+            )
+        if not 0.0 <= self.ls_average_median < math.inf:
+            raise GPError(
+                f"ls_average_median must be >= 0 and finite (0: ls_loc's median), got {self.ls_average_median}"
+            )
+        if not 0.0 <= self.ls_average_temper < math.inf:
+            raise GPError(f"ls_average_temper must be >= 0 and finite (0: equal weights), got {self.ls_average_temper}")
         if self.bowl_centres < 1 or not self.bowl_tip > 0.0 or not self.bowl_temper > 0.0:
             raise GPError(
                 f"bowl_centres must be >= 1 and bowl_tip, bowl_temper > 0, got {self.bowl_centres}, "
@@ -376,6 +396,10 @@ class GP:
     _bowl_loo: float = -math.inf  # the bowl's leave-one-out log predictive density (GPConfig.bowl_loo)
     _const_loo: float = -math.inf  # the constant mean's, the last time they were compared
     _lin: bool = False  # the fit profiles a linear trend out of the likelihood (GPConfig.mean "linear"/"select")
+    # GPConfig.ls_average: the fit under the tighter lengthscale prior and its posterior probability (this fit's is
+    # 1 - alt_weight); set by fit, None otherwise (condition() leaves them as they are)
+    alt: GP | None = None
+    alt_weight: float = 0.0
 
     # --- priors ------------------------------------------------------------------
     def _prior(self, d: int) -> tuple[FloatArray, FloatArray]:
@@ -542,6 +566,8 @@ class GP:
         """
         if self.config.ls_select > 0.0:
             return self._fit_ls_select(X, y, rng)
+        if self.config.ls_average > 0.0:
+            return self._fit_ls_average(X, y, rng)
         if self.config.warp and np.atleast_2d(X).shape[0] < self.config.warp_runs:
             warped = self.config  # (GPConfig.warp_runs) too few runs to learn the warp: this fit without it
             self.config = replace(warped, warp=False)
@@ -599,7 +625,8 @@ class GP:
         c = self.config
         seed = int((rng if rng is not None else np.random.default_rng(0)).integers(2**63 - 1))
         best: tuple[float, GP] | None = None
-        for cfg in (replace(c, ls_select=0.0), replace(c, ls_scale=c.ls_select, ls_select=0.0)):
+        c = replace(c, ls_select=0.0, ls_average=0.0)  # (one fit each)
+        for cfg in (c, replace(c, ls_scale=self.config.ls_select)):
             gp = GP(cfg, hyper=self.hyper).fit(X, y, np.random.default_rng(seed))
             assert gp.hyper is not None
             try:
@@ -613,6 +640,58 @@ class GP:
             if k != "config":
                 setattr(self, k, v)
         return self
+
+    def _fit_ls_average(self, X: FloatArray, y: FloatArray, rng: np.random.Generator | None) -> GP:
+        """GPConfig.ls_average: this GP is the fit under the configured lengthscale prior, ``alt`` the fit under the
+        tighter one, ``alt_weight`` the latter's posterior probability (their evidences, tempered). Both fits start
+        from the last hyperparameters of this one (the only ones an engine's state keeps) and draw their starts
+        from one seed taken from ``rng``."""
+        c = self.config
+        seed = int((rng if rng is not None else np.random.default_rng(0)).integers(2**63 - 1))
+        base = GP(replace(c, ls_average=0.0), hyper=self.hyper).fit(X, y, np.random.default_rng(seed))
+        alt_cfg = replace(c, ls_scale=c.ls_average, ls_average=0.0)
+        if c.ls_average_median > 0.0:  # (the median in any dimension: ls_dim_scale's log d taken off)
+            d = np.atleast_2d(X).shape[1]
+            alt_cfg = replace(alt_cfg, ls_loc=math.log(c.ls_average_median) - c.ls_dim_scale * math.log(d))
+        alt = GP(alt_cfg, hyper=self.hyper)
+        alt.fit(X, y, np.random.default_rng(seed))
+        # (temper 0: equal weights, the evidences not computed)
+        log_odds = c.ls_average_temper * (alt.log_evidence() - base.log_evidence()) if c.ls_average_temper else 0.0
+        if not math.isfinite(log_odds):  # (a Hessian that could not be evaluated: no preference)
+            log_odds = 0.0
+        for k, v in vars(base).items():
+            if k != "config":
+                setattr(self, k, v)
+        self.alt = alt
+        self.alt_weight = float(1.0 / (1.0 + math.exp(-log_odds))) if log_odds > -700.0 else 0.0
+        return self
+
+    def log_evidence(self) -> float:
+        """The Laplace approximation of the log evidence of the standardized runs under this GP's hyperprior:
+        log p(z | v̂) + log p(v̂) + (k/2) log 2π − ½ log det H at the fitted log-hyperparameters v̂ (k of them; H the
+        Hessian of the negative log posterior, central differences of its analytic gradient, eigenvalues clipped at
+        1e-6), with the prior's normalizing constants; the fitted bowl (if any) a fixed offset, the constant mean
+        profiled out as in the fit. Two fits under different hyperpriors compare by it (GPConfig.ls_average)."""
+        if not self.fitted:
+            raise GPError("the GP has no data yet")
+        assert self.hyper is not None
+        v = self.hyper.to_vector()
+        k = v.size
+        D2 = None if self.config.warp else self._d2()
+        self._offset = self.hyper.bowl.value(self.X) if self.hyper.bowl is not None else 0.0
+        try:
+            f0, _ = self.neg_log_posterior(v, D2)
+            H = np.empty((k, k))
+            step = 1e-4
+            for i in range(k):
+                e = np.zeros(k)
+                e[i] = step
+                H[i] = (self.neg_log_posterior(v + e, D2)[1] - self.neg_log_posterior(v - e, D2)[1]) / (2.0 * step)
+        finally:
+            self._offset = 0.0
+        eig = np.linalg.eigvalsh(0.5 * (H + H.T))
+        _, scale = self._prior(self.X.shape[1])
+        return float(-f0 - np.sum(np.log(scale)) - 0.5 * np.sum(np.log(np.maximum(eig, 1e-6))))
 
     def _bowl_loo_due(self) -> bool:
         """GPConfig.bowl_loo compares the bowl with a constant mean at this many runs (bowl_loo_runs; 0: 2d + 1 and

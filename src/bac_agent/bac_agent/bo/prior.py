@@ -41,8 +41,8 @@ FloatArray = NDArray[np.float64]
 
 # the GP the source points are fitted with: a learned constant mean, a low noise (the points are a model's
 # predictions or averaged runs), the engine's kernel and priors otherwise
-SOURCE_GP = GPConfig(mean="constant", noise_loc=-7.0, noise_scale=1.0)
-NOISY_SOURCE_GP = GPConfig(mean="constant")  # runs of an earlier campaign: the engine's noise prior
+SOURCE_GP = GPConfig(mean="constant", noise_loc=-7.0, noise_scale=1.0, ls_average=0.0)
+NOISY_SOURCE_GP = GPConfig(mean="constant", ls_average=0.0)  # runs of an earlier campaign: the engine's noise prior
 MAX_SOURCE_POINTS = 512
 
 
