@@ -190,3 +190,20 @@ def test_the_average_recommendation_minimizes_the_sources_mean_averaged_by_their
     assert np.linalg.norm(engine("best") - centres[0]) < 0.05  # "best": the nominal's model after one run
     with pytest.raises(EngineError, match="prior_variants_recommend must be one of"):
         EngineConfig(prior=srcs[0].to_dict(), prior_variants_recommend="mode")
+
+
+def test_sources_are_weighed_on_js_scale_not_each_on_its_own() -> None:
+    """Two runs: a drawn vehicle whose J varies five times less than the car's across them must not take the weight
+    (each source's likelihood is compared in J's units; a Bayes factor against each source's own model without it
+    favoured the flattest source, whose reference model explains a large contrast worst: bench/transfer.py,
+    2026-11-25)."""
+    nominal = SourceSurface.from_function(lambda U: bowl(NOMINAL, U), 2, 64)
+    flat = SourceSurface.from_function(lambda U: 0.2 * bowl(CAR_OPT + np.array([0.05, 0.05]), U), 2, 64)
+    right = SourceSurface.from_function(lambda U: bowl(CAR_OPT, U), 2, 64)
+    cfg = EngineConfig(budget=6, prior=nominal.to_dict(), prior_variants=(flat.to_dict(), right.to_dict()))
+    eng = Engine(SPACE, cfg)
+    for u in ([0.45, 0.5], [0.1, 0.9]):
+        eng.tell({"a": u[0], "b": u[1]}, float(3.0 + bowl(CAR_OPT, np.array(u))[0]))
+    eng.recommend()
+    w = {round(src.scale, 6): wk for src, _, wk in eng._variant_models}
+    assert w[round(right.scale, 6)] > 5 * w[round(flat.scale, 6)]

@@ -816,20 +816,30 @@ class Engine:
 
     def _fit_with_variants(self, X: FloatArray, y: FloatArray, settings: TransferSettings) -> tuple[GP, TransferFit]:
         """``prior`` and ``prior_variants`` each weighed against the runs (``fit_with_source``); their posterior
-        probabilities from ``prior_weight`` shared equally, against the model without a source (1 - prior_weight):
-        each source's Bayes factor is against that model. Returns the most probable source's model and a TransferFit
+        probabilities from ``prior_weight`` shared equally, against the model without a source (1 - prior_weight;
+        the one ``prior`` is weighed against), all from their likelihoods of the runs in J's units. Returns the most
+        probable source's model and a TransferFit
         whose weight is the probability that one of the sources describes the car (its offset and scale the most
         probable source's)."""
         assert self._source is not None
         sources = [self._source, *self._variants]
         fits = [fit_with_source(self.config.gp, X, y, s, settings, self.rng, self._gp.hyper) for s in sources]
         pw = self.config.prior_weight
-        lbf = np.array([f.log_bayes_factor for _, f in fits])
-        logit = np.where(np.isnan(lbf), -np.inf, lbf) + math.log(pw / len(sources))
-        log_none = math.log1p(-pw)
+        # each model's likelihood of the runs' contrasts in J's units (a source's restricted likelihood is on its own
+        # standardized scale: minus (n - 1) log(scale)); the model without a source is the prior's (its Bayes factor's
+        # other side); a Bayes factor of each source against its own model without it would compare the sources on
+        # their scales' reference models instead of on the runs
+        n1 = X.shape[0] - 1
+        ll = np.array([f.log_lik - n1 * math.log(src.scale) for src, (_, f) in zip(sources, fits, strict=True)])
+        f0 = fits[0][1]
+        ll_none = f0.log_lik - f0.log_bayes_factor - n1 * math.log(sources[0].scale)
+        logit = np.where(np.isnan(ll), -np.inf, ll) + math.log(pw / len(sources))
+        log_none = ll_none + math.log1p(-pw) if math.isfinite(ll_none) else -np.inf
         if np.any(logit == np.inf):  # a source the runs make certain (round-off): it alone
             w = (logit == np.inf).astype(float) / float(np.sum(logit == np.inf))
             w_none = 0.0
+        elif not np.any(np.isfinite(logit)):  # no source can describe the runs
+            w, w_none = np.zeros(len(sources)), 1.0
         else:
             log_z = float(np.logaddexp.reduce(np.append(logit, log_none)))
             w, w_none = np.exp(logit - log_z), math.exp(log_none - log_z)
@@ -838,10 +848,9 @@ class Engine:
         best = int(order[0])
         gp, f = fits[best]
         total = float(min(1.0, np.sum(w)))
-        lbf_mix = (
-            float(np.logaddexp.reduce(lbf)) - math.log(len(sources)) if np.all(np.isfinite(lbf)) else f.log_bayes_factor
-        )
-        fit = replace(f, weight=total, log_bayes_factor=lbf_mix)
+        # the sources' mixture against the model without a source
+        lbf_mix = float(np.logaddexp.reduce(logit)) - math.log(pw) - ll_none if np.all(np.isfinite(ll)) else math.nan
+        fit = replace(f, weight=total, log_bayes_factor=lbf_mix if math.isfinite(lbf_mix) else f.log_bayes_factor)
         self._variant_models = [(sources[i], fits[i][0], float(w[i])) for i in order]
         self._variant_none = float(w_none)
         self._active_source = sources[best]
