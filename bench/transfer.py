@@ -8,7 +8,13 @@ the argmin of the posterior mean) runs three ways on the same seeds and noise st
   knows the test but not this car), 64 noise-free runs at Sobol points, fitted by ``SourceSurface.fit`` (what
   ``bac_agent.transfer`` builds from a ``bac reduce`` output or a campaign folder);
 * ``misleading``: a deliberately wrong simulator: the same surrogate mirrored through the centre of the box, so
-  that its optimum lies in the opposite corner of wherever the nominal car's lies.
+  that its optimum lies in the opposite corner of wherever the nominal car's lies;
+* ``tol`` (not by default): the simulation phase **over the vehicle's uncertainty**: the nominal car's surrogate
+  as ``sim``'s, and besides it (``EngineConfig.prior_variants``) the surrogates of ``--tolerance-k`` vehicles drawn
+  from the family's spread around the nominal one (``bac_sim.families.draw_vehicle``, seeds of their own: not the
+  benchmark's cars), each from 64 runs at the same Sobol points; ``tol_misleading``: the same, every surrogate
+  mirrored as ``misleading``'s. The simulator is then no longer the nominal vehicle alone (issue 23's definition):
+  a variant beside the goal's figures.
 
 Printed per family and pooled over the car families: median runs until the recommendation's true gap ≤ 0.05
 (budget + 1 when never), with a 90 % bootstrap interval, the share found after 1, 2 and 3 runs, and the gap of
@@ -42,13 +48,54 @@ import problem_families as pf
 from bac_common.progress import gap, runs_to_optimum
 
 ARMS = ("none", "sim", "misleading")
+ALL_ARMS = (*ARMS, "tol", "tol_misleading")
 SOURCE_POINTS = 64
+SOURCE_CACHE = Path(__file__).resolve().parent / "out" / "transfer_sources"
+
+
+def _surface(family: str, index: int, vehicle: int, mirrored: bool) -> dict[str, Any]:
+    """The surrogate (SourceSurface.to_dict()) of the nominal car (``vehicle`` -1) or of drawn vehicle ``vehicle``
+    on instance ``index``'s test, mirrored or not; cached under bench/out (a pure function of its arguments)."""
+    from bac_agent.bo.prior import SourceSurface
+    from bac_sim.families import _seed, draw_vehicle, get_family
+
+    path = SOURCE_CACHE / f"{family}_{index}_{vehicle}_{int(mirrored)}.json"
+    if path.is_file():
+        return dict(json.loads(path.read_text()))
+    fam = get_family(family)
+    inst = fam.instance(index)
+    if vehicle < 0:
+        sim = fam.nominal(inst)
+    else:  # a vehicle within the tolerances, from seeds of its own (not the benchmark's instances)
+        rng = np.random.default_rng(_seed("bench.transfer.tolerance", family, index, vehicle))
+        sim = inst.with_vehicle(draw_vehicle(rng), f"drawn {vehicle}")
+    b = sim.bounds
+
+    def f(U: np.ndarray) -> np.ndarray:
+        V = 1.0 - U if mirrored else U  # misleading: mirrored through the box centre
+        return sim.evaluate(b[:, 0] + V * (b[:, 1] - b[:, 0]))["j"]
+
+    what = "nominal car" if vehicle < 0 else f"drawn vehicle {vehicle}"
+    label = f"{what} on {sim.scenario.name}" + (" (mirrored: misleading)" if mirrored else "")
+    d = SourceSurface.from_function(f, b.shape[0], SOURCE_POINTS, label=label, seed=index).to_dict()
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_text(json.dumps(d))
+    return d
+
+
+def variants_for(family: str, index: int, arm: str, k: int) -> list[dict[str, Any]]:
+    """The ``tol`` arms' further sources: ``k`` drawn vehicles' surrogates (mirrored for ``tol_misleading``)."""
+    if arm not in ("tol", "tol_misleading"):
+        return []
+    return [_surface(family, index, v, arm == "tol_misleading") for v in range(k)]
 
 
 def source_for(family: str, index: int, arm: str) -> dict[str, Any] | None:
     """The transfer prior (SourceSurface.to_dict()) of an arm, or None."""
     if arm == "none":
         return None
+    if arm in ("tol", "tol_misleading"):
+        return _surface(family, index, -1, arm == "tol_misleading")
     from bac_agent.bo.prior import SourceSurface
     from bac_sim.families import get_family
 
@@ -64,8 +111,8 @@ def source_for(family: str, index: int, arm: str) -> dict[str, Any] | None:
     return SourceSurface.from_function(f, b.shape[0], SOURCE_POINTS, label=label, seed=index).to_dict()
 
 
-def _task(args: tuple[str, int, int, str, int, str, int]) -> dict[str, Any]:
-    family, index, seed, arm, budget, config, grid = args
+def _task(args: tuple[str, int, int, str, int, str, int, int]) -> dict[str, Any]:
+    family, index, seed, arm, budget, config, grid, tol_k = args
     from threadpoolctl import threadpool_limits
 
     from bac_agent.bo import Engine, EngineConfig
@@ -76,7 +123,10 @@ def _task(args: tuple[str, int, int, str, int, str, int]) -> dict[str, Any]:
         b = inst.bounds
         names = [f"x{i}" for i in range(b.shape[0])]
         src = source_for(family, index, arm)
-        cfg = EngineConfig.from_dict({**json.loads(config or "{}"), "budget": budget, "seed": seed, "prior": src})
+        extra = {"prior_variants": variants_for(family, index, arm, tol_k)} if arm.startswith("tol") else {}
+        cfg = EngineConfig.from_dict(
+            {**json.loads(config or "{}"), "budget": budget, "seed": seed, "prior": src, **extra}
+        )
         eng = Engine([(n, lo, hi) for n, (lo, hi) in zip(names, b, strict=True)], cfg)
         noise_rng = np.random.default_rng([index, seed, 12345])
         recs, weights = [], []
@@ -113,15 +163,19 @@ def _ci(runs: np.ndarray, draws: int = 4000) -> tuple[float, float]:
     return float(np.quantile(m, 0.05)), float(np.quantile(m, 0.95))
 
 
-def _paired_extra(rows: list[dict[str, Any]], budget: int, draws: int = 4000) -> tuple[float, float, float]:
-    """The misleading prior's median runs minus no prior's over the same campaigns (family, instance, seed), with a
-    90 % bootstrap interval that resamples the campaigns in pairs (both arms share a campaign's car and noise)."""
+def _paired_extra(
+    rows: list[dict[str, Any]], budget: int, draws: int = 4000, arms: tuple[str, str] = ("misleading", "none")
+) -> tuple[float, float, float]:
+    """Arm ``arms[0]``'s median runs minus ``arms[1]``'s (by default the misleading prior's minus no prior's) over
+    the same campaigns (family, instance, seed), with a 90 % bootstrap interval that resamples the campaigns in
+    pairs (both arms share a campaign's car and noise)."""
     runs: dict[tuple[str, int, int], dict[str, int | float]] = {}
     for r in rows:
         runs.setdefault((r["family"], r["instance"], r["seed"]), {})[r["arm"]] = min(
             runs_to_optimum(r["gaps"]), budget + 1
         )
-    pairs = np.array([[v["misleading"], v["none"]] for v in runs.values() if "misleading" in v and "none" in v])
+    x, y = arms
+    pairs = np.array([[v[x], v[y]] for v in runs.values() if x in v and y in v])
     if pairs.size == 0:
         return math.nan, math.nan, math.nan
     rng = np.random.default_rng(0)
@@ -135,7 +189,10 @@ def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--split", default="held-out", choices=sorted(pf.SPLITS))
     ap.add_argument("--families", default=",".join(pf.CAR_FAMILIES))
-    ap.add_argument("--arms", default=",".join(ARMS))
+    ap.add_argument("--arms", default=",".join(ARMS), help=f"of {', '.join(ALL_ARMS)}")
+    ap.add_argument(
+        "--tolerance-k", type=int, default=8, help="arms tol*: vehicles drawn within the tolerances beside the nominal"
+    )
     ap.add_argument("--instances", type=int, default=0)
     ap.add_argument("--seeds", type=int, default=0)
     ap.add_argument(
@@ -155,10 +212,16 @@ def main(argv: list[str] | None = None) -> int:
     seeds = [int(x) for x in a.seed_list.split(",") if x] if a.seed_list else split["seeds"][: a.seeds or None]
     fams = [f for f in a.families.split(",") if f]
     arms = [x for x in a.arms.split(",") if x]
+    if set(arms) - set(ALL_ARMS):
+        ap.error(f"unknown arms {sorted(set(arms) - set(ALL_ARMS))}; known: {', '.join(ALL_ARMS)}")
     if a.grid_truth and a.split != "tuning":
         ap.error("--grid-truth is for exploring defaults on the tuning split only")
     tasks = [
-        (f, i, s, arm, a.budget, a.bac_config, a.grid_truth) for f in fams for i in insts for s in seeds for arm in arms
+        (f, i, s, arm, a.budget, a.bac_config, a.grid_truth, a.tolerance_k)
+        for f in fams
+        for i in insts
+        for s in seeds
+        for arm in arms
     ]
     t0 = time.perf_counter()
     if a.from_json:  # e.g. one run per family: summarized together (the pooled line over all of them)
@@ -205,6 +268,11 @@ def main(argv: list[str] | None = None) -> int:
             d, lo, hi = _paired_extra(rows, a.budget)
             if math.isfinite(d):
                 print(f"   misleading - none: {d:+g} runs (90% CI {lo:+g} to {hi:+g}, campaigns resampled in pairs)")
+        for x, y in (("tol", "sim"), ("tol_misleading", "misleading"), ("tol_misleading", "none")):
+            if x in arms and y in arms:
+                d, lo, hi = _paired_extra(rows, a.budget, arms=(x, y))
+                if math.isfinite(d):
+                    print(f"   {x} - {y}: {d:+g} runs (90% CI {lo:+g} to {hi:+g}, paired)")
     if not a.from_json:
         out = Path(a.out or f"bench/out/transfer_{a.split}.json")
         out.parent.mkdir(parents=True, exist_ok=True)

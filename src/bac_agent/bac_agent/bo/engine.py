@@ -50,6 +50,8 @@ from bac_common.errors import BacError
 FloatArray = NDArray[np.float64]
 
 STATE_VERSION = 1
+VARIANT_RECOMMEND = ("best", "average")
+VARIANT_MIN_SHARE = 1e-3  # prior_variants: models in the averaged acquisition down to this share of the most probable
 PRIOR_N_INITIAL = 3  # initial design with a transfer prior: its argmin and two spread points (then the model)
 KIND_INITIAL = "initial"
 KIND_GUESS = "guess"  # a best guess given with the configuration (initial_points), asked first
@@ -78,6 +80,39 @@ SAFE_MIN_STEP = 0.05
 # most: the edge of the step is where the estimated Lipschitz bound is used up; in 2-D, 100 seeds of the review's
 # travel, the edge broke the limit in 13 of 500 runs, 0.9 in 9, Sobol points in the balls (before) in 8)
 SAFE_LADDER = (0.9, 0.75, 0.5, 0.25)
+
+
+class _VariantMean:
+    """The posterior means of several sources' models averaged by their probabilities, in J, expressed in the
+    standardized units of ``ref`` (the most probable source's model), with ``ref``'s standard deviation: what
+    ``Engine._minimize_bound`` needs of a GP (``X``, ``predict_std_units``, ``predict_with_grad``)."""
+
+    # one model as far as the lengthscale priors' model average goes (GPConfig.ls_average): the sources' models are
+    # transfer models, fitted once
+    alt: GP | None = None
+    alt_weight: float = 0.0
+
+    def __init__(self, ref: GP, members: list[tuple[float, GP]]) -> None:
+        self.ref = ref
+        self.X = ref.X
+        total = sum(w for w, _ in members)
+        # each member's standardized mean in ref's units: (y_mean_k + y_std_k m_k - y_mean_ref) / y_std_ref
+        self.members = [(w / total, m, m.y_std / ref.y_std, (m.y_mean - ref.y_mean) / ref.y_std) for w, m in members]
+
+    def predict_std_units(self, U: FloatArray) -> tuple[FloatArray, FloatArray]:
+        _, var = self.ref.predict_std_units(U)
+        mu = sum(w * (c + k * m.predict_std_units(U)[0]) for w, m, k, c in self.members)
+        return np.asarray(mu, dtype=float), var
+
+    def predict_with_grad(self, U: FloatArray) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray]:
+        _, sd, _, dsd = self.ref.predict_with_grad(U)
+        mu = np.zeros(np.atleast_2d(U).shape[0])
+        dmu = np.zeros(np.atleast_2d(U).shape)
+        for w, m, k, c in self.members:
+            mk, _, dmk, _ = m.predict_with_grad(U)
+            mu += w * (c + k * mk)
+            dmu += w * k * dmk
+        return mu, sd, dmu, dsd
 
 
 def _make_blas_limiter() -> Callable[[], Any]:
@@ -169,6 +204,16 @@ class EngineConfig:
     # tuning split of bench/transfer.py: a source right in shape but not at its optimum held the runs near its own
     # optimum (road_c1 > 15 runs with the simulator's prior; 4.5 averaged); docs/agent.md
     prior_average: bool = True
+    # further sources beside ``prior`` (each a SourceSurface.to_dict() over this space's unit cube): the simulation
+    # phase run over the vehicle's uncertainty, e.g. K vehicles drawn within the car's tolerances besides the nominal
+    # one. Each source is a model of the car (its own learned offset and scale, weighed as ``prior`` is); their
+    # posterior probabilities share ``prior_weight`` equally a priori, the model is the most probable source's, the
+    # acquisition the noisy EI averaged over every source's model and the model without a source (in J's units).
+    # Run 1 stays ``prior``'s argmin. Empty (the default): ``prior`` alone. Issue 23; not the default: docs/agent.md
+    prior_variants: tuple[Mapping[str, Any], ...] = ()
+    # with prior_variants, the recommendation (rule "mean", no outcome limits): "best" the argmin of the most probable
+    # source's model; "average" the argmin of the sources' posterior means averaged by their probabilities (in J)
+    prior_variants_recommend: str = "best"
     # --- outcome constraints (bo/constraints.py): limits on measured outcomes besides J, e.g.
     # {"name": "max_travel_mm", "bound": 60.0, "upper": True}; a proposal's probability of breaking any is at
     # most constraint_level, and so is the recommendation's
@@ -230,6 +275,15 @@ class EngineConfig:
             raise EngineError(f"prior_runs must be >= 0 (0 = no limit), got {self.prior_runs}")
         if self.prior_n_initial < 0:
             raise EngineError(f"prior_n_initial must be >= 0 (0 = automatic), got {self.prior_n_initial}")
+        if self.prior_variants and self.prior is None:
+            raise EngineError("prior_variants are further transfer sources beside prior: give prior too")
+        if not all(isinstance(v, Mapping) for v in self.prior_variants):
+            raise EngineError("prior_variants must be a list of source surfaces (SourceSurface.to_dict())")
+        if self.prior_variants_recommend not in VARIANT_RECOMMEND:
+            raise EngineError(
+                f"prior_variants_recommend must be one of {', '.join(VARIANT_RECOMMEND)}, "
+                f"got {self.prior_variants_recommend!r}"
+            )
         if not 0.0 < self.constraint_level < 1.0:
             raise EngineError(f"constraint_level must be in (0, 1), got {self.constraint_level}")
         if not (math.isfinite(self.limit_trend_far) and self.limit_trend_far >= 0.0):
@@ -248,6 +302,12 @@ class EngineConfig:
         d["initial_points"] = [dict(p) for p in self.initial_points]
         d["constraints"] = [OutcomeLimit.from_spec(c).to_dict() for c in self.constraints]
         d["prior"] = dict(self.prior) if self.prior is not None else None
+        if self.prior_variants:
+            d["prior_variants"] = [dict(v) for v in self.prior_variants]
+        else:  # the configuration of a campaign without them reads as before they existed
+            d.pop("prior_variants")
+            if self.prior_variants_recommend == "best":
+                d.pop("prior_variants_recommend")
         d["outcome_priors"] = {k: dict(v) for k, v in self.outcome_priors.items()} if self.outcome_priors else None
         d["safe_start"] = dict(self.safe_start) if self.safe_start else None
         return d
@@ -259,6 +319,9 @@ class EngineConfig:
             {str(k): float(v) for k, v in p.items()} for p in data.get("initial_points") or ()
         )
         data["constraints"] = tuple(OutcomeLimit.from_spec(c).to_dict() for c in data.get("constraints") or ())
+        if not isinstance(data.get("prior_variants") or (), list | tuple):
+            raise EngineError("prior_variants must be a list of source surfaces (SourceSurface.to_dict())")
+        data["prior_variants"] = tuple(data.get("prior_variants") or ())
         if data.get("safe_start"):
             data["safe_start"] = {str(k): float(v) for k, v in data["safe_start"].items()}
         if "n_candidates" in data and "limit_trend" not in data:  # a whole config saved before limit_trend existed
@@ -354,6 +417,18 @@ class Engine:
             raise EngineError(
                 f"the transfer prior has {self._source.dim} dimensions, this space {self.space.dim} ({self.names})"
             )
+        self._variants = [SourceSurface.from_dict(dict(v)) for v in self.config.prior_variants]
+        for i, src in enumerate(self._variants):
+            if src.dim != self.space.dim:
+                raise EngineError(
+                    f"prior variant {i} has {src.dim} dimensions, this space {self.space.dim} ({self.names})"
+                )
+        # with prior_variants: the last weighing's models (source, its model, posterior probability), the most
+        # probable source first; empty otherwise
+        self._variant_models: list[tuple[SourceSurface, GP, float]] = []
+        self._variant_best = 0  # the most probable source: 0 prior, i prior_variants[i - 1]
+        self._variant_none = 0.0  # the posterior probability of the model without any source
+        self._active_source = self._source
         self.transfer: TransferFit | None = None
         self._limits = parse_limits(self.config.constraints)
         outcome_sources = {
@@ -456,7 +531,11 @@ class Engine:
         once the runs reject it or after ``prior_runs`` runs, when the weight shown is that of the last weighing)."""
         assert self.transfer is not None
         in_use = self.transfer.used and len(self.observations) <= self.prior_runs
-        return {**self.transfer.to_dict(), "prior_in_use": 1.0 if in_use else 0.0}
+        out = {**self.transfer.to_dict(), "prior_in_use": 1.0 if in_use else 0.0}
+        if self._variants and self._variant_models:  # which source the model is (0: prior, i: prior_variants[i-1])
+            out["prior_source_index"] = float(self._variant_best)
+            out["prior_source_weight"] = self._variant_models[0][2]
+        return out
 
     def _gp_config(self) -> GPConfig:
         cfg = self.config.gp
@@ -763,7 +842,10 @@ class Engine:
                 self.config.prior_scale_sd,
                 self.config.prior_residual_os,
             )
-            gp, fit = fit_with_source(self.config.gp, X, y, self._source, settings, self.rng, self._gp.hyper)
+            if self._variants:
+                gp, fit = self._fit_with_variants(X, y, settings)
+            else:
+                gp, fit = fit_with_source(self.config.gp, X, y, self._source, settings, self.rng, self._gp.hyper)
             self.transfer = fit
             if fit.used:
                 self._gp, self._warp, self._gp_key = gp, OutputWarp(), key
@@ -775,6 +857,49 @@ class Engine:
         self._gp.fit(X, self._warp.forward(y), self.rng)
         self._gp_key = key
         return self._gp
+
+    def _fit_with_variants(self, X: FloatArray, y: FloatArray, settings: TransferSettings) -> tuple[GP, TransferFit]:
+        """``prior`` and ``prior_variants`` each weighed against the runs (``fit_with_source``); their posterior
+        probabilities from ``prior_weight`` shared equally, against the model without a source (1 - prior_weight;
+        the one ``prior`` is weighed against), all from their likelihoods of the runs in J's units. Returns the most
+        probable source's model and a TransferFit
+        whose weight is the probability that one of the sources describes the car (its offset and scale the most
+        probable source's)."""
+        assert self._source is not None
+        sources = [self._source, *self._variants]
+        fits = [fit_with_source(self.config.gp, X, y, s, settings, self.rng, self._gp.hyper) for s in sources]
+        pw = self.config.prior_weight
+        # each model's likelihood of the runs' contrasts in J's units (a source's restricted likelihood is on its own
+        # standardized scale: minus (n - 1) log(scale)); the model without a source is the prior's (its Bayes factor's
+        # other side); a Bayes factor of each source against its own model without it would compare the sources on
+        # their scales' reference models instead of on the runs
+        n1 = X.shape[0] - 1
+        ll = np.array([f.log_lik - n1 * math.log(src.scale) for src, (_, f) in zip(sources, fits, strict=True)])
+        f0 = fits[0][1]
+        ll_none = f0.log_lik - f0.log_bayes_factor - n1 * math.log(sources[0].scale)
+        logit = np.where(np.isnan(ll), -np.inf, ll) + math.log(pw / len(sources))
+        log_none = ll_none + math.log1p(-pw) if math.isfinite(ll_none) else -np.inf
+        if np.any(logit == np.inf):  # a source the runs make certain (round-off): it alone
+            w = (logit == np.inf).astype(float) / float(np.sum(logit == np.inf))
+            w_none = 0.0
+        elif not np.any(np.isfinite(logit)):  # no source can describe the runs
+            w, w_none = np.zeros(len(sources)), 1.0
+        else:
+            log_z = float(np.logaddexp.reduce(np.append(logit, log_none)))
+            w, w_none = np.exp(logit - log_z), math.exp(log_none - log_z)
+        # ties (to round-off: one run weighs no shape) keep prior first, then the order given
+        order = np.argsort(-np.where(w >= w.max() * (1.0 - 1e-9), np.inf, w), kind="stable")
+        best = int(order[0])
+        gp, f = fits[best]
+        total = float(min(1.0, np.sum(w)))
+        # the sources' mixture against the model without a source
+        lbf_mix = float(np.logaddexp.reduce(logit)) - math.log(pw) - ll_none if np.all(np.isfinite(ll)) else math.nan
+        fit = replace(f, weight=total, log_bayes_factor=lbf_mix if math.isfinite(lbf_mix) else f.log_bayes_factor)
+        self._variant_models = [(sources[i], fits[i][0], float(w[i])) for i in order]
+        self._variant_none = float(w_none)
+        self._active_source = sources[best]
+        self._variant_best = best
+        return gp, fit
 
     def _outcome_models(self) -> OutcomeModels:
         """The constrained outcomes' GPs, fitted to every observation (refitted when they changed)."""
@@ -829,7 +954,8 @@ class Engine:
         if not tr.used or 1.0 - tr.weight < 1e-6 or gp.hyper is None or gp.hyper.prior is None:
             return None
         y = np.array([o.value for o in self.observations])
-        return without_source(self.config.gp, gp.X, y, self._source, tr.alt_hyper)
+        assert self._active_source is not None
+        return without_source(self.config.gp, gp.X, y, self._active_source, tr.alt_hyper)
 
     def _with_pending(self, gp: GP) -> GP:
         """``gp`` with the pending asks fantasized at its posterior mean (kriging believer); ``gp`` when none."""
@@ -871,6 +997,40 @@ class Engine:
             v0, g0 = nei0.value_and_grad(U)
             v = np.logaddexp(lw1 + v1, lw0 + v0)
             return v, np.exp(lw1 + v1 - v)[:, None] * g1 + np.exp(lw0 + v0 - v)[:, None] * g0
+
+        return values, value_and_grad
+
+    def _variants_nei(
+        self, alt: GP, incumbents: NDArray[np.bool_] | None
+    ) -> tuple[Callable[[FloatArray], FloatArray], Callable[[FloatArray], tuple[FloatArray, FloatArray]]]:
+        """log of the noisy EI averaged over every source's model (``prior_variants``) and the model without a
+        source (``alt``), by their posterior probabilities; each EI in J's units (its source's scale), so that they
+        add. Members below VARIANT_MIN_SHARE of the most probable are left out (their share of the average is
+        negligible; an NEI each costs an ask's time)."""
+        assert self._active_source is not None
+        members: list[tuple[float, GP]] = []
+        top = max([w for _, _, w in self._variant_models] + [self._variant_none])
+        for src, gp, w in self._variant_models:
+            if w >= VARIANT_MIN_SHARE * top:
+                members.append((math.log(w) + math.log(src.scale), self._with_pending(gp)))
+        if self._variant_none >= VARIANT_MIN_SHARE * top:
+            members.append(
+                (math.log(self._variant_none) + math.log(self._active_source.scale), self._with_pending(alt))
+            )
+        neis = [(lw, NoisyEI(gp, self.config.nei_samples, self.rng, incumbents)) for lw, gp in members]
+        self._acq_info["acquisition"] = (
+            f"noisy EI averaged over {len(neis)} models (sources and none; the most probable source's share "
+            f"{self._variant_models[0][2]:.3f})"
+        )
+
+        def values(U: FloatArray) -> FloatArray:
+            return np.asarray(np.logaddexp.reduce([lw + nei(U) for lw, nei in neis], axis=0), dtype=float)
+
+        def value_and_grad(U: FloatArray) -> tuple[FloatArray, FloatArray]:
+            vg = [(lw + v, g) for lw, nei in neis for v, g in [nei.value_and_grad(U)]]
+            v = np.logaddexp.reduce([a for a, _ in vg], axis=0)
+            grad = sum(np.exp(a - v)[:, None] * g for a, g in vg)
+            return np.asarray(v, dtype=float), np.asarray(grad, dtype=float)
 
         return values, value_and_grad
 
@@ -925,7 +1085,9 @@ class Engine:
             j_grad: Callable[[FloatArray], tuple[FloatArray, FloatArray]]
             alt = self._model_without_source(gp)
             ls_mix = self._members(gp)
-            if self.config.acquisition == "nei" and alt is not None:
+            if self.config.acquisition == "nei" and alt is not None and self._variants:
+                j_values, j_grad = self._variants_nei(alt, incumbents)
+            elif self.config.acquisition == "nei" and alt is not None:
                 j_values, j_grad = self._averaged_nei(model, alt, incumbents)
             elif self.config.acquisition == "nei" and ls_mix is not None:
                 # the model average over the two lengthscale priors (GPConfig.ls_average)
@@ -1122,10 +1284,11 @@ class Engine:
     def hyper(self) -> Hyper | None:
         return self._gp.hyper
 
-    def _minimize_bound(self, beta: float) -> FloatArray | None:
+    def _minimize_bound(self, beta: float, model: Any = None) -> FloatArray | None:
         """Unit-cube argmin of posterior mean + beta * std (multi-start L-BFGS-B), quantized; with outcome limits
-        among the calibrations within the level (None when none is)."""
-        gp = self._model()
+        among the calibrations within the level (None when none is). ``model``: the GP's stand-in
+        (``_VariantMean``)."""
+        gp = self._model() if model is None else model
         d = self.space.dim
         rng = np.random.default_rng(self.config.seed + 7919 * len(self.observations))
         cand = np.vstack([candidates(self.config.n_candidates, d, rng), gp.X])
@@ -1199,7 +1362,7 @@ class Engine:
         if rule == "mean" and self._can_model():
             # (else: one run, or runs all equal, and no transfer prior in use: the posterior mean is flat, its
             # "argmin" would be an arbitrary calibration never driven; the driven one is the answer, issue 23)
-            u = self._minimize_bound(self.config.recommend_beta)
+            u = self._minimize_bound(self.config.recommend_beta, self._variant_mean())
         if u is None:
             u = self._best_observed_unit(by_model=rule != "best_run")
         x = self.space.from_unit(u)
@@ -1218,6 +1381,16 @@ class Engine:
             transfer=self._transfer_dict() if self.transfer is not None and self._source is not None else {},
             rule=rule,
         )
+
+    def _variant_mean(self) -> _VariantMean | None:
+        """With prior_variants and ``prior_variants_recommend`` "average", while a source is in use and no outcome is
+        limited: the sources' posterior means averaged by their probabilities (what the recommendation minimizes)."""
+        if self.config.prior_variants_recommend != "average" or not self._variants or self._limits:
+            return None
+        gp = self._model()
+        if self.transfer is None or not self.transfer.used or gp.hyper is None or gp.hyper.prior is None:
+            return None
+        return _VariantMean(gp, [(w, m) for _, m, w in self._variant_models])
 
     def _best_observed_unit(self, by_model: bool) -> FloatArray:
         """The driven calibration with the best posterior mean (``by_model``) or measured J, among the runs that

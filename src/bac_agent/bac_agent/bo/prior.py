@@ -234,6 +234,9 @@ class TransferFit:
     # the kernel of the model without the source (an offset and a residual, on the source's scale): the other
     # member of the model average (``without_source``); not journaled
     alt_hyper: Hyper | None = field(default=None, compare=False, repr=False)
+    # log p(runs' contrasts | source), on the source's standardized scale (the restricted likelihood): sources of
+    # different scales are compared on J's after subtracting (n - 1) log(scale) (Engine's prior_variants); not journaled
+    log_lik: float = field(default=math.nan, compare=False, repr=False)
 
     @property
     def used(self) -> bool:
@@ -309,7 +312,13 @@ def weigh_source(
     t = lbf + prior_logit
     w = 1.0 / (1.0 + math.exp(-t)) if t > -700 else 0.0
     return TransferFit(
-        float(w), float(beta[0]), float(beta[1]), float(math.sqrt(max(cov[1, 1], 0.0))), float(lbf), alt_hyper=h0
+        float(w),
+        float(beta[0]),
+        float(beta[1]),
+        float(math.sqrt(max(cov[1, 1], 0.0))),
+        float(lbf),
+        alt_hyper=h0,
+        log_lik=float(lml1),
     )
 
 
