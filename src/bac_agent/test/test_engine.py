@@ -422,3 +422,26 @@ def test_one_run_with_a_transfer_prior_the_runs_do_not_support_is_recommended_as
     for _ in range(2):
         eng.tell(eng.ask(), 1.0)  # two equal runs after the prior's last run: nothing to model
     assert eng.recommend().params in [pytest.approx(o.params) for o in eng.observations]
+
+
+@pytest.mark.parametrize(
+    ("hyper", "message"),
+    [
+        ({"outputscale": "x"}, "could not convert"),
+        ({"lengthscales": [[0.3], [0.2, 0.1]]}, "inhomogeneous|sequence"),
+        ({"warp": [[1.0, 1.0]]}, "do not fit together"),
+    ],
+)
+def test_a_saved_state_with_malformed_hyperparameters_is_a_malformed_engine_state(
+    hyper: dict[str, object], message: str
+) -> None:
+    eng = Engine({"x": (0.0, 1.0), "y": (0.0, 1.0)}, EngineConfig(budget=8, seed=1))
+    for _ in range(4):
+        p = eng.ask()
+        eng.tell(p, (p["x"] - 0.3) ** 2 + (p["y"] - 0.6) ** 2)
+    eng.ask()
+    state = eng.state_dict()
+    assert state.get("hyper")
+    state["hyper"] = {**state["hyper"], **hyper}
+    with pytest.raises(EngineError, match=f"malformed engine state.*({message})"):
+        Engine.from_state_dict(json.loads(json.dumps(state)))

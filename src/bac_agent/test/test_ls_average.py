@@ -3,6 +3,7 @@ Laplace evidences, the engine's noisy EI and posterior mean averaged over them."
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from dataclasses import replace
 
@@ -234,3 +235,38 @@ def test_the_default_is_the_average_with_equal_weights_and_an_old_saved_config_r
     # a campaign with the default fits both: the model average is in use
     eng = _engine(GPConfig())
     assert eng._members(eng._model()) == (0.5, eng._model().alt)
+
+
+def test_predictions_follow_the_fit_whose_weight_is_within_1e_6_of_1() -> None:
+    """(outside review, 2026-11-25) with one fit's weight within 1e-6 of 1 the recommendation and the acquisition use
+    that fit: Engine.predict must say what they use, not the other fit's prediction."""
+    eng = _engine(GPConfig(ls_average=0.5))
+    gp = eng._model()
+    assert gp.alt is not None
+    gp.alt_weight = 1.0 - 1e-9
+    U = np.array([[0.9, 0.1], [0.3, 0.6]])
+    tight = eng._warp.inverse_mean_std(*gp.alt.predict(U))[0]
+    wide = eng._warp.inverse_mean_std(*gp.predict(U))[0]
+    assert np.max(np.abs(tight - wide)) > 1e-3  # the two fits differ here
+    np.testing.assert_allclose(eng.predict_unit(U)[0], tight, rtol=1e-12)
+
+
+def test_the_evidence_of_a_fit_made_before_the_warp_is_learned_is_computed() -> None:
+    """(outside review) ls_average_temper > 0 with gp.warp and fewer runs than warp_runs: the fits ran without the
+    warp, and their evidences must be judged so (a shape error before)."""
+    rng = np.random.default_rng(3)
+    X = rng.random((6, 2))
+    y = np.sum((X - 0.4) ** 2, axis=1) + 0.01 * rng.standard_normal(6)
+    gp = GP(GPConfig(warp=True, warp_runs=10, ls_average=0.5, ls_average_temper=1.0)).fit(X, y, rng)
+    assert gp.hyper is not None and gp.hyper.warp is None
+    assert gp.alt is not None and 0.0 < gp.alt_weight < 1.0
+    assert np.isfinite(gp.log_evidence())
+
+
+def test_a_partial_gp_override_keeps_today_s_defaults_but_a_whole_old_dump_reads_as_it_ran() -> None:
+    """(outside review) {"gp": {"maxiter": 100}} is an override, not a dump saved before ls_average and bowl_loo."""
+    cfg = EngineConfig.from_dict({"gp": {"maxiter": 100}})
+    assert cfg.gp.maxiter == 100 and cfg.gp.ls_average == 0.5 and cfg.gp.bowl_loo is True
+    old = {k: v for k, v in dataclasses.asdict(GPConfig()).items() if k not in ("ls_average", "bowl_loo")}
+    cfg = EngineConfig.from_dict({"gp": old})
+    assert cfg.gp.ls_average == 0.0 and cfg.gp.bowl_loo is False

@@ -207,3 +207,30 @@ def test_sources_are_weighed_on_js_scale_not_each_on_its_own() -> None:
     eng.recommend()
     w = {round(src.scale, 6): wk for src, _, wk in eng._variant_models}
     assert w[round(right.scale, 6)] > 5 * w[round(flat.scale, 6)]
+
+
+@pytest.mark.parametrize("prior_average", [True, False])
+def test_the_sources_stay_averaged_when_the_model_without_a_source_drops_out(prior_average: bool) -> None:
+    """The outside review's case (2026-11-25): with prior_average off, or once the model without a source has a
+    negligible share (here a prior weight of 1 - 1e-8), the acquisition must still average the sources that share
+    the weight (it fell back to the most probable source's NEI alone)."""
+    nominal, drawn = _sources()
+    cfg = EngineConfig(
+        budget=14,
+        seed=0,
+        prior=nominal.to_dict(),
+        prior_weight=1 - 1e-8,
+        prior_average=prior_average,
+        prior_variants=tuple(s.to_dict() for s in drawn),
+    )
+    eng = Engine(SPACE, cfg)
+    rng = np.random.default_rng(0)
+    for _ in range(4):
+        p = eng.ask()
+        eng.tell(p, float(car(np.array([p["a"], p["b"]]))[0] * (1 + 0.01 * rng.standard_normal())))
+    s = eng.ask_with_info()
+    assert eng.transfer is not None and eng.transfer.used
+    weights = sorted(w for _, _, w in eng._variant_models)
+    assert weights[-2] >= 0.005, weights  # a second source still counts (VARIANT_MIN_SHARE: 1e-3 of the top)
+    assert eng._variant_none < 1e-6
+    assert "noisy EI averaged over" in str(s.info.get("acquisition")), s.info.get("acquisition")

@@ -41,7 +41,7 @@ from scipy.optimize import minimize
 from bac_agent.bo.acquisition import NoisyEI, log_ei, log_ei_with_grad
 from bac_agent.bo.constraints import OutcomeLimit, OutcomeModels, parse_limits, violations
 from bac_agent.bo.design import candidates, default_n_initial, initial_design
-from bac_agent.bo.gp import GP, GPConfig, GPError, Hyper
+from bac_agent.bo.gp import GP, GPConfig, Hyper
 from bac_agent.bo.prior import SourceSurface, TransferFit, TransferSettings, fit_with_source, without_source
 from bac_agent.bo.space import SearchSpace
 from bac_agent.bo.warp import WARPS, OutputWarp
@@ -62,6 +62,9 @@ KIND_RANDOM = "random"
 KIND_GRID = "grid"
 ACQUISITIONS = ("ei", "nei")
 RULES = ("mean", "observed", "best_run")  # Engine.recommend(rule)
+# the GPConfig fields every saved whole GPConfig holds (EngineConfig.from_dict tells such a dump, which ran with the
+# defaults of its day, from a partial override)
+WHOLE_GP_KEYS = frozenset({"maxiter", "ls_loc", "ls_scale", "os_loc", "noise_loc", "noise_floor"})
 TREND_MODEL = "the retreat's model with a linear trend"  # named in the least risky calibration's warning
 # a safe start's design grows from the runs that kept every limit by steps (SafeOpt's safe set, Sui et al. 2015: a
 # calibration is safe when a safe run's margin to the limit exceeds the Lipschitz constant times the distance), not
@@ -327,9 +330,12 @@ class EngineConfig:
         if "n_candidates" in data and "limit_trend" not in data:  # a whole config saved before limit_trend existed
             data["limit_trend"] = False
         gp = dict(data.pop("gp", {}) or {})
-        if "maxiter" in gp and "bowl_loo" not in gp:  # a whole GPConfig saved before bowl_loo existed: it ran without
+        # a whole GPConfig saved (its oldest fields all there), not a partial override such as {"maxiter": 100},
+        # which keeps today's defaults
+        whole = gp.keys() >= WHOLE_GP_KEYS
+        if whole and "bowl_loo" not in gp:  # a whole GPConfig saved before bowl_loo existed: it ran without
             gp["bowl_loo"] = False
-        if "maxiter" in gp and "ls_average" not in gp:  # a whole GPConfig saved before ls_average was the default
+        if whole and "ls_average" not in gp:  # a whole GPConfig saved before ls_average was the default
             gp["ls_average"] = 0.0
         for k in ("ls_bounds", "os_bounds", "warp_bounds"):
             if k in gp:
@@ -913,7 +919,7 @@ class Engine:
         """Posterior mean and std at unit-cube points, in J (through the output warp's inverse)."""
         gp = self._model()
         if self._members(gp) is None:
-            m, s = gp.predict(U)
+            m, s = self._single(gp).predict(U)  # (GPConfig.ls_average: the fit whose weight is within 1e-6 of 1)
         else:
             mu, var = self._mean_var(gp, U)
             m, s = gp.y_mean + gp.y_std * mu, gp.y_std * np.sqrt(var)
@@ -1001,19 +1007,19 @@ class Engine:
         return values, value_and_grad
 
     def _variants_nei(
-        self, alt: GP, incumbents: NDArray[np.bool_] | None
+        self, alt: GP | None, incumbents: NDArray[np.bool_] | None
     ) -> tuple[Callable[[FloatArray], FloatArray], Callable[[FloatArray], tuple[FloatArray, FloatArray]]]:
         """log of the noisy EI averaged over every source's model (``prior_variants``) and the model without a
-        source (``alt``), by their posterior probabilities; each EI in J's units (its source's scale), so that they
-        add. Members below VARIANT_MIN_SHARE of the most probable are left out (their share of the average is
-        negligible; an NEI each costs an ask's time)."""
+        source (``alt``; None: negligible or ``prior_average`` off), by their posterior probabilities; each EI in
+        J's units (its source's scale), so that they add. Members below VARIANT_MIN_SHARE of the most probable are
+        left out (their share of the average is negligible; an NEI each costs an ask's time)."""
         assert self._active_source is not None
         members: list[tuple[float, GP]] = []
         top = max([w for _, _, w in self._variant_models] + [self._variant_none])
         for src, gp, w in self._variant_models:
             if w >= VARIANT_MIN_SHARE * top:
                 members.append((math.log(w) + math.log(src.scale), self._with_pending(gp)))
-        if self._variant_none >= VARIANT_MIN_SHARE * top:
+        if alt is not None and self._variant_none >= VARIANT_MIN_SHARE * top:
             members.append(
                 (math.log(self._variant_none) + math.log(self._active_source.scale), self._with_pending(alt))
             )
@@ -1085,7 +1091,9 @@ class Engine:
             j_grad: Callable[[FloatArray], tuple[FloatArray, FloatArray]]
             alt = self._model_without_source(gp)
             ls_mix = self._members(gp)
-            if self.config.acquisition == "nei" and alt is not None and self._variants:
+            if self.config.acquisition == "nei" and self._variants and self.transfer is not None and self.transfer.used:
+                # every source's model (and the model without one while its share counts), also when the model
+                # without a source is negligible or prior_average is off: the sources share the weight
                 j_values, j_grad = self._variants_nei(alt, incumbents)
             elif self.config.acquisition == "nei" and alt is not None:
                 j_values, j_grad = self._averaged_nei(model, alt, incumbents)
@@ -1446,7 +1454,7 @@ class Engine:
             eng.rng.bit_generator.state = data["rng"]
             if data.get("hyper"):
                 eng._gp.hyper = Hyper.from_dict(data["hyper"])
-        except (KeyError, TypeError, GPError) as exc:
+        except (KeyError, TypeError, ValueError) as exc:  # (GPError is a ValueError)
             raise EngineError(f"malformed engine state: {exc}") from exc
         return eng
 

@@ -677,6 +677,9 @@ class GP:
         assert self.hyper is not None
         v = self.hyper.to_vector()
         k = v.size
+        cfg = self.config
+        if cfg.warp and self.hyper.warp is None:  # fitted without the warp (GPConfig.warp_runs): judged as fitted
+            self.config = replace(cfg, warp=False)
         D2 = None if self.config.warp else self._d2()
         self._offset = self.hyper.bowl.value(self.X) if self.hyper.bowl is not None else 0.0
         try:
@@ -687,10 +690,11 @@ class GP:
                 e = np.zeros(k)
                 e[i] = step
                 H[i] = (self.neg_log_posterior(v + e, D2)[1] - self.neg_log_posterior(v - e, D2)[1]) / (2.0 * step)
+            _, scale = self._prior(self.X.shape[1])
         finally:
             self._offset = 0.0
+            self.config = cfg
         eig = np.linalg.eigvalsh(0.5 * (H + H.T))
-        _, scale = self._prior(self.X.shape[1])
         return float(-f0 - np.sum(np.log(scale)) - 0.5 * np.sum(np.log(np.maximum(eig, 1e-6))))
 
     def _bowl_loo_due(self) -> bool:
