@@ -7,6 +7,7 @@ import numpy as np
 import pytest
 
 from bac_agent.bo import Engine, EngineConfig
+from bac_agent.bo.constraints import OutcomeModels
 from bac_agent.bo.engine import KIND_SAFE, SAFE_MIN_STEP, SAFE_STEP
 from bac_agent.bo.prior import SourceSurface
 
@@ -253,8 +254,6 @@ def test_with_a_safe_start_the_retreats_trend_is_not_used(seed: int, monkeypatch
     # with limit_trend_far, the calibrations far from every run) is not used with a safe start, whose safe set
     # bounds the proposals (docs/agent.md, issue 23): a whole campaign asks the same with limit_trend on and off,
     # and never consults the trend; without a safe start it does
-    from bac_agent.bo.constraints import OutcomeModels
-
     calls = []
     real = OutcomeModels.retreat_prob
 
