@@ -406,6 +406,8 @@ class BoAgentNode(BacNode):
         )
         for line in setup.log_lines():
             self.get_logger().info(line)
+        for line in setup.resumed_as_journaled:
+            self.get_logger().warning(line)
 
     # --- actions ----------------------------------------------------------------------------------
     def _do(self, actions: list[Action]) -> None:

@@ -89,6 +89,9 @@ class AgentSetup:
     config: CampaignConfig
     prior_info: dict[str, Any] = field(default_factory=dict)
     outcome_sources: dict[str, SourceSurface] = field(default_factory=dict)
+    # settings the node was given that a resumed journal overrides (it was started before the feature existed and
+    # resumes as it ran): one sentence each, which the node logs as a warning
+    resumed_as_journaled: list[str] = field(default_factory=list)
 
     def log_lines(self) -> list[str]:
         """The lines the node logs at its start: what runs, the transfer prior, the limits and their priors."""
@@ -200,6 +203,22 @@ def _build(s: AgentSettings, definition: CalibrationDefinition, cdir: Path, cid:
     limit_trend = s.limit_trend and not (isinstance(started_config, dict) and "limit_trend" not in started_config)
     # a campaign started before the model average over two lengthscale priors (no such key) resumes without it
     ls_average = 0.0 if isinstance(started_config, dict) and "gp_ls_average" not in started_config else s.gp_ls_average
+    # what the parameters ask and the resumed journal overrides: said, not silent (the parameters are read-only)
+    overridden: list[tuple[str, str]] = []
+    before = isinstance(started_config, dict) and "outcome_priors" not in started_config
+    if source is not None and constraints and before:
+        overridden.append(("the outcome priors from prior_source", "the limits' models start from nothing"))
+    if s.safe_start and constraints and s.strategy == "bo" and safe_calibration is None:
+        overridden.append(("safe_start true", "without a safe start"))
+    if s.limit_trend and constraints and not limit_trend:
+        overridden.append(("limit_trend true", "limit_trend false"))
+    if s.strategy == "bo" and ls_average != s.gp_ls_average:
+        overridden.append((f"gp_ls_average {s.gp_ls_average:g}", f"gp_ls_average {ls_average:g}, one fit"))
+    resumed_as_journaled = [
+        f"{asked} is not used: this campaign's journal was started before the option existed and the campaign "
+        f"resumes as it ran ({ran}); a new campaign_dir starts with it"
+        for asked, ran in overridden
+    ]
     budget = s.budget
     optimizer: Optimizer
     if s.strategy == "grid":
@@ -282,4 +301,6 @@ def _build(s: AgentSettings, definition: CalibrationDefinition, cdir: Path, cid:
         },
         outcome_limits=tuple(constraints),
     )
-    return AgentSetup(definition, cdir, journal, optimizer, cfg, prior_info, dict(outcome_sources))
+    return AgentSetup(
+        definition, cdir, journal, optimizer, cfg, prior_info, dict(outcome_sources), resumed_as_journaled
+    )

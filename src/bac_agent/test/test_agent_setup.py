@@ -283,3 +283,35 @@ def test_gp_ls_average_is_passed_journaled_and_off_for_a_journal_started_before_
     # an offline refit of such a journal models as the campaign did
     assert journaled_engine_options({"config": {}})["gp"]["ls_average"] == 0.0
     assert journaled_engine_options({"config": {"gp_ls_average": 0.5}})["gp"]["ls_average"] == 0.5
+
+
+def test_a_resumed_journal_that_overrides_a_parameter_says_so(tmp_path: Path) -> None:
+    """A journal started before an option existed resumes as it ran whatever the (read-only) parameter says: the
+    node warns with these sentences instead of leaving a parameter that reads otherwise than the campaign runs."""
+    source = str(_earlier_campaign(tmp_path / "earlier"))
+    settings = {"constraints": (LIMIT,), "prior_source": source, "safe_start": True}
+    fresh = build_agent(AgentSettings(campaign_dir=str(tmp_path / "new"), **settings))  # type: ignore[arg-type]
+    fresh.journal.close()
+    assert fresh.resumed_as_journaled == []
+    _journal_started(tmp_path / "old", {"constraints": [LIMIT]})  # none of the four options' keys
+    old = build_agent(AgentSettings(campaign_dir=str(tmp_path / "old"), **settings))  # type: ignore[arg-type]
+    old.journal.close()
+    notes = old.resumed_as_journaled
+    assert [n.split(" is not used")[0] for n in notes] == [
+        "the outcome priors from prior_source",
+        "safe_start true",
+        "limit_trend true",
+        "gp_ls_average 0.5",
+    ]
+    assert "resumes as it ran (gp_ls_average 0, one fit)" in notes[3]
+    # a journal that knew the options resumes with them: nothing to say
+    knew = {"constraints": [LIMIT], "outcome_priors": {}, "safe_start": {}, "limit_trend": True, "gp_ls_average": 0.5}
+    _journal_started(tmp_path / "knew", knew)
+    again = build_agent(AgentSettings(campaign_dir=str(tmp_path / "knew"), **settings))  # type: ignore[arg-type]
+    again.journal.close()
+    assert again.resumed_as_journaled == []
+    # a parameter at the value the old campaign ran with is not overridden
+    _journal_started(tmp_path / "old_off", {"budget": 15})
+    off = build_agent(AgentSettings(campaign_dir=str(tmp_path / "old_off"), gp_ls_average=0.0))
+    off.journal.close()
+    assert off.resumed_as_journaled == []
