@@ -329,3 +329,21 @@ def test_the_least_risky_warning_gives_the_probability_of_the_model_that_chose_i
         f"({float(old._outcomes.prob_violation(u_old).max()):.2f}); each limit's own model (no trend) predicts there"
         in s_old.info["no_safe_candidate"]
     )
+
+
+@pytest.mark.parametrize("kept_one", [False, True])
+def test_when_every_candidate_lies_near_a_failed_run_the_least_risky_is_said_without_inf(kept_one: bool) -> None:
+    # failed runs every 0.017 over a 1-D box: every candidate lies within 0.01 of one. The retreat (no run kept the
+    # limit) and the least risky fallback (one did, nothing is within the level) excluded them all and said
+    # "the least risky one (inf ...)" about the first candidate; now the least risky of them, and why
+    eng = Engine({"a": (0.0, 1.0)}, EngineConfig(budget=200, seed=0, constraints=("travel<=44",)))
+    runs = ((0.0, 70.0), (0.6, 52.0)) + (((0.97, 43.9),) if kept_one else ())
+    for a, travel in runs:
+        eng.tell({"a": a}, 1.0 + a, {"travel": travel})
+    for a in np.linspace(0.0, 1.0, 61):
+        eng.tell_failed({"a": float(a)}, "no result")
+    s = eng.ask_with_info()
+    said = s.info["no_safe_candidate"]
+    assert "inf" not in said and "nan" not in said, said
+    assert "; every candidate lies within 0.01 of a failed run" in said, said
+    assert s.params["a"] > 0.9, s.params  # the way the runs' travel falls

@@ -784,6 +784,21 @@ class Engine:
             f"{' under ' + model if model else ''})"
         )
 
+    def _least_risky(self, cand: FloatArray, risk: FloatArray, model: str) -> int:
+        """The index of the candidate of least ``risk`` (a probability; inf = excluded) away from the failed runs,
+        said with the proposal (:meth:`_no_safe_candidate`); when every candidate that is not excluded lies within
+        0.01 of a failed run, the least risky of those, and the warning says so (before 2026-11-25 it said 'inf')."""
+        near = self._near_failures(cand)
+        masked = np.where(near, np.inf, risk)
+        if np.any(np.isfinite(masked)):
+            i = int(np.argmin(masked))
+            self._no_safe_candidate(float(masked[i]), model)
+            return i
+        i = int(np.argmin(risk))
+        self._no_safe_candidate(float(risk[i]), model)
+        self._acq_info["no_safe_candidate"] += "; every candidate lies within 0.01 of a failed run"
+        return i
+
     def _fallback_risk(self, cand: FloatArray, outc: OutcomeModels) -> FloatArray:
         """The risk by which the least risky calibration is chosen when none is within the level: with limit_trend the
         retreat's model's probability, else the outcome models'."""
@@ -1075,9 +1090,7 @@ class Engine:
             # no run has kept every limit yet: look for the calibration most likely to keep them
             if not np.any(outc.allowed(cand) & ~self._near_failures(cand)):
                 # none is within the level: the retreat, in the direction the runs' values give (a linear trend)
-                risk = np.where(self._near_failures(cand), np.inf, outc.retreat_prob(cand))
-                i = int(np.argmin(risk))
-                self._no_safe_candidate(float(risk[i]), TREND_MODEL)
+                i = self._least_risky(cand, outc.retreat_prob(cand), TREND_MODEL)
                 self._acq_info["acquisition"] = "retreat (no run has kept every limit yet)"
                 return np.asarray(cand[i], dtype=float)
 
@@ -1159,14 +1172,12 @@ class Engine:
                 return self.rng.random(d)
             # nothing is within the level: the calibration least likely to break a limit
             worst = self._fallback_risk(cand, outc)
-            worst = np.where(self._near_failures(cand), np.inf, worst)
             if safe is not None:
                 worst = np.where(_in_balls(self._snap(cand), *safe), worst, np.inf)
                 if not np.any(np.isfinite(worst)):  # no candidate rounds into a ball: the widest ball's own run
                     self._no_safe_candidate(float(outc.prob_violation(safe[0]).max(axis=1).min()))
                     return np.asarray(safe[0][int(np.argmax(safe[1]))], dtype=float)
-            i = int(np.argmin(worst))
-            self._no_safe_candidate(float(worst[i]), TREND_MODEL if self._limit_trend else "")
+            i = self._least_risky(cand, worst, TREND_MODEL if self._limit_trend else "")
             return np.asarray(cand[i], dtype=float)
         acq = np.where(ok, acq_values(cand), -np.inf)
         order = np.argsort(-acq)
