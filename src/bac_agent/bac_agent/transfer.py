@@ -39,7 +39,8 @@ import numpy as np
 from numpy.typing import NDArray
 from scipy.stats import qmc
 
-from bac_agent.bo.engine import EngineConfig, _one_blas_thread
+from bac_agent.bo.blas import one_blas_thread
+from bac_agent.bo.engine import EngineConfig
 from bac_agent.bo.gp import GP, Hyper
 from bac_agent.bo.prior import SourceSurface
 from bac_agent.bo.space import SearchSpace
@@ -64,7 +65,7 @@ def load_source(path: str | Path, definition: CalibrationDefinition, points: int
     rebuilds the surface its journal holds (a resume compares them: ``Campaign.check_resume``).
     """
     p = Path(path).expanduser()
-    with _one_blas_thread():
+    with one_blas_thread():
         if p.is_dir() and (p / JOURNAL_NAME).is_file():
             return from_campaign(p, definition)
         result = p / REDUCE_RESULT if p.is_dir() else p
@@ -88,11 +89,11 @@ def load_outcome_sources(
     if not (p.is_dir() and (p / JOURNAL_NAME).is_file()):
         result = p / REDUCE_RESULT if p.is_dir() else p
         if result.is_file() and result.suffix == ".json":
-            with _one_blas_thread():
+            with one_blas_thread():
                 return outcome_sources_from_reduce_result(result, definition, names)
         return {}
     out = {}
-    with _one_blas_thread():
+    with one_blas_thread():
         for name in dict.fromkeys(names):
             X, y, label = _campaign_runs(p, definition, outcome=name)
             if len(y) >= 3:

@@ -69,7 +69,8 @@ def test_the_fit_is_both_fits_weighed_by_their_evidence() -> None:
         np.testing.assert_array_equal(gp.alt.hyper.lengthscales, tight.hyper.lengthscales)
         np.testing.assert_array_equal(gp.predict(X)[0], base.predict(X)[0])
         odds = temper * (tight.log_evidence() - base.log_evidence())
-        assert gp.alt_weight == pytest.approx(1.0 / (1.0 + math.exp(-odds)), rel=1e-12)
+        # (the fit's evidences are computed on one BLAS thread, these on the process's: round-off apart)
+        assert gp.alt_weight == pytest.approx(1.0 / (1.0 + math.exp(-odds)), rel=1e-9)
         if temper == 0.0:
             assert gp.alt_weight == 0.5
         else:

@@ -29,8 +29,7 @@ from __future__ import annotations
 
 import json
 import math
-from collections.abc import Iterator, Mapping
-from contextlib import contextmanager
+from collections.abc import Mapping
 from dataclasses import asdict, dataclass, field, replace
 from typing import Any
 
@@ -39,35 +38,11 @@ from numpy.typing import NDArray
 from scipy.stats import qmc
 
 from bac_agent.bo import GP, EngineConfig, GPConfig, Hyper, SearchSpace
+from bac_agent.bo.blas import one_blas_thread
 from bac_common.paramspace import CalibrationDefinition
 
 FloatArray = NDArray[np.float64]
 
-
-def _blas_limiter() -> Any:
-    """BLAS on one thread while a campaign thinks (threadpoolctl): a multi-threaded BLAS on small matrices spends
-    more on its threads than on the work, worst on a shared machine (as in bac_agent.bo.engine)."""
-    holder: dict[str, Any] = {}
-
-    @contextmanager
-    def limit() -> Iterator[None]:
-        if "c" not in holder:
-            try:
-                from threadpoolctl import ThreadpoolController
-
-                holder["c"] = ThreadpoolController()
-            except Exception:  # pragma: no cover
-                holder["c"] = None
-        if holder["c"] is None:
-            yield
-            return
-        with holder["c"].limit(limits=1, user_api="blas"):
-            yield
-
-    return limit
-
-
-_one_blas_thread = _blas_limiter()
 
 # the local GP: a constant mean, the lengthscale prior scaled with the dimension (median sqrt(2 d) on the unit
 # cube, Hvarfner et al. 2024), one L-BFGS-B start from the prior mode and one from the previous fit
@@ -197,7 +172,7 @@ class TrustRegion:
         if self._cache is not None and self._cache[0] == key:
             return self._cache[1], idx
         gp = GP(self.config.gp_config(), hyper=self.hyper)
-        with _one_blas_thread():
+        with one_blas_thread():
             gp.fit(self.U[idx], self.y[idx], self.rng)
         self.hyper = gp.hyper
         self._cache = (key, gp)
@@ -253,7 +228,7 @@ class TrustRegion:
         none = ~mask.any(axis=1)
         mask[none, self.rng.integers(0, self.d, size=int(none.sum()))] = True
         C = np.where(mask, lo + sob * (hi - lo), self.incumbent)
-        with _one_blas_thread():
+        with one_blas_thread():
             mu, cov = _joint_posterior(gp, self.y[idx], C)
             L = _psd_cholesky(cov)
         draws = mu[None, :] + (L @ self.rng.standard_normal((m, q))).T  # (q, m)

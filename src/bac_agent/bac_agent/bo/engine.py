@@ -29,8 +29,7 @@ from __future__ import annotations
 
 import json
 import math
-from collections.abc import Callable, Iterator, Mapping
-from contextlib import contextmanager
+from collections.abc import Callable, Mapping
 from dataclasses import asdict, dataclass, field, replace
 from typing import Any
 
@@ -39,6 +38,7 @@ from numpy.typing import NDArray
 from scipy.optimize import minimize
 
 from bac_agent.bo.acquisition import NoisyEI, log_ei, log_ei_with_grad
+from bac_agent.bo.blas import one_blas_thread
 from bac_agent.bo.constraints import OutcomeLimit, OutcomeModels, parse_limits, violations
 from bac_agent.bo.design import candidates, default_n_initial, initial_design
 from bac_agent.bo.gp import GP, GPConfig, Hyper
@@ -116,33 +116,6 @@ class _VariantMean:
             mu += w * (c + k * mk)
             dmu += w * k * dmk
         return mu, sd, dmu, dsd
-
-
-def _make_blas_limiter() -> Callable[[], Any]:
-    """A context manager that runs BLAS on one thread (threadpoolctl), or does nothing without it.
-
-    The GP works on many small matrices: a multi-threaded OpenBLAS on a busy 2-core machine spins
-    on descheduled threads and one ask took 7 s instead of 0.09 s (bench/agent_latency.py).
-    """
-    try:
-        from threadpoolctl import ThreadpoolController
-
-        controller = ThreadpoolController()
-    except Exception:  # threadpoolctl missing or unable to inspect the BLAS: leave it alone
-        controller = None
-
-    @contextmanager
-    def limit() -> Iterator[None]:
-        if controller is None:
-            yield
-            return
-        with controller.limit(limits=1, user_api="blas"):
-            yield
-
-    return limit
-
-
-_one_blas_thread = _make_blas_limiter()
 
 
 class EngineError(BacError, ValueError):
@@ -572,7 +545,7 @@ class Engine:
 
     def ask_with_info(self) -> Suggestion:
         """The next parameters with the reason they were chosen and the model's prediction."""
-        with _one_blas_thread():
+        with one_blas_thread():
             return self._ask_with_info()
 
     def _ask_with_info(self) -> Suggestion:
@@ -1291,7 +1264,7 @@ class Engine:
         """Posterior mean and standard deviation of J at ``params`` (with the output warp: the J at the
         warped posterior mean, i.e. the predictive median, and the std through the warp's slope)."""
         x = self.space.to_array(params)
-        with _one_blas_thread():
+        with one_blas_thread():
             m, s = self._predict_j(self.space.to_unit(x)[None, :])
         return float(m[0]), float(s[0])
 
@@ -1371,7 +1344,7 @@ class Engine:
         rule = self.config.recommend_rule if rule is None else rule
         if rule not in RULES:
             raise EngineError(f"recommendation rule must be one of {', '.join(RULES)}, got {rule!r}")
-        with _one_blas_thread():
+        with one_blas_thread():
             return self._recommend(rule)
 
     def _recommend(self, rule: str = "mean") -> Recommendation:

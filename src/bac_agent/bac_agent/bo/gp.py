@@ -39,6 +39,7 @@ from scipy.optimize import minimize
 from scipy.special import log_ndtr, logsumexp
 from scipy.stats import qmc
 
+from bac_agent.bo.blas import one_blas_thread
 from bac_agent.bo.kernel import SQRT5, matern52_dr2_factor, matern52_from_r2, sq_dist
 from bac_common.errors import BacError
 
@@ -562,8 +563,13 @@ class GP:
         """Learn the hyperparameters (MAP, multi-start L-BFGS-B) and condition on (X, y).
 
         With the bowl mean: the kernel's hyperparameters with a constant mean, the bowl under that
-        kernel, the hyperparameters again on what the bowl leaves, and the bowl again.
+        kernel, the hyperparameters again on what the bowl leaves, and the bowl again. BLAS runs on one thread
+        meanwhile (:mod:`bac_agent.bo.blas`).
         """
+        with one_blas_thread():
+            return self._fit(X, y, rng)
+
+    def _fit(self, X: FloatArray, y: FloatArray, rng: np.random.Generator | None = None) -> GP:
         if self.config.ls_select > 0.0:
             return self._fit_ls_select(X, y, rng)
         if self.config.ls_average > 0.0:
