@@ -259,7 +259,8 @@ class EngineConfig:
     # more from every run broke the limit 53 times in 152 at a summed predicted probability of 3.2 (calibration:
     # docs/agent.md). 2 there: 466 -> 425 breaking runs of 3600, final recommendations keeping the limit 166 -> 171
     # of 180, the runs to the constrained optimum (2 mm margin) as before, the final gap 0.63 -> 0.76; 3 broke
-    # fewer (404) but cost those runs. 0: off (an engine state or a journal written before it reads back 0)
+    # fewer (404) but cost those runs. Not with a safe start (its safe set bounds every proposal; as limit_trend).
+    # 0: off (an engine state or a journal written before it reads back 0)
     limit_far_sd: float = LIMIT_FAR_SD
 
     def __post_init__(self) -> None:
@@ -491,6 +492,8 @@ class Engine:
         self._n_safe = 0
         if self.safe_start_used:
             self._start_safe()
+            for m in self._outcomes.models:  # the safe set bounds every proposal: the models are not widened
+                m.far_sd = 0.0
 
     @property
     def safe_start_used(self) -> bool:
