@@ -244,6 +244,16 @@ class BoAgentNode(BacNode):
             "prior); false: as before 2026-11-25, and a campaign journaled without it resumes without it",
             True,
         )
+        limit_far_sd = self.declare_float(
+            "limit_far_sd",
+            D.limit_far_sd,
+            "bo with constraints: far from the runs each limited outcome's model (without an outcome prior) is "
+            "widened, its sd multiplied by 1 + limit_far_sd * (its posterior variance over its kernel's variance); "
+            "0: off, and a campaign journaled without it resumes without it",
+            0.0,
+            10.0,
+            read_only=True,
+        )
         grid_size = self.declare_int(
             "grid_size", D.grid_size, "levels per dimension of the grid strategy", 1, 100, True
         )
@@ -350,6 +360,7 @@ class BoAgentNode(BacNode):
             constraint_level=constraint_level,
             safe_start=safe_start,
             limit_trend=limit_trend,
+            limit_far_sd=limit_far_sd,
             grid_size=grid_size,
             max_attempts=max_attempts,
             apply_timeout_s=apply_timeout,

@@ -18,7 +18,7 @@ from typing import Any
 
 from bac_agent.bo.baselines import GridStrategy, RandomStrategy
 from bac_agent.bo.constraints import parse_limits
-from bac_agent.bo.engine import Engine, EngineConfig
+from bac_agent.bo.engine import LIMIT_FAR_SD, Engine, EngineConfig
 from bac_agent.bo.gp import GPConfig
 from bac_agent.bo.prior import SourceSurface
 from bac_agent.bo.space import SearchSpace
@@ -64,6 +64,7 @@ class AgentSettings:
     constraint_level: float = 0.05
     safe_start: bool = False
     limit_trend: bool = True
+    limit_far_sd: float = LIMIT_FAR_SD
     grid_size: int = 4
     max_attempts: int = 3
     apply_timeout_s: float = 10.0
@@ -201,6 +202,8 @@ def _build(s: AgentSettings, definition: CalibrationDefinition, cdir: Path, cid:
     )
     # a campaign started before limit_trend (its journal has no such key) resumes as it ran: without it
     limit_trend = s.limit_trend and not (isinstance(started_config, dict) and "limit_trend" not in started_config)
+    # a campaign started before limit_far_sd (no such key) resumes as it ran: without it (0)
+    limit_far_sd = 0.0 if isinstance(started_config, dict) and "limit_far_sd" not in started_config else s.limit_far_sd
     # a campaign started before the model average over two lengthscale priors (no such key) resumes without it
     ls_average = 0.0 if isinstance(started_config, dict) and "gp_ls_average" not in started_config else s.gp_ls_average
     # what the parameters ask and the resumed journal overrides: said, not silent (the parameters are read-only)
@@ -251,6 +254,7 @@ def _build(s: AgentSettings, definition: CalibrationDefinition, cdir: Path, cid:
                 outcome_priors={k: v.to_dict() for k, v in outcome_sources.items()} or None,
                 safe_start=safe_calibration,
                 limit_trend=limit_trend,
+                limit_far_sd=limit_far_sd,
             ),
         )
     cfg = CampaignConfig(
@@ -298,6 +302,8 @@ def _build(s: AgentSettings, definition: CalibrationDefinition, cdir: Path, cid:
             "safe_start": dict(safe_calibration or {}),
             # the retreat's trend judges the design and the least risky calibrations (issue 23, 2026-11-25)
             "limit_trend": limit_trend,
+            # the limited outcomes' models widened far from the runs (issue 23, 2026-11-25; 0: off)
+            "limit_far_sd": limit_far_sd,
         },
         outcome_limits=tuple(constraints),
     )

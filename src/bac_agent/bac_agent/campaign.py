@@ -1012,6 +1012,7 @@ ADDED_LATER: Mapping[str, Any] = {
     "gp_bowl_loo": False,
     "limit_trend": False,
     "gp_ls_average": 0.0,
+    "limit_far_sd": 0.0,
 }
 # configuration keys that change nothing where what they act on is absent, with the test for that absence: a
 # difference in them does not refuse a resume (the bowl's length and leave-one-out check without the bowl; the model
@@ -1019,7 +1020,7 @@ ADDED_LATER: Mapping[str, Any] = {
 INERT_UNLESS: tuple[tuple[Callable[[Mapping[str, Any]], bool], tuple[str, ...]], ...] = (
     (lambda c: c.get("gp_mean", "bowl") != "bowl", ("bowl_runs", "gp_bowl_loo")),
     (lambda c: not c.get("prior"), ("prior_average",)),
-    (lambda c: not c.get("constraints"), ("limit_trend",)),
+    (lambda c: not c.get("constraints"), ("limit_trend", "limit_far_sd")),
 )
 _MISSING = object()
 

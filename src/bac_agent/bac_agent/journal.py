@@ -209,6 +209,7 @@ def journaled_engine_options(started: Mapping[str, Any]) -> dict[str, Any]:
         options["constraints"] = [str(c) for c in cfg["constraints"]]
         options["constraint_level"] = float(cfg.get("constraint_level", 0.05) or 0.05)
         options["limit_trend"] = bool(cfg.get("limit_trend", False))  # a journal from before it: without
+        options["limit_far_sd"] = float(cfg.get("limit_far_sd", 0.0) or 0.0)  # (the same)
         if cfg.get("outcome_priors"):  # what the prior source knew of the limited outcomes
             options["outcome_priors"] = {str(k): dict(v) for k, v in cfg["outcome_priors"].items()}
     return options

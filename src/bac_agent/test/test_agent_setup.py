@@ -267,6 +267,25 @@ def test_limit_trend_is_passed_journaled_and_off_for_a_journal_started_before_it
     assert old.config.extra["limit_trend"] is False
 
 
+def test_limit_far_sd_is_passed_journaled_and_off_for_a_journal_started_before_it(tmp_path: Path) -> None:
+    limit = ("max_travel_mm<=60",)
+    for sd in (2.0, 0.0):
+        setup = build_agent(AgentSettings(campaign_dir=str(tmp_path / str(sd)), constraints=limit, limit_far_sd=sd))
+        setup.journal.close()
+        assert isinstance(setup.optimizer, Engine)
+        assert setup.optimizer.config.limit_far_sd == sd and setup.config.extra["limit_far_sd"] == sd
+    # a journal whose campaign_started has no "limit_far_sd" key ran without it: it resumes without it (not refused)
+    _journal_started(tmp_path / "old", {"constraints": list(limit)})
+    old = build_agent(AgentSettings(campaign_dir=str(tmp_path / "old"), constraints=limit, limit_far_sd=2.0))
+    old.journal.close()
+    assert isinstance(old.optimizer, Engine) and old.optimizer.config.limit_far_sd == 0.0
+    assert old.config.extra["limit_far_sd"] == 0.0
+    # an offline refit models as the campaign did
+    assert journaled_engine_options({"config": {"constraints": list(limit)}})["limit_far_sd"] == 0.0
+    opts = journaled_engine_options({"config": {"constraints": list(limit), "limit_far_sd": 2.0}})
+    assert opts["limit_far_sd"] == 2.0
+
+
 def test_gp_ls_average_is_passed_journaled_and_off_for_a_journal_started_before_it(tmp_path: Path) -> None:
     for sd in (0.5, 0.0):
         setup = build_agent(AgentSettings(campaign_dir=str(tmp_path / str(sd)), gp_ls_average=sd))

@@ -564,6 +564,11 @@ LIMITS_REFUSED: dict[str, tuple[str, Callable[[], CampaignConfig]]] = {
         "config.limit_trend: journaled false, this agent true",
         lambda: config_limits(extra={**config_limits().extra, "limit_trend": True}),
     ),
+    "the limit models widened far from the runs": (
+        # a journal from before limit_far_sd ran without it (campaign.ADDED_LATER)
+        "config.limit_far_sd: journaled 0.0, this agent 2.0",
+        lambda: config_limits(extra={**config_limits().extra, "limit_far_sd": 2.0}),
+    ),
 }
 
 
@@ -756,8 +761,8 @@ def test_the_bowl_length_does_not_refuse_a_resume_without_the_bowl(tmp_path: Pat
     assert resumed["changed"] == []
 
 
-@pytest.mark.parametrize("key", ["prior_average", "limit_trend"])
-def test_a_key_that_changes_nothing_here_does_not_refuse_a_resume(tmp_path: Path, key: str) -> None:
+@pytest.mark.parametrize(("key", "value"), [("prior_average", True), ("limit_trend", True), ("limit_far_sd", 2.0)])
+def test_a_key_that_changes_nothing_here_does_not_refuse_a_resume(tmp_path: Path, key: str, value: object) -> None:
     """prior_average and limit_trend are journaled whatever the prior and the limits; without a prior, without
     limits, they change nothing, so a campaign journaled before they existed (no key: ADDED_LATER's false) resumes
     with the default (true) (outside review D2: every such journal was refused)."""
@@ -765,7 +770,7 @@ def test_a_key_that_changes_nothing_here_does_not_refuse_a_resume(tmp_path: Path
     for _ in range(3):
         chain.step()
     chain.c.journal.close()
-    again = start(tmp_path, Clock(), cfg=config(extra=_extra(**{key: True})))
+    again = start(tmp_path, Clock(), cfg=config(extra=_extra(**{key: value})))
     assert again.pending is not None
     (resumed,) = [e for e in again.c.journal.events if e["event"] == "campaign_resumed"]
     assert resumed["changed"] == []

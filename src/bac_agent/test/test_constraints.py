@@ -259,7 +259,7 @@ def test_after_the_design_a_calibration_far_from_every_run_is_judged_by_the_tren
     def ask(far: float) -> np.ndarray:
         eng = Engine(
             {"a": (0.0, 1.0), "b": (0.0, 1.0)},
-            EngineConfig(budget=20, seed=seed, constraints=("travel<=60",), limit_trend_far=far),
+            EngineConfig(budget=20, seed=seed, constraints=("travel<=60",), limit_trend_far=far, limit_far_sd=0.0),
         )
         for (a, b), j in FAR_RUNS:
             eng.tell({"a": a, "b": b}, j, {"travel": 80.0 - 40.0 * a})
@@ -284,6 +284,74 @@ def test_limit_trend_far_is_validated_and_reads_back_off_from_a_state_saved_befo
     assert Engine.from_state_dict(state).config.limit_trend_far == 0.2
     del state["config"]["limit_trend_far"]  # an engine state written before it: off, as it ran
     assert Engine.from_state_dict(state).config.limit_trend_far == 0.0
+
+
+# --- limit_far_sd (issue 23, 2026-11-25) ----------------------------------------------------------------------------
+
+
+def _far_ask(seed: int, far_sd: float) -> tuple[np.ndarray, dict[str, Any]]:
+    eng = Engine(
+        {"a": (0.0, 1.0), "b": (0.0, 1.0)},
+        EngineConfig(budget=20, seed=seed, constraints=("travel<=60",), limit_far_sd=far_sd),
+    )
+    for (a, b), j in FAR_RUNS:
+        eng.tell({"a": a, "b": b}, j, {"travel": 80.0 - 40.0 * a})
+    s = eng.ask_with_info()
+    assert s.kind == "optimized" and "no_safe_candidate" not in s.info
+    return np.array([s.params["a"], s.params["b"]]), s.info["outcomes"]["travel <= 60"]
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_far_from_every_run_the_outcome_model_is_widened_with_limit_far_sd(seed: int) -> None:
+    # the runs of the test above (six on the stiff side, 42-52 mm on a limit of 60). Without the widening the
+    # acquisition proposed a = 0.36, 0.41 from every run, at a predicted probability of 0.006 (49.2 +- 4.2 mm), whose
+    # travel is 65.8 mm. With limit_far_sd 2 the outcome's sd there is multiplied by up to 3 (1 + 2 rho, rho its
+    # posterior variance over its kernel's variance): the proposal keeps the limit (57.5 mm), nearer the runs
+    X = np.array([r[0] for r in FAR_RUNS])
+    before, info0 = _far_ask(seed, 0.0)
+    after, info = _far_ask(seed, 2.0)
+    assert 80.0 - 40.0 * before[0] > 62.0 and info0["p_violation"] < 0.01, (before, info0)
+    assert 80.0 - 40.0 * after[0] <= 59.0, after
+    assert np.min(np.linalg.norm(X - after, axis=1)) < np.min(np.linalg.norm(X - before, axis=1)) - 0.1
+    assert info["p_violation"] <= 0.05  # the widened model's probability, the one the proposal was judged by
+    # at a run the model is as before: rho ~ 0
+    e0, e2 = (
+        Engine({"a": (0.0, 1.0), "b": (0.0, 1.0)}, EngineConfig(budget=20, constraints=("travel<=60",), limit_far_sd=k))
+        for k in (0.0, 2.0)
+    )
+    for e in (e0, e2):
+        for (a, b), j in FAR_RUNS:
+            e.tell({"a": a, "b": b}, j, {"travel": 80.0 - 40.0 * a})
+    p0 = e0._outcome_models().prob_violation(X, measured=False)[:, 0]
+    p2 = e2._outcome_models().prob_violation(X, measured=False)[:, 0]
+    far = np.array([[0.36, 0.52]])
+    assert np.allclose(p0, p2, atol=1e-6)
+    assert e2._outcome_models().prob_violation(far)[0, 0] > 3.0 * e0._outcome_models().prob_violation(far)[0, 0]
+
+
+def test_limit_far_sd_keeps_its_gradient_and_is_validated_and_reads_back_off_from_a_state_saved_before_it() -> None:
+    from bac_agent.bo.constraints import OutcomeModel
+
+    rng = np.random.default_rng(0)
+    X = rng.random((8, 2))
+    m = OutcomeModel(OutcomeLimit("t", 50.0), far_sd=2.0)
+    m.fit(X, 40.0 + 20.0 * X[:, 0] + rng.normal(0.0, 1.0, 8), rng)
+    U = rng.random((6, 2))
+    lf, g = m.log_feasible_and_grad(U)
+    assert np.allclose(np.exp(lf), 1.0 - m.prob_violation(U))
+    for j in range(2):
+        dU = np.zeros_like(U)
+        dU[:, j] = 1e-6
+        assert np.allclose((m.log_feasible_and_grad(U + dU)[0] - lf) / 1e-6, g[:, j], rtol=1e-3, atol=1e-3)
+    with pytest.raises(EngineError, match="limit_far_sd"):
+        EngineConfig(limit_far_sd=-1.0)
+    with pytest.raises(EngineError, match="limit_far_sd"):
+        EngineConfig(limit_far_sd=float("inf"))
+    eng = Engine({"a": (0.0, 1.0)}, EngineConfig(budget=5, constraints=("travel<=44",), limit_far_sd=1.5))
+    state = eng.state_dict()
+    assert Engine.from_state_dict(state).config.limit_far_sd == 1.5
+    del state["config"]["limit_far_sd"]  # an engine state written before it: off, as it ran
+    assert Engine.from_state_dict(state).config.limit_far_sd == 0.0
 
 
 # --- the least risky calibration's warning, the safe start without the trend (issue 23, 2026-11-25) ------------------

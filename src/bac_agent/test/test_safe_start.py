@@ -268,3 +268,13 @@ def test_with_a_safe_start_the_retreats_trend_is_not_used(seed: int, monkeypatch
     assert on == off
     _whole_campaign(seed)  # no safe start: the trend judges the design
     assert calls
+
+
+@pytest.mark.parametrize("seed", [0, 1])
+def test_with_a_safe_start_the_limit_models_are_not_widened(seed: int) -> None:
+    # limit_far_sd (the limit models widened far from the runs) is not used with a safe start, whose safe set bounds
+    # the proposals: a whole campaign asks the same with it at 2 (the default) and 0; without a safe start it differs
+    assert _whole_campaign(seed, safe_start=SAFE, limit_far_sd=2.0) == _whole_campaign(
+        seed, safe_start=SAFE, limit_far_sd=0.0
+    )
+    assert _whole_campaign(seed, limit_far_sd=2.0) != _whole_campaign(seed, limit_far_sd=0.0)

@@ -18,6 +18,13 @@ With fewer than 3 values of an outcome, its spread is unknown; the model then as
 large as the distance from the values to the limit (or their spread if larger), so that after the first runs
 only calibrations near them count as safe, and calibrations far from them as uncertain.
 
+**Far from the runs** (``far_sd``, the engine's ``limit_far_sd``; since 2026-11-25): the constant-mean GP reverts to
+the runs' mean away from them, and the runs cluster where J is good, inside the limit, so that a calibration far from
+every run was predicted safe where the outcome had risen beyond the limit (issue 23's tuning instances: runs 0.2 or
+more from every run broke the limit 53 times in 152 at a summed predicted probability of 3.2). Without a source the
+latent sd is multiplied by ``1 + far_sd · ρ``, ρ = σ²(x) / σ_f² the posterior variance over the kernel's (0 at a run,
+1 far from every run): the model near the runs is unchanged, its tails far from them heavier.
+
 **The retreat** (no run has kept every limit yet and no calibration is within the level, e.g. after an unsafe
 first run; since 2026-11-24): the calibration least likely to break a limit under the outcome's model plus a
 linear trend with its slopes integrated out (``RETREAT_TREND_SD``), so that the runs' values give a direction;
@@ -248,9 +255,10 @@ class _SourceCov:
 class OutcomeModel:
     """The GP of one constrained outcome (see the module doc); ``source``: what the simulator knows of it."""
 
-    def __init__(self, limit: OutcomeLimit, source: SourceSurface | None = None) -> None:
+    def __init__(self, limit: OutcomeLimit, source: SourceSurface | None = None, far_sd: float = 0.0) -> None:
         self.limit = limit
         self.source = source
+        self.far_sd = float(far_sd)  # far from the runs the latent sd times 1 + far_sd * rho (no source; module doc)
         self.gp = GP(OUTCOME_GP if source is None else _SOURCE_OUTCOME_GP)
         self.n = 0
         self._coef_cov: FloatArray | None = None  # posterior covariance of (a, b) with a source
@@ -454,6 +462,8 @@ class OutcomeModel:
             return np.zeros(np.atleast_2d(U).shape[0])
         if self.source is None:
             mu, var = self.gp.predict_std_units(U)
+            if self.far_sd > 0.0:
+                var = var * self._widening(var) ** 2
         else:
             mu, sd_l, _, _ = self._moments(U)
             var = sd_l * sd_l
@@ -465,6 +475,12 @@ class OutcomeModel:
         if not self.fitted:
             return np.zeros(U.shape[0]), np.zeros_like(U)
         mu, sd_f, dmu, dsd_f = self._moments(U) if self.source is not None else self.gp.predict_with_grad(U)
+        if self.source is None and self.far_sd > 0.0:
+            # sd (1 + κ ρ), ρ = sd² / σ_f² (at most 1): d/dx = dsd (1 + κ ρ) + sd κ dρ = dsd (1 + 3 κ ρ) below 1
+            w = self._widening(sd_f * sd_f)
+            dw = np.where(w < 1.0 + self.far_sd, 2.0 * (w - 1.0), 0.0)
+            dsd_f = dsd_f * (w + dw)[:, None]
+            sd_f = sd_f * w
         sd = np.sqrt(np.maximum(sd_f**2 + (self._noise() if measured else 0.0), 1e-18))
         dsd = dsd_f * (sd_f / sd)[:, None]
         t = self._t(mu, sd)
@@ -474,6 +490,13 @@ class OutcomeModel:
         lf = log_ndtr(t)
         ratio = np.exp(-0.5 * t * t - 0.5 * math.log(2.0 * math.pi) - lf)  # φ(t) / Φ(t)
         return np.asarray(lf, dtype=float), np.asarray(ratio[:, None] * dt, dtype=float)
+
+    def _widening(self, var: FloatArray) -> FloatArray:
+        """1 + far_sd · ρ, ρ = the latent variance over the kernel's (clipped to [0, 1]): the factor of the latent sd
+        far from the runs (module doc)."""
+        h = self.gp.hyper
+        assert h is not None
+        return np.asarray(1.0 + self.far_sd * np.clip(var / float(h.outputscale), 0.0, 1.0), dtype=float)
 
     def predict(self, U: FloatArray) -> tuple[FloatArray, FloatArray]:
         """Posterior mean and std of the outcome, in its units."""
@@ -495,13 +518,14 @@ class OutcomeModels:
         limits: Sequence[OutcomeLimit],
         level: float,
         sources: Mapping[str, SourceSurface] | None = None,
+        far_sd: float = 0.0,
     ) -> None:
         if not 0.0 < level < 1.0:
             raise ConstraintError(f"constraint_level must be in (0, 1), got {level}")
         self.limits = tuple(limits)
         self.level = float(level)
         sources = dict(sources or {})
-        self.models = [OutcomeModel(lim, sources.get(lim.name)) for lim in self.limits]
+        self.models = [OutcomeModel(lim, sources.get(lim.name), far_sd) for lim in self.limits]
 
     @property
     def has_prior(self) -> bool:
