@@ -60,6 +60,7 @@ class AgentSettings:
     prior_weight: float = 0.5
     prior_runs: int = 0
     prior_average: bool = True
+    prior_average_ls: bool = True
     constraints: tuple[str, ...] = ()
     constraint_level: float = 0.05
     safe_start: bool = False
@@ -200,6 +201,11 @@ def _build(s: AgentSettings, definition: CalibrationDefinition, cdir: Path, cid:
     limit_trend = s.limit_trend and not (isinstance(started_config, dict) and "limit_trend" not in started_config)
     # a campaign started before the model average over two lengthscale priors (no such key) resumes without it
     ls_average = 0.0 if isinstance(started_config, dict) and "gp_ls_average" not in started_config else s.gp_ls_average
+    # a campaign started before the transfer average's model without the source averaged over both lengthscale
+    # priors (no such key) resumes with its one fit
+    prior_average_ls = s.prior_average_ls and not (
+        isinstance(started_config, dict) and "prior_average_ls" not in started_config
+    )
     budget = s.budget
     optimizer: Optimizer
     if s.strategy == "grid":
@@ -227,6 +233,7 @@ def _build(s: AgentSettings, definition: CalibrationDefinition, cdir: Path, cid:
                 prior_weight=s.prior_weight,
                 prior_runs=s.prior_runs,
                 prior_average=s.prior_average,
+                prior_average_ls=prior_average_ls,
                 constraints=tuple(constraints),
                 constraint_level=s.constraint_level,
                 outcome_priors={k: v.to_dict() for k, v in outcome_sources.items()} or None,
@@ -271,6 +278,8 @@ def _build(s: AgentSettings, definition: CalibrationDefinition, cdir: Path, cid:
             "prior_weight": s.prior_weight,
             "prior_runs": s.prior_runs,
             "prior_average": s.prior_average,
+            # the model without the source in that average: both lengthscale priors' fits (issue 23, 2026-11-25)
+            "prior_average_ls": prior_average_ls,
             "constraints": constraints,
             "constraint_level": s.constraint_level,
             # what the prior source knew of the limited outcomes: each surface (a refit models as the agent did)

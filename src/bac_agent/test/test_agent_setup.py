@@ -283,3 +283,18 @@ def test_gp_ls_average_is_passed_journaled_and_off_for_a_journal_started_before_
     # an offline refit of such a journal models as the campaign did
     assert journaled_engine_options({"config": {}})["gp"]["ls_average"] == 0.0
     assert journaled_engine_options({"config": {"gp_ls_average": 0.5}})["gp"]["ls_average"] == 0.5
+
+
+def test_prior_average_ls_is_passed_journaled_and_off_for_a_journal_started_before_it(tmp_path: Path) -> None:
+    for flag in (True, False):
+        setup = build_agent(AgentSettings(campaign_dir=str(tmp_path / str(flag)), prior_average_ls=flag))
+        setup.journal.close()
+        assert isinstance(setup.optimizer, Engine)
+        assert setup.optimizer.config.prior_average_ls is flag and setup.config.extra["prior_average_ls"] is flag
+    assert AgentSettings().prior_average_ls is True  # the default (issue 23, 2026-11-25)
+    # a journal whose campaign_started has no "prior_average_ls" key ran one fit there: it resumes so (not refused)
+    _journal_started(tmp_path / "old", {"budget": 15})
+    old = build_agent(AgentSettings(campaign_dir=str(tmp_path / "old")))
+    old.journal.close()
+    assert isinstance(old.optimizer, Engine) and old.optimizer.config.prior_average_ls is False
+    assert old.config.extra["prior_average_ls"] is False
