@@ -211,6 +211,14 @@ class BoAgentNode(BacNode):
             "without it by the transfer weight (false: the model with the prior alone, as before 2026-11-24)",
             True,
         )
+        prior_average_ls = self.declare_bool(
+            "prior_average_ls",
+            D.prior_average_ls,
+            "bo with prior_source and gp_ls_average > 0: in that average the model without the prior is itself "
+            "averaged over its fits under both lengthscale priors, as the model without a prior is (false: one fit, "
+            "as before 2026-11-25, and a campaign journaled without it resumes without it)",
+            True,
+        )
         constraints = self.declare_str_list(
             "constraints",
             list(D.constraints),
@@ -356,6 +364,7 @@ class BoAgentNode(BacNode):
             prior_weight=prior_weight,
             prior_runs=prior_runs,
             prior_average=prior_average,
+            prior_average_ls=prior_average_ls,
             constraints=tuple(constraints),
             constraint_level=constraint_level,
             safe_start=safe_start,

@@ -60,6 +60,7 @@ class AgentSettings:
     prior_weight: float = 0.5
     prior_runs: int = 0
     prior_average: bool = True
+    prior_average_ls: bool = True
     constraints: tuple[str, ...] = ()
     constraint_level: float = 0.05
     safe_start: bool = False
@@ -206,6 +207,11 @@ def _build(s: AgentSettings, definition: CalibrationDefinition, cdir: Path, cid:
     limit_far_sd = 0.0 if isinstance(started_config, dict) and "limit_far_sd" not in started_config else s.limit_far_sd
     # a campaign started before the model average over two lengthscale priors (no such key) resumes without it
     ls_average = 0.0 if isinstance(started_config, dict) and "gp_ls_average" not in started_config else s.gp_ls_average
+    # a campaign started before the transfer average's model without the source averaged over both lengthscale
+    # priors (no such key) resumes with its one fit
+    prior_average_ls = s.prior_average_ls and not (
+        isinstance(started_config, dict) and "prior_average_ls" not in started_config
+    )
     # what the parameters ask and the resumed journal overrides: said, not silent (the parameters are read-only)
     overridden: list[tuple[str, str]] = []
     before = isinstance(started_config, dict) and "outcome_priors" not in started_config
@@ -217,6 +223,10 @@ def _build(s: AgentSettings, definition: CalibrationDefinition, cdir: Path, cid:
         overridden.append(("limit_trend true", "limit_trend false"))
     if s.strategy == "bo" and ls_average != s.gp_ls_average:
         overridden.append((f"gp_ls_average {s.gp_ls_average:g}", f"gp_ls_average {ls_average:g}, one fit"))
+    if s.strategy == "bo" and constraints and limit_far_sd != s.limit_far_sd:
+        overridden.append((f"limit_far_sd {s.limit_far_sd:g}", f"limit_far_sd {limit_far_sd:g}"))
+    if s.strategy == "bo" and source is not None and s.prior_average_ls and not prior_average_ls:
+        overridden.append(("prior_average_ls true", "prior_average_ls false"))
     resumed_as_journaled = [
         f"{asked} is not used: this campaign's journal was started before the option existed and the campaign "
         f"resumes as it ran ({ran}); a new campaign_dir starts with it"
@@ -249,6 +259,7 @@ def _build(s: AgentSettings, definition: CalibrationDefinition, cdir: Path, cid:
                 prior_weight=s.prior_weight,
                 prior_runs=s.prior_runs,
                 prior_average=s.prior_average,
+                prior_average_ls=prior_average_ls,
                 constraints=tuple(constraints),
                 constraint_level=s.constraint_level,
                 outcome_priors={k: v.to_dict() for k, v in outcome_sources.items()} or None,
@@ -294,6 +305,8 @@ def _build(s: AgentSettings, definition: CalibrationDefinition, cdir: Path, cid:
             "prior_weight": s.prior_weight,
             "prior_runs": s.prior_runs,
             "prior_average": s.prior_average,
+            # the model without the source in that average: both lengthscale priors' fits (issue 23, 2026-11-25)
+            "prior_average_ls": prior_average_ls,
             "constraints": constraints,
             "constraint_level": s.constraint_level,
             # what the prior source knew of the limited outcomes: each surface (a refit models as the agent did)

@@ -1013,13 +1013,14 @@ ADDED_LATER: Mapping[str, Any] = {
     "limit_trend": False,
     "gp_ls_average": 0.0,
     "limit_far_sd": 0.0,
+    "prior_average_ls": False,
 }
 # configuration keys that change nothing where what they act on is absent, with the test for that absence: a
 # difference in them does not refuse a resume (the bowl's length and leave-one-out check without the bowl; the model
 # average without a transfer prior, outside review D2; the retreat's trend without outcome limits)
 INERT_UNLESS: tuple[tuple[Callable[[Mapping[str, Any]], bool], tuple[str, ...]], ...] = (
     (lambda c: c.get("gp_mean", "bowl") != "bowl", ("bowl_runs", "gp_bowl_loo")),
-    (lambda c: not c.get("prior"), ("prior_average",)),
+    (lambda c: not c.get("prior"), ("prior_average", "prior_average_ls")),
     (lambda c: not c.get("constraints"), ("limit_trend", "limit_far_sd")),
 )
 _MISSING = object()

@@ -312,7 +312,7 @@ def test_a_resumed_journal_that_overrides_a_parameter_says_so(tmp_path: Path) ->
     fresh = build_agent(AgentSettings(campaign_dir=str(tmp_path / "new"), **settings))  # type: ignore[arg-type]
     fresh.journal.close()
     assert fresh.resumed_as_journaled == []
-    _journal_started(tmp_path / "old", {"constraints": [LIMIT]})  # none of the four options' keys
+    _journal_started(tmp_path / "old", {"constraints": [LIMIT]})  # none of the six options' keys
     old = build_agent(AgentSettings(campaign_dir=str(tmp_path / "old"), **settings))  # type: ignore[arg-type]
     old.journal.close()
     notes = old.resumed_as_journaled
@@ -321,10 +321,20 @@ def test_a_resumed_journal_that_overrides_a_parameter_says_so(tmp_path: Path) ->
         "safe_start true",
         "limit_trend true",
         "gp_ls_average 0.5",
+        "limit_far_sd 2",
+        "prior_average_ls true",
     ]
     assert "resumes as it ran (gp_ls_average 0, one fit)" in notes[3]
     # a journal that knew the options resumes with them: nothing to say
-    knew = {"constraints": [LIMIT], "outcome_priors": {}, "safe_start": {}, "limit_trend": True, "gp_ls_average": 0.5}
+    knew = {
+        "constraints": [LIMIT],
+        "outcome_priors": {},
+        "safe_start": {},
+        "limit_trend": True,
+        "gp_ls_average": 0.5,
+        "limit_far_sd": 2.0,
+        "prior_average_ls": True,
+    }
     _journal_started(tmp_path / "knew", knew)
     again = build_agent(AgentSettings(campaign_dir=str(tmp_path / "knew"), **settings))  # type: ignore[arg-type]
     again.journal.close()
@@ -334,3 +344,18 @@ def test_a_resumed_journal_that_overrides_a_parameter_says_so(tmp_path: Path) ->
     off = build_agent(AgentSettings(campaign_dir=str(tmp_path / "old_off"), gp_ls_average=0.0))
     off.journal.close()
     assert off.resumed_as_journaled == []
+
+
+def test_prior_average_ls_is_passed_journaled_and_off_for_a_journal_started_before_it(tmp_path: Path) -> None:
+    for flag in (True, False):
+        setup = build_agent(AgentSettings(campaign_dir=str(tmp_path / str(flag)), prior_average_ls=flag))
+        setup.journal.close()
+        assert isinstance(setup.optimizer, Engine)
+        assert setup.optimizer.config.prior_average_ls is flag and setup.config.extra["prior_average_ls"] is flag
+    assert AgentSettings().prior_average_ls is True  # the default (issue 23, 2026-11-25)
+    # a journal whose campaign_started has no "prior_average_ls" key ran one fit there: it resumes so (not refused)
+    _journal_started(tmp_path / "old", {"budget": 15})
+    old = build_agent(AgentSettings(campaign_dir=str(tmp_path / "old")))
+    old.journal.close()
+    assert isinstance(old.optimizer, Engine) and old.optimizer.config.prior_average_ls is False
+    assert old.config.extra["prior_average_ls"] is False

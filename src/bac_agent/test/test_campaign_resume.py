@@ -559,6 +559,11 @@ LIMITS_REFUSED: dict[str, tuple[str, Callable[[], CampaignConfig]]] = {
         "config.prior_average: journaled false, this agent true",
         lambda: config_limits(extra={**config_limits().extra, "prior_average": True}),
     ),
+    "transfer prior's model without the source over both lengthscale priors": (
+        # a journal from before prior_average_ls ran that model as one fit (campaign.ADDED_LATER)
+        "config.prior_average_ls: journaled false, this agent true",
+        lambda: config_limits(extra={**config_limits().extra, "prior_average_ls": True}),
+    ),
     "the retreat's trend": (
         # a journal from before limit_trend ran without it (campaign.ADDED_LATER)
         "config.limit_trend: journaled false, this agent true",
@@ -761,7 +766,10 @@ def test_the_bowl_length_does_not_refuse_a_resume_without_the_bowl(tmp_path: Pat
     assert resumed["changed"] == []
 
 
-@pytest.mark.parametrize(("key", "value"), [("prior_average", True), ("limit_trend", True), ("limit_far_sd", 2.0)])
+@pytest.mark.parametrize(
+    ("key", "value"),
+    [("prior_average", True), ("prior_average_ls", True), ("limit_trend", True), ("limit_far_sd", 2.0)],
+)
 def test_a_key_that_changes_nothing_here_does_not_refuse_a_resume(tmp_path: Path, key: str, value: object) -> None:
     """prior_average and limit_trend are journaled whatever the prior and the limits; without a prior, without
     limits, they change nothing, so a campaign journaled before they existed (no key: ADDED_LATER's false) resumes

@@ -178,7 +178,7 @@ def test_the_source_is_the_prior_mean_for_prior_runs_runs_then_the_engines_own_m
         EngineConfig(prior_runs=-1)
 
 
-def _told_near_the_source_optimum(average: bool, seed: int) -> tuple[Engine, np.ndarray]:
+def _told_near_the_source_optimum(average: bool, seed: int, ls: bool = True) -> tuple[Engine, np.ndarray]:
     """An engine with a source whose optimum is at (0.3, 0.3), told six runs that agree with it, all within 0.1 of
     that optimum: the source's shape is supported (weight > 0.9) and nothing was run elsewhere."""
     c = np.array([0.3, 0.3])
@@ -187,7 +187,7 @@ def _told_near_the_source_optimum(average: bool, seed: int) -> tuple[Engine, np.
         return np.sqrt(0.02 + np.sum((np.atleast_2d(U) - c) ** 2 * [1.0, 2.0], axis=1))
 
     src = SourceSurface.from_function(bowl, 2, 64, seed=0)
-    cfg = EngineConfig(budget=20, seed=seed, prior=src.to_dict(), prior_average=average)
+    cfg = EngineConfig(budget=20, seed=seed, prior=src.to_dict(), prior_average=average, prior_average_ls=ls)
     eng = Engine({"a": (0.0, 1.0), "b": (0.0, 1.0)}, cfg)
     runs = np.array([[0.3, 0.3], [0.4, 0.3], [0.3, 0.4], [0.2, 0.25], [0.35, 0.2], [0.25, 0.35]])
     rng = np.random.default_rng(seed)
@@ -220,7 +220,7 @@ def test_the_acquisition_averages_the_models_with_and_without_the_source(seed: i
 def test_the_averaged_acquisition_is_the_weighted_mean_of_the_two_expected_improvements() -> None:
     from bac_agent.bo.acquisition import NoisyEI
 
-    eng, _ = _told_near_the_source_optimum(True, 0)
+    eng, _ = _told_near_the_source_optimum(True, 0, ls=False)  # (prior_average_ls: below)
     gp = eng._model()
     alt = eng._model_without_source(gp)
     assert alt is not None and eng.transfer is not None
@@ -273,3 +273,50 @@ def test_an_outcome_source_keeps_points_spread_over_the_cube() -> None:
     assert np.array_equal(spread_subset(X[:10], 20), np.arange(10))
     pick = spread_subset(np.array([[0.5, 0.5], [0.51, 0.5], [0.0, 0.0], [1.0, 1.0], [0.5, 0.49]]), 3)
     assert set(pick.tolist()) == {0, 2, 3}
+
+
+def test_prior_average_ls_averages_the_model_without_the_source_over_both_lengthscale_priors() -> None:
+    """issue 23 (prior_average_ls, the default since 2026-11-25): the model without the source in the transfer
+    prior's model average is itself the average of its fits under the two lengthscale priors (gp.ls_average), as the
+    engine's own model of the runs is: the EI is w · EI(with) + (1 - w)/2 · (EI(without, sd ls_scale) + EI(without,
+    sd ls_average))."""
+    from bac_agent.bo.acquisition import NoisyEI
+
+    eng, _ = _told_near_the_source_optimum(True, 0)
+    assert eng.config.prior_average_ls
+    gp = eng._model()
+    alt = eng._model_without_source(gp)
+    assert alt is not None and eng.transfer is not None and 0.5 < eng.transfer.weight < 1.0 - 1e-6
+    state = eng.rng.bit_generator.state
+    eng._acq_info = {}
+    values, value_and_grad = eng._averaged_nei(gp, alt, None)
+    eng.rng.bit_generator.state = state
+    tight = eng._without_source_tight(gp, alt)
+    assert tight is not None and tight.y_mean == alt.y_mean and tight.y_std == alt.y_std  # the source's scale
+    assert tight.config.ls_scale == eng.config.gp.ls_average and tight.config.mean == "constant"
+    assert tight.hyper is not None and alt.hyper is not None
+    assert not np.allclose(tight.hyper.lengthscales, alt.hyper.lengthscales)  # its own fit under the tighter prior
+    neis = [NoisyEI(m, eng.config.nei_samples, eng.rng, None) for m in (gp, alt, tight)]
+    U = np.random.default_rng(5).random((7, 2))
+    w = eng.transfer.weight
+    e = [np.exp(n(U)) for n in neis]
+    want = np.log(w * e[0] + 0.5 * (1.0 - w) * (e[1] + e[2]))
+    assert np.allclose(values(U), want, rtol=1e-9, atol=1e-9)
+    v, g = value_and_grad(U)
+    assert np.allclose(v, want, rtol=1e-9, atol=1e-9)
+    h = 1e-6
+    for j in range(2):
+        dU = np.zeros_like(U)
+        dU[:, j] = h
+        fd = (values(U + dU) - values(U - dU)) / (2 * h)
+        assert np.allclose(g[:, j], fd, rtol=1e-4, atol=1e-6)
+    # off, or with one lengthscale prior (gp.ls_average 0): the model without the source is one fit
+    off, _ = _told_near_the_source_optimum(True, 0, ls=False)
+    assert off._without_source_tight(off._model(), alt) is None
+    one = Engine(eng.space, replace(eng.config, gp=replace(eng.config.gp, ls_average=0.0)))
+    assert one._without_source_tight(gp, alt) is None
+    # an engine state saved before the option (a whole configuration without the key) reads back without it
+    old = eng.config.to_dict()
+    del old["prior_average_ls"]
+    assert not EngineConfig.from_dict(old).prior_average_ls
+    assert EngineConfig.from_dict({"budget": 5}).prior_average_ls  # a partial override keeps today's default
