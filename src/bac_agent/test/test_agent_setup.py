@@ -283,3 +283,18 @@ def test_gp_ls_average_is_passed_journaled_and_off_for_a_journal_started_before_
     # an offline refit of such a journal models as the campaign did
     assert journaled_engine_options({"config": {}})["gp"]["ls_average"] == 0.0
     assert journaled_engine_options({"config": {"gp_ls_average": 0.5}})["gp"]["ls_average"] == 0.5
+
+
+def test_face_explore_is_passed_journaled_and_off_for_a_journal_started_before_it(tmp_path: Path) -> None:
+    for n in (1, 0, 2):
+        setup = build_agent(AgentSettings(campaign_dir=str(tmp_path / str(n)), face_explore=n))
+        setup.journal.close()
+        assert isinstance(setup.optimizer, Engine)
+        assert setup.optimizer.config.face_explore == n and setup.config.extra["face_explore"] == n
+    assert AgentSettings().face_explore == 1  # the default (issue 23, 2026-11-25)
+    # a journal whose campaign_started has no "face_explore" key ran without it: it resumes so (not refused)
+    _journal_started(tmp_path / "old", {"budget": 15})
+    old = build_agent(AgentSettings(campaign_dir=str(tmp_path / "old")))
+    old.journal.close()
+    assert isinstance(old.optimizer, Engine) and old.optimizer.config.face_explore == 0
+    assert old.config.extra["face_explore"] == 0
