@@ -99,3 +99,21 @@ def test_an_engine_state_saved_before_it_reads_back_without_it() -> None:
 def test_bad_values_are_refused(key: str, value: float) -> None:
     with pytest.raises(EngineError, match=key):
         EngineConfig(**{key: value})  # type: ignore[arg-type]
+
+
+def test_it_acts_up_to_four_dimensions() -> None:
+    """In five dimensions a stall at a face changes nothing (engine.FACE_MAX_DIM: measured in 2-D and 3-D)."""
+    space = {f"x{i}": (0.0, 1.0) for i in range(5)}
+    rng = np.random.default_rng(0)
+    runs = [*rng.random((8, 5)) * 0.8 + 0.2, np.zeros(5), np.full(5, 0.03), np.array([0.0, 0.05, 0.0, 0.0, 0.02])]
+
+    def engine(fe: int) -> Engine:
+        eng = Engine(space, EngineConfig(budget=30, seed=1, face_explore=fe))
+        for r in runs:
+            eng.tell({f"x{i}": float(v) for i, v in enumerate(r)}, float(1.0 + r.sum()))
+        return eng
+
+    on = engine(1)
+    rec = np.array(list(on.recommend().params.values()))
+    assert np.sum(rec == 0.0) >= 3 and np.linalg.norm(runs[-1] - rec) < 0.2  # a stall at a face
+    assert on.ask() == engine(0).ask()

@@ -83,6 +83,10 @@ SAFE_MIN_STEP = 0.05
 # most: the edge of the step is where the estimated Lipschitz bound is used up; in 2-D, 100 seeds of the review's
 # travel, the edge broke the limit in 13 of 500 runs, 0.9 in 9, Sobol points in the balls (before) in 8)
 SAFE_LADDER = (0.9, 0.75, 0.5, 0.25)
+# the exploration along the faces after a stall (EngineConfig.face_explore) acts up to this many dimensions: it was
+# measured in 2-D and 3-D (issue 23); in many dimensions a face's most uncertain calibration is a jump across the box,
+# and the recommendation it needs at every ask cost 10-70 % of an ask with 100 runs in 20-D
+FACE_MAX_DIM = 4
 
 
 class _VariantMean:
@@ -261,7 +265,8 @@ class EngineConfig:
     # inside, carried the inside's trend on to the face and was confident there (gap 1.2 +- 0.2 predicted where the
     # optimum lay), so its EI refined a local minimum at the face's other end for up to 13 runs. Chosen on the tuning
     # split of the problem families (1 run, radius 0.2: Controller II bump -1.3 runs, road -0.4, no family worse by
-    # more than 0.2 in the mean; docs/agent.md). Not with a safe start (its safe set bounds the proposals)
+    # more than 0.2 in the mean; docs/agent.md). Not with a safe start (its safe set bounds the proposals); only up to
+    # FACE_MAX_DIM dimensions
     face_explore: int = 1
     face_radius: float = 0.2
 
@@ -1176,7 +1181,7 @@ class Engine:
                 ok &= _in_balls(self._snap(U), *safe)
             return ok & self._design_allowed(U) if outc is not None else ok
 
-        if self.config.face_explore > 0 and safe is None:
+        if self.config.face_explore > 0 and safe is None and d <= FACE_MAX_DIM:
             face = self._face_candidates()
             if face is not None:
                 face_ok = allowed(face)
