@@ -154,6 +154,17 @@ class BoAgentNode(BacNode):
             0.99,
             read_only=True,
         )
+        face_explore = self.declare_int(
+            "face_explore",
+            D.face_explore,
+            "bo: exploration along the faces after a stall: when the recommendation lies on a face of the box (a "
+            "parameter at a bound) and the last this many runs lie within 0.2 (unit cube) of it, the next run is the "
+            "most uncertain calibration on the faces through it, 0.2 or more from every run (0: off, as before "
+            "2026-11-25; a campaign journaled without it resumes without it)",
+            0,
+            100,
+            read_only=True,
+        )
         output_warp = self.declare_str(
             "output_warp",
             D.output_warp,
@@ -357,6 +368,7 @@ class BoAgentNode(BacNode):
             bowl_runs=bowl_runs,
             gp_bowl_loo=gp_bowl_loo,
             gp_ls_average=gp_ls_average,
+            face_explore=face_explore,
             output_warp=output_warp,
             design_margin=design_margin,
             start_from=start_from,

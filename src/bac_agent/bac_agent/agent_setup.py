@@ -53,6 +53,7 @@ class AgentSettings:
     bowl_runs: int = 0
     gp_bowl_loo: bool = True
     gp_ls_average: float = 0.5
+    face_explore: int = 1
     output_warp: str = "yeo-johnson"
     design_margin: float = 0.1
     start_from: str = "guess"
@@ -207,6 +208,8 @@ def _build(s: AgentSettings, definition: CalibrationDefinition, cdir: Path, cid:
     limit_far_sd = 0.0 if isinstance(started_config, dict) and "limit_far_sd" not in started_config else s.limit_far_sd
     # a campaign started before the model average over two lengthscale priors (no such key) resumes without it
     ls_average = 0.0 if isinstance(started_config, dict) and "gp_ls_average" not in started_config else s.gp_ls_average
+    # a campaign started before the exploration along the faces (no such key) resumes without it
+    face_explore = 0 if isinstance(started_config, dict) and "face_explore" not in started_config else s.face_explore
     # a campaign started before the transfer average's model without the source averaged over both lengthscale
     # priors (no such key) resumes with its one fit
     prior_average_ls = s.prior_average_ls and not (
@@ -227,6 +230,8 @@ def _build(s: AgentSettings, definition: CalibrationDefinition, cdir: Path, cid:
         overridden.append((f"limit_far_sd {s.limit_far_sd:g}", f"limit_far_sd {limit_far_sd:g}"))
     if s.strategy == "bo" and source is not None and s.prior_average_ls and not prior_average_ls:
         overridden.append(("prior_average_ls true", "prior_average_ls false"))
+    if s.strategy == "bo" and face_explore != s.face_explore:
+        overridden.append((f"face_explore {s.face_explore}", f"face_explore {face_explore}"))
     resumed_as_journaled = [
         f"{asked} is not used: this campaign's journal was started before the option existed and the campaign "
         f"resumes as it ran ({ran}); a new campaign_dir starts with it"
@@ -265,6 +270,7 @@ def _build(s: AgentSettings, definition: CalibrationDefinition, cdir: Path, cid:
                 outcome_priors={k: v.to_dict() for k, v in outcome_sources.items()} or None,
                 safe_start=safe_calibration,
                 limit_trend=limit_trend,
+                face_explore=face_explore,
                 limit_far_sd=limit_far_sd,
             ),
         )
@@ -294,6 +300,8 @@ def _build(s: AgentSettings, definition: CalibrationDefinition, cdir: Path, cid:
             "gp_bowl_loo": s.gp_bowl_loo,
             # the model average over the lengthscale priors of sd 1 and this (0: one fit; issue 23, 2026-11-25)
             "gp_ls_average": ls_average,
+            # the exploration along the faces after a stall (0: off; issue 23, 2026-11-25)
+            "face_explore": face_explore,
             "bowl_runs": optimizer.bowl_runs if isinstance(optimizer, Engine) else 0,
             "output_warp": s.output_warp,
             "design_margin": s.design_margin,

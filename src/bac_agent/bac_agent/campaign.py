@@ -1002,7 +1002,7 @@ RESUME_MAY_CHANGE = frozenset(
 # journal without the key is compared as if it held that value, so it resumes when the agent keeps it (issue 23,
 # 2026-11-24: no outcome priors, no limit on the transfer prior's runs, no safe start, no model average, the bowl
 # unchecked by leave-one-out; 2026-11-25: the outcome limits' least risky calibrations and design without the
-# retreat's trend, one GP fit without the model average over two lengthscale priors)
+# retreat's trend, one GP fit without the model average over two lengthscale priors, no exploration along the faces)
 ADDED_LATER: Mapping[str, Any] = {
     "recommend_rule": "mean",
     "outcome_priors": {},
@@ -1014,6 +1014,7 @@ ADDED_LATER: Mapping[str, Any] = {
     "gp_ls_average": 0.0,
     "limit_far_sd": 0.0,
     "prior_average_ls": False,
+    "face_explore": 0,
 }
 # configuration keys that change nothing where what they act on is absent, with the test for that absence: a
 # difference in them does not refuse a resume (the bowl's length and leave-one-out check without the bowl; the model

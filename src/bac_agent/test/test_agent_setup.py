@@ -312,7 +312,7 @@ def test_a_resumed_journal_that_overrides_a_parameter_says_so(tmp_path: Path) ->
     fresh = build_agent(AgentSettings(campaign_dir=str(tmp_path / "new"), **settings))  # type: ignore[arg-type]
     fresh.journal.close()
     assert fresh.resumed_as_journaled == []
-    _journal_started(tmp_path / "old", {"constraints": [LIMIT]})  # none of the six options' keys
+    _journal_started(tmp_path / "old", {"constraints": [LIMIT]})  # none of the seven options' keys
     old = build_agent(AgentSettings(campaign_dir=str(tmp_path / "old"), **settings))  # type: ignore[arg-type]
     old.journal.close()
     notes = old.resumed_as_journaled
@@ -323,6 +323,7 @@ def test_a_resumed_journal_that_overrides_a_parameter_says_so(tmp_path: Path) ->
         "gp_ls_average 0.5",
         "limit_far_sd 2",
         "prior_average_ls true",
+        "face_explore 1",
     ]
     assert "resumes as it ran (gp_ls_average 0, one fit)" in notes[3]
     # a journal that knew the options resumes with them: nothing to say
@@ -334,6 +335,7 @@ def test_a_resumed_journal_that_overrides_a_parameter_says_so(tmp_path: Path) ->
         "gp_ls_average": 0.5,
         "limit_far_sd": 2.0,
         "prior_average_ls": True,
+        "face_explore": 1,
     }
     _journal_started(tmp_path / "knew", knew)
     again = build_agent(AgentSettings(campaign_dir=str(tmp_path / "knew"), **settings))  # type: ignore[arg-type]
@@ -341,7 +343,7 @@ def test_a_resumed_journal_that_overrides_a_parameter_says_so(tmp_path: Path) ->
     assert again.resumed_as_journaled == []
     # a parameter at the value the old campaign ran with is not overridden
     _journal_started(tmp_path / "old_off", {"budget": 15})
-    off = build_agent(AgentSettings(campaign_dir=str(tmp_path / "old_off"), gp_ls_average=0.0))
+    off = build_agent(AgentSettings(campaign_dir=str(tmp_path / "old_off"), gp_ls_average=0.0, face_explore=0))
     off.journal.close()
     assert off.resumed_as_journaled == []
 
@@ -359,3 +361,18 @@ def test_prior_average_ls_is_passed_journaled_and_off_for_a_journal_started_befo
     old.journal.close()
     assert isinstance(old.optimizer, Engine) and old.optimizer.config.prior_average_ls is False
     assert old.config.extra["prior_average_ls"] is False
+
+
+def test_face_explore_is_passed_journaled_and_off_for_a_journal_started_before_it(tmp_path: Path) -> None:
+    for n in (1, 0, 2):
+        setup = build_agent(AgentSettings(campaign_dir=str(tmp_path / str(n)), face_explore=n))
+        setup.journal.close()
+        assert isinstance(setup.optimizer, Engine)
+        assert setup.optimizer.config.face_explore == n and setup.config.extra["face_explore"] == n
+    assert AgentSettings().face_explore == 1  # the default (issue 23, 2026-11-25)
+    # a journal whose campaign_started has no "face_explore" key ran without it: it resumes so (not refused)
+    _journal_started(tmp_path / "old", {"budget": 15})
+    old = build_agent(AgentSettings(campaign_dir=str(tmp_path / "old")))
+    old.journal.close()
+    assert isinstance(old.optimizer, Engine) and old.optimizer.config.face_explore == 0
+    assert old.config.extra["face_explore"] == 0

@@ -647,6 +647,11 @@ REFUSED: dict[str, tuple[str, Refusal]] = {
         "config.gp_ls_average: journaled 0.0, this agent 0.5",
         lambda: (engine(), config(extra=_extra(gp_ls_average=0.5)), DEFINITION),
     ),
+    "exploration along the faces": (
+        # a journal from before face_explore ran without it (campaign.ADDED_LATER)
+        "config.face_explore: journaled 0, this agent 1",
+        lambda: (engine(), config(extra=_extra(face_explore=1)), DEFINITION),
+    ),
     "acquisition": (
         'config.acquisition: journaled "nei", this agent "ei"',
         lambda: (engine(), config(extra=_extra(acquisition="ei")), DEFINITION),
