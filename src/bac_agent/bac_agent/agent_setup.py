@@ -222,13 +222,14 @@ def _build(s: AgentSettings, definition: CalibrationDefinition, cdir: Path, cid:
         overridden.append(("the outcome priors from prior_source", "the limits' models start from nothing"))
     if s.safe_start and constraints and s.strategy == "bo" and safe_calibration is None:
         overridden.append(("safe_start true", "without a safe start"))
-    if s.limit_trend and constraints and not limit_trend:
+    if s.strategy == "bo" and s.limit_trend and constraints and not limit_trend:
         overridden.append(("limit_trend true", "limit_trend false"))
     if s.strategy == "bo" and ls_average != s.gp_ls_average:
         overridden.append((f"gp_ls_average {s.gp_ls_average:g}", f"gp_ls_average {ls_average:g}, one fit"))
     if s.strategy == "bo" and constraints and limit_far_sd != s.limit_far_sd:
         overridden.append((f"limit_far_sd {s.limit_far_sd:g}", f"limit_far_sd {limit_far_sd:g}"))
-    if s.strategy == "bo" and source is not None and s.prior_average_ls and not prior_average_ls:
+    # (prior_average_ls acts only in the transfer average with the lengthscale average on)
+    if s.strategy == "bo" and source is not None and s.prior_average and ls_average > 0 and not prior_average_ls:
         overridden.append(("prior_average_ls true", "prior_average_ls false"))
     if s.strategy == "bo" and face_explore != s.face_explore:
         overridden.append((f"face_explore {s.face_explore}", f"face_explore {face_explore}"))

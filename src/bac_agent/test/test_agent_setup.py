@@ -322,9 +322,8 @@ def test_a_resumed_journal_that_overrides_a_parameter_says_so(tmp_path: Path) ->
         "limit_trend true",
         "gp_ls_average 0.5",
         "limit_far_sd 2",
-        "prior_average_ls true",
         "face_explore 1",
-    ]
+    ]  # (prior_average_ls acts only with the lengthscale average, which this journal ran without)
     assert "resumes as it ran (gp_ls_average 0, one fit)" in notes[3]
     # a journal that knew the options resumes with them: nothing to say
     knew = {
@@ -341,6 +340,17 @@ def test_a_resumed_journal_that_overrides_a_parameter_says_so(tmp_path: Path) ->
     again = build_agent(AgentSettings(campaign_dir=str(tmp_path / "knew"), **settings))  # type: ignore[arg-type]
     again.journal.close()
     assert again.resumed_as_journaled == []
+    # a journal with the lengthscale average but from before prior_average_ls
+    _journal_started(tmp_path / "old_ls", {"constraints": [LIMIT], "gp_ls_average": 0.5})
+    old_ls = build_agent(AgentSettings(campaign_dir=str(tmp_path / "old_ls"), **settings))  # type: ignore[arg-type]
+    old_ls.journal.close()
+    assert "prior_average_ls true is not used" in " ".join(old_ls.resumed_as_journaled)
+    # a grid or random campaign has no engine whose options could be overridden: nothing to say
+    for strategy in ("grid", "random"):
+        _journal_started(tmp_path / strategy, {"constraints": [LIMIT]})
+        other = build_agent(AgentSettings(campaign_dir=str(tmp_path / strategy), strategy=strategy, **settings))  # type: ignore[arg-type]
+        other.journal.close()
+        assert other.resumed_as_journaled == [], strategy
     # a parameter at the value the old campaign ran with is not overridden
     _journal_started(tmp_path / "old_off", {"budget": 15})
     off = build_agent(AgentSettings(campaign_dir=str(tmp_path / "old_off"), gp_ls_average=0.0, face_explore=0))

@@ -415,3 +415,29 @@ def test_when_every_candidate_lies_near_a_failed_run_the_least_risky_is_said_wit
     assert "inf" not in said and "nan" not in said, said
     assert "; every candidate lies within 0.01 of a failed run" in said, said
     assert s.params["a"] > 0.9, s.params  # the way the runs' travel falls
+
+
+def test_the_std_said_with_a_probability_is_the_one_it_was_computed_with() -> None:
+    # limit_far_sd widens each limit's model far from the runs for the probabilities; the proposal's and the
+    # recommendation's outcomes said the model's own sd beside them (outside review, 2026-11-25): 37.8 +- 0.67 mm
+    # at p 0.019 on a limit of 42, where the widened sd is 2.0. "std" is now the one the probability goes with
+    from scipy.special import ndtr
+
+    eng = Engine({"a": (0.0, 1.0), "b": (0.0, 1.0)}, EngineConfig(budget=20, seed=0, constraints=("travel<=42",)))
+    for (a, b), travel, j in (*STIFF_RUNS, ((0.7, 0.7), 37.5, 0.97)):
+        eng.tell({"a": a, "b": b}, j, {"travel": travel})
+    eng.ask()
+    outc = eng._outcome_models()
+    d = outc.describe(np.array([[0.0, 0.0]]))["travel <= 42"]
+    assert d["std"] > 2.0 * d["std_model"]  # far from every run
+    assert 1.0 - ndtr((42.0 - d["mean"]) / d["std"]) == pytest.approx(d["p_violation_true"], rel=1e-9)
+    near = outc.describe(np.array([[0.78, 0.65]]))["travel <= 42"]  # at a run: hardly widened
+    assert near["std"] < 1.5 * near["std_model"]
+    off = Engine(
+        {"a": (0.0, 1.0), "b": (0.0, 1.0)},
+        EngineConfig(budget=20, seed=0, constraints=("travel<=42",), limit_far_sd=0.0),
+    )
+    for (a, b), travel, j in (*STIFF_RUNS, ((0.7, 0.7), 37.5, 0.97)):
+        off.tell({"a": a, "b": b}, j, {"travel": travel})
+    off.ask()
+    assert "std_model" not in off._outcome_models().describe(np.array([[0.0, 0.0]]))["travel <= 42"]

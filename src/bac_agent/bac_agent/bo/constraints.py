@@ -580,17 +580,24 @@ class OutcomeModels:
         )
 
     def describe(self, U: FloatArray) -> dict[str, dict[str, float]]:
-        """Predicted mean, std and probability of breaking the limit at one point, per outcome."""
+        """Predicted mean, std and probability of breaking the limit at one point, per outcome (with ``far_sd`` the
+        std is the widened one the probabilities use, and ``std_model`` the model's own)."""
         U = np.atleast_2d(U)
         out = {}
         for m in self.models:
             mu, sd = m.predict(U)
-            out[str(m.limit)] = {
+            entry = {
                 "mean": float(mu[0]),
                 "std": float(sd[0]),
                 "p_violation": float(m.prob_violation(U)[0]),  # a run here measures beyond the limit
                 "p_violation_true": float(m.prob_violation(U, measured=False)[0]),  # its true outcome is beyond
             }
+            if m.fitted and m.source is None and m.far_sd > 0.0:
+                # far from the runs the probabilities use the widened sd: "std" is that one (the one they go with),
+                # "std_model" the model's own (outside review, 2026-11-25: the two were shown side by side unsaid)
+                w = float(m._widening(m.gp.predict_std_units(U)[1])[0])
+                entry["std"], entry["std_model"] = float(sd[0]) * w, float(sd[0])
+            out[str(m.limit)] = entry
         return out
 
 

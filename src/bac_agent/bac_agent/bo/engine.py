@@ -65,9 +65,9 @@ RULES = ("mean", "observed", "best_run")  # Engine.recommend(rule)
 # the GPConfig fields every saved whole GPConfig holds (EngineConfig.from_dict tells such a dump, which ran with the
 # defaults of its day, from a partial override)
 WHOLE_GP_KEYS = frozenset({"maxiter", "ls_loc", "ls_scale", "os_loc", "noise_loc", "noise_floor"})
-TREND_MODEL = "the retreat's model with a linear trend"
+TREND_MODEL = "the retreat's model with a linear trend"  # named in the least risky calibration's warning
 # EngineConfig.limit_far_sd's default (see there; bo_agent's limit_far_sd)
-LIMIT_FAR_SD = 2.0  # named in the least risky calibration's warning
+LIMIT_FAR_SD = 2.0
 # a safe start's design grows from the runs that kept every limit by steps (SafeOpt's safe set, Sui et al. 2015: a
 # calibration is safe when a safe run's margin to the limit exceeds the Lipschitz constant times the distance), not
 # by the outcome model's extrapolation alone: fitted to a few runs close together it is confident far beyond them
@@ -1307,8 +1307,11 @@ class Engine:
         rho2 = self.config.face_radius**2
         if np.any(np.sum((X[-n:] - u_r) ** 2, axis=1) > rho2):
             return None
-        if self.pending:
-            X = np.vstack([X, self.space.to_unit(np.array([self.space.to_array(p) for p in self.pending]))])
+        # far from the pending asks and the failed runs too (outside review, 2026-11-25: a failed run at a face was
+        # proposed again, 0.01 beside itself or exactly with a resolution, until max_consecutive_failures)
+        others = [*self.pending, *(f.params for f in self.failures)]
+        if others:
+            X = np.vstack([X, self.space.to_unit(np.array([self.space.to_array(p) for p in others]))])
         d = self.space.dim
         rng = np.random.default_rng(self.config.seed + 104729 * len(self.observations))
         parts = []
@@ -1317,6 +1320,8 @@ class Engine:
             c[:, i] = 0.0 if lo[i] else 1.0
             parts.append(c)
         C = np.vstack(parts)
+        if any(dim.resolution > 0 for dim in self.space.dims):  # judged as the ECU will hold them
+            C = self._snap(C)
         far = np.min(np.sum((C[:, None, :] - X[None, :, :]) ** 2, axis=2), axis=1) > rho2
         return C[far] if np.any(far) else None
 
