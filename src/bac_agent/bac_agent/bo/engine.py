@@ -124,6 +124,24 @@ class _VariantMean:
         return mu, sd, dmu, dsd
 
 
+def _nei_mixture(
+    neis: list[tuple[float, NoisyEI]],
+) -> tuple[Callable[[FloatArray], FloatArray], Callable[[FloatArray], tuple[FloatArray, FloatArray]]]:
+    """log of sum_i exp(log_w_i) NEI_i, the noisy EI averaged over several models with log weights, and its gradient
+    (the model averages: with and without a transfer source, the lengthscale priors' fits, the prior variants)."""
+
+    def values(U: FloatArray) -> FloatArray:
+        return np.asarray(np.logaddexp.reduce([lw + nei(U) for lw, nei in neis], axis=0), dtype=float)
+
+    def value_and_grad(U: FloatArray) -> tuple[FloatArray, FloatArray]:
+        vg = [(lw + v, g) for lw, nei in neis for v, g in [nei.value_and_grad(U)]]
+        v = np.logaddexp.reduce([a for a, _ in vg], axis=0)
+        grad = sum(np.exp(a - v)[:, None] * g for a, g in vg)
+        return np.asarray(v, dtype=float), np.asarray(grad, dtype=float)
+
+    return values, value_and_grad
+
+
 class EngineError(BacError, ValueError):
     """The optimizer was used wrongly (nothing told yet, a bad value, a bad saved state)."""
 
@@ -1041,16 +1059,7 @@ class Engine:
             (half, NoisyEI(self._with_pending(tight), self.config.nei_samples, self.rng, incumbents)),
         ]
 
-        def values(U: FloatArray) -> FloatArray:
-            return np.asarray(np.logaddexp.reduce([lw + nei(U) for lw, nei in neis], axis=0), dtype=float)
-
-        def value_and_grad(U: FloatArray) -> tuple[FloatArray, FloatArray]:
-            vg = [(lw + v, g) for lw, nei in neis for v, g in [nei.value_and_grad(U)]]
-            v = np.logaddexp.reduce([a for a, _ in vg], axis=0)
-            grad = sum(np.exp(a - v)[:, None] * g for a, g in vg)
-            return np.asarray(v, dtype=float), np.asarray(grad, dtype=float)
-
-        return values, value_and_grad
+        return _nei_mixture(neis)
 
     def _without_source_tight(self, model: GP, alt: GP) -> GP | None:
         """``prior_average_ls``: the model without the source (``alt``'s data and scaling) fitted under the tighter
@@ -1080,18 +1089,7 @@ class Engine:
         alt = self._with_pending(alt)
         nei1 = NoisyEI(model, self.config.nei_samples, self.rng, incumbents)
         nei0 = NoisyEI(alt, self.config.nei_samples, self.rng, incumbents)
-        lw1, lw0 = log_w
-
-        def values(U: FloatArray) -> FloatArray:
-            return np.asarray(np.logaddexp(lw1 + nei1(U), lw0 + nei0(U)), dtype=float)
-
-        def value_and_grad(U: FloatArray) -> tuple[FloatArray, FloatArray]:
-            v1, g1 = nei1.value_and_grad(U)
-            v0, g0 = nei0.value_and_grad(U)
-            v = np.logaddexp(lw1 + v1, lw0 + v0)
-            return v, np.exp(lw1 + v1 - v)[:, None] * g1 + np.exp(lw0 + v0 - v)[:, None] * g0
-
-        return values, value_and_grad
+        return _nei_mixture([(log_w[0], nei1), (log_w[1], nei0)])
 
     def _variants_nei(
         self, alt: GP | None, incumbents: NDArray[np.bool_] | None
@@ -1116,16 +1114,7 @@ class Engine:
             f"{self._variant_models[0][2]:.3f})"
         )
 
-        def values(U: FloatArray) -> FloatArray:
-            return np.asarray(np.logaddexp.reduce([lw + nei(U) for lw, nei in neis], axis=0), dtype=float)
-
-        def value_and_grad(U: FloatArray) -> tuple[FloatArray, FloatArray]:
-            vg = [(lw + v, g) for lw, nei in neis for v, g in [nei.value_and_grad(U)]]
-            v = np.logaddexp.reduce([a for a, _ in vg], axis=0)
-            grad = sum(np.exp(a - v)[:, None] * g for a, g in vg)
-            return np.asarray(v, dtype=float), np.asarray(grad, dtype=float)
-
-        return values, value_and_grad
+        return _nei_mixture(neis)
 
     def _maximize_acquisition(self) -> FloatArray:
         gp = self._model()
