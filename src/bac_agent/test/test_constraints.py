@@ -6,9 +6,10 @@ from typing import Any
 
 import numpy as np
 import pytest
+from scipy.special import ndtr
 
 from bac_agent.bo import Engine, EngineConfig
-from bac_agent.bo.constraints import ConstraintError, OutcomeLimit, parse_limits, violations
+from bac_agent.bo.constraints import ConstraintError, OutcomeLimit, OutcomeModel, parse_limits, violations
 from bac_agent.bo.engine import EngineError
 
 OPT = np.array([0.2, 0.3])  # J's unconstrained optimum: there the travel is 70, the limit 60
@@ -330,8 +331,6 @@ def test_far_from_every_run_the_outcome_model_is_widened_with_limit_far_sd(seed:
 
 
 def test_limit_far_sd_keeps_its_gradient_and_is_validated_and_reads_back_off_from_a_state_saved_before_it() -> None:
-    from bac_agent.bo.constraints import OutcomeModel
-
     rng = np.random.default_rng(0)
     X = rng.random((8, 2))
     m = OutcomeModel(OutcomeLimit("t", 50.0), far_sd=2.0)
@@ -421,8 +420,6 @@ def test_the_std_said_with_a_probability_is_the_one_it_was_computed_with() -> No
     # limit_far_sd widens each limit's model far from the runs for the probabilities; the proposal's and the
     # recommendation's outcomes said the model's own sd beside them (outside review, 2026-11-25): 37.8 +- 0.67 mm
     # at p 0.019 on a limit of 42, where the widened sd is 2.0. "std" is now the one the probability goes with
-    from scipy.special import ndtr
-
     eng = Engine({"a": (0.0, 1.0), "b": (0.0, 1.0)}, EngineConfig(budget=20, seed=0, constraints=("travel<=42",)))
     for (a, b), travel, j in (*STIFF_RUNS, ((0.7, 0.7), 37.5, 0.97)):
         eng.tell({"a": a, "b": b}, j, {"travel": travel})

@@ -9,6 +9,7 @@ import numpy as np
 import pytest
 
 from bac_agent.bo import Engine, EngineConfig
+from bac_agent.bo.acquisition import NoisyEI
 from bac_agent.bo.engine import KIND_OPTIMIZED, KIND_PRIOR, EngineError
 from bac_agent.bo.gp import GPError
 from bac_agent.bo.prior import SourceSurface
@@ -217,9 +218,21 @@ def test_the_acquisition_averages_the_models_with_and_without_the_source(seed: i
     assert np.min(np.linalg.norm(runs - u, axis=1)) > 0.4  # far from every run
 
 
-def test_the_averaged_acquisition_is_the_weighted_mean_of_the_two_expected_improvements() -> None:
-    from bac_agent.bo.acquisition import NoisyEI
+def _assert_acquisition(values: Any, value_and_grad: Any, U: np.ndarray, want: np.ndarray) -> None:
+    """An averaged acquisition's values and its value_and_grad equal ``want`` at U; its gradient the central
+    differences'."""
+    assert np.allclose(values(U), want, rtol=1e-9, atol=1e-9)
+    v, g = value_and_grad(U)
+    assert np.allclose(v, want, rtol=1e-9, atol=1e-9)
+    h = 1e-6
+    for j in range(U.shape[1]):
+        dU = np.zeros_like(U)
+        dU[:, j] = h
+        fd = (values(U + dU) - values(U - dU)) / (2 * h)
+        assert np.allclose(g[:, j], fd, rtol=1e-4, atol=1e-6)
 
+
+def test_the_averaged_acquisition_is_the_weighted_mean_of_the_two_expected_improvements() -> None:
     eng, _ = _told_near_the_source_optimum(True, 0, ls=False)  # (prior_average_ls: below)
     gp = eng._model()
     alt = eng._model_without_source(gp)
@@ -234,15 +247,7 @@ def test_the_averaged_acquisition_is_the_weighted_mean_of_the_two_expected_impro
     U = np.random.default_rng(5).random((7, 2))
     w = eng.transfer.weight
     want = np.log(w * np.exp(nei1(U)) + (1.0 - w) * np.exp(nei0(U)))
-    assert np.allclose(values(U), want, rtol=1e-9, atol=1e-9)
-    v, g = value_and_grad(U)
-    assert np.allclose(v, want, rtol=1e-9, atol=1e-9)
-    h = 1e-6
-    for j in range(2):
-        dU = np.zeros_like(U)
-        dU[:, j] = h
-        fd = (values(U + dU) - values(U - dU)) / (2 * h)
-        assert np.allclose(g[:, j], fd, rtol=1e-4, atol=1e-6)
+    _assert_acquisition(values, value_and_grad, U, want)
     # a right source's weight of 1 to round-off: the model with the source alone (no second model's cost)
     eng.transfer = replace(eng.transfer, weight=1.0 - 1e-9)
     assert eng._model_without_source(gp) is None
@@ -280,8 +285,6 @@ def test_prior_average_ls_averages_the_model_without_the_source_over_both_length
     prior's model average is itself the average of its fits under the two lengthscale priors (gp.ls_average), as the
     engine's own model of the runs is: the EI is w · EI(with) + (1 - w)/2 · (EI(without, sd ls_scale) + EI(without,
     sd ls_average))."""
-    from bac_agent.bo.acquisition import NoisyEI
-
     eng, _ = _told_near_the_source_optimum(True, 0)
     assert eng.config.prior_average_ls
     gp = eng._model()
@@ -301,15 +304,7 @@ def test_prior_average_ls_averages_the_model_without_the_source_over_both_length
     w = eng.transfer.weight
     e = [np.exp(n(U)) for n in neis]
     want = np.log(w * e[0] + 0.5 * (1.0 - w) * (e[1] + e[2]))
-    assert np.allclose(values(U), want, rtol=1e-9, atol=1e-9)
-    v, g = value_and_grad(U)
-    assert np.allclose(v, want, rtol=1e-9, atol=1e-9)
-    h = 1e-6
-    for j in range(2):
-        dU = np.zeros_like(U)
-        dU[:, j] = h
-        fd = (values(U + dU) - values(U - dU)) / (2 * h)
-        assert np.allclose(g[:, j], fd, rtol=1e-4, atol=1e-6)
+    _assert_acquisition(values, value_and_grad, U, want)
     # off, or with one lengthscale prior (gp.ls_average 0): the model without the source is one fit
     off, _ = _told_near_the_source_optimum(True, 0, ls=False)
     assert off._without_source_tight(off._model(), alt) is None
