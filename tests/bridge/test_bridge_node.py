@@ -123,6 +123,31 @@ class BridgeCaller:
     def wait_ready(self) -> None:
         for cli in (self.apply_cli, self.read_cli, self.restore_cli):
             wait_for(lambda c=cli: c.service_is_ready(), 30, what=f"service {cli.srv_name}")
+        self.handshake()
+
+    def handshake(self, timeout: float = 30.0) -> None:
+        """Wait until an answer of ``apply_calibration`` reaches this client.
+
+        ``service_is_ready`` says the bridge's request reader is matched, not that its response writer has matched
+        this client's reader; Fast DDS drops a response sent before (rmw_fastrtps: "failed to send response
+        (timeout): client will not receive response"), and under load that window can outlast the first apply.
+        A request the bridge refuses before it touches the bus (an unknown name) is asked until one answer comes.
+        """
+        req = self.ApplyCalibration.Request()
+        req.calibration.names = ["__handshake__"]
+        req.calibration.values = [0.0]
+        deadline = time.monotonic() + timeout
+        while True:
+            fut = self.apply_cli.call_async(req)
+            end = time.monotonic() + 2.0
+            while not fut.done() and time.monotonic() < end:
+                time.sleep(0.02)
+            if fut.done():
+                resp = fut.result()
+                assert resp is not None and resp.error_code == ErrorCode.UNKNOWN_PARAMETER, resp
+                return
+            if time.monotonic() > deadline:
+                pytest.fail(f"no answer of {self.apply_cli.srv_name} reached the test client in {timeout} s")
 
     def call(self, cli: Any, req: Any, timeout: float = 20.0) -> Any:
         fut = cli.call_async(req)
