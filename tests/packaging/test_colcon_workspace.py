@@ -2,14 +2,17 @@
 install space.
 
 The venv is the ROS 2 Jazzy underlay (ROS from the PyPI wheels; on a laptop it is /opt/ros/jazzy). In the copy:
-``colcon build`` and ``colcon test`` pass and ``colcon test-result`` counts every unit test pytest collects in
-src/*/test; after ``source install/setup.bash`` the packages, the profiles, parameter files, calibration
-definitions and DBC files come from install/ (ament index), ``bac`` is on PATH, every node starts as
-``install/<pkg>/lib/<pkg>/<node>`` and stops cleanly on SIGINT, and ``bac launch sim`` run in a folder outside the
-repository (BAC_WS unset) runs a campaign to its end.
+``colcon build`` and ``colcon test`` pass and ``colcon test-result`` counts every quick unit test pytest collects
+in src/*/test (``-m "not slow"``: the unit tests marked slow, a few seconds or more each, run once, in make test's
+own pytest; the check asks that some exist, so a filter that matched nothing would not pass unseen); after
+``source install/setup.bash`` the packages, the profiles, parameter files, calibration definitions and DBC files
+come from install/ (ament index), ``bac`` is on PATH, every node starts as ``install/<pkg>/lib/<pkg>/<node>`` and
+stops cleanly on SIGINT, and ``bac launch sim`` run in a folder outside the repository (BAC_WS unset) runs a
+campaign to its end.
 
-Figures (2026-11-24, 2-core machine shared with other jobs): colcon build with 2 workers about 30 s (bac_msgs,
-the rosidl package, 25 s of it), colcon test about 45 s, the whole module about 3 min.
+Figures (2026-11-25 09:33-09:39 UTC, 2-core machine at load 4.5-5, three benchmarks beside): colcon build with
+2 workers 1:16, colcon test 3:10 (bac_agent's quick unit tests 1:47 of it, on the path of the packages above it;
+3:51 with every unit test, same load), the whole module 5:45.
 """
 
 from __future__ import annotations
@@ -53,6 +56,9 @@ NODES: dict[str, str] = {
     "trial_listener": "bac_bringup",
 }
 TOOLS = {"bac"}  # console scripts that are not nodes
+# colcon test runs the quick unit tests (the workspace has no pyproject.toml, so the marker is declared here too)
+SLOW_FILTER = ["-m", "not slow"]
+COLCON_PYTEST_ARGS = [*SLOW_FILTER, "-o", "markers=slow: a unit test of a few seconds or more"]
 
 
 def run(cmd: list[str], cwd: Path, env: dict[str, str], timeout: float, log: Path) -> subprocess.CompletedProcess[str]:
@@ -133,14 +139,28 @@ def workspace(tmp_path_factory: pytest.TempPathFactory) -> Workspace:
     build = run([colcon, "build", "--parallel-workers", "2"], ws, env, 900, ws / "colcon_build.log")
     if build.returncode != 0:
         pytest.fail(f"colcon build failed ({build.returncode}):\n{build.stdout[-6000:]}")
-    test = run([colcon, "test", "--parallel-workers", "2"], ws, env, 900, ws / "colcon_test.log")
+    test = run(
+        [colcon, "test", "--parallel-workers", "2", "--pytest-args", *COLCON_PYTEST_ARGS],
+        ws,
+        env,
+        900,
+        ws / "colcon_test.log",
+    )
     return Workspace(ws, build, test)
 
 
-def collected_unit_tests() -> dict[str, int]:
+def collected_unit_tests(*filter_args: str) -> dict[str, int]:
     """What pytest collects in each src/<pkg>/test of the repository (the reference count)."""
     proc = subprocess.run(
-        [sys.executable, "-m", "pytest", "--collect-only", "-q", *(f"src/{p}/test" for p in PY_PACKAGES)],
+        [
+            sys.executable,
+            "-m",
+            "pytest",
+            "--collect-only",
+            "-q",
+            *filter_args,
+            *(f"src/{p}/test" for p in PY_PACKAGES),
+        ],
         cwd=ROOT,
         capture_output=True,
         text=True,
@@ -173,8 +193,10 @@ def test_colcon_build_and_test_pass_and_every_unit_test_is_counted(workspace: Wo
         m.group(1): int(m.group(2))
         for m in re.finditer(r"build/(\w+)/pytest\.xml: (\d+) tests, 0 errors, 0 failures", proc.stdout)
     }
-    expected = collected_unit_tests()
-    assert all(n > 0 for n in expected.values()), expected  # every package has unit tests
+    expected = collected_unit_tests(*SLOW_FILTER)
+    assert all(n > 0 for n in expected.values()), expected  # every package has quick unit tests
+    every = collected_unit_tests()
+    assert all(every[p] >= expected[p] for p in PY_PACKAGES) and sum(every.values()) > sum(expected.values()), every
     assert per_package == expected, proc.stdout
     total = re.search(r"Summary: (\d+) tests, (\d+) errors, (\d+) failures, (\d+) skipped", proc.stdout)
     assert total is not None, proc.stdout

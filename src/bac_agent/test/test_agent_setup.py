@@ -172,6 +172,7 @@ def _earlier_campaign(path: Path) -> Path:
     return path
 
 
+@pytest.mark.slow
 def test_the_best_guess_is_trial_1_unless_the_design_is_asked_for_or_a_prior_gives_trial_1(tmp_path: Path) -> None:
     defn = str(_definition_with_guess(tmp_path))
     guess = {"damping_front": 0.2, "damping_rear": 0.3}
@@ -194,6 +195,7 @@ def test_the_best_guess_is_trial_1_unless_the_design_is_asked_for_or_a_prior_giv
     assert any(line.startswith("transfer prior: ") for line in built["prior"].log_lines())
 
 
+@pytest.mark.slow
 def test_outcome_priors_come_from_the_source_but_not_for_a_journal_started_before_them(tmp_path: Path) -> None:
     source = str(_earlier_campaign(tmp_path / "earlier"))
     limit = ("max_travel_mm<=60",)
@@ -304,6 +306,7 @@ def test_gp_ls_average_is_passed_journaled_and_off_for_a_journal_started_before_
     assert journaled_engine_options({"config": {"gp_ls_average": 0.5}})["gp"]["ls_average"] == 0.5
 
 
+@pytest.mark.slow
 def test_a_resumed_journal_that_overrides_a_parameter_says_so(tmp_path: Path) -> None:
     """A journal started before an option existed resumes as it ran whatever the (read-only) parameter says: the
     node warns with these sentences instead of leaving a parameter that reads otherwise than the campaign runs."""

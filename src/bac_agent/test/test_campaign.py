@@ -263,6 +263,7 @@ def test_grid_strategy_through_the_campaign(tmp_path: Path) -> None:
     assert d.finish.recommendation.params == {"damping_front": 0.5, "damping_rear": 0.5}
 
 
+@pytest.mark.slow
 def test_outcome_limits_are_modelled_and_a_broken_one_is_booked_and_shown(tmp_path: Path) -> None:
     """issue 23: a run's outcomes reach the optimizer and the journal; a run that broke a limit is not hidden."""
 

@@ -282,6 +282,7 @@ def test_the_scripted_campaign_goes_through_every_rule(live: tuple[Path, dict[st
     assert "j" in out["trials"][5] and kinds.count("link_lost") == 1  # the outage paused trial 5, failed nothing
 
 
+@pytest.mark.slow
 def test_every_cut_of_the_journal_resumes_to_the_same_campaign(
     live: tuple[Path, dict[str, Any]], tmp_path: Path, monkeypatch: pytest.MonkeyPatch
 ) -> None:
@@ -420,6 +421,7 @@ def live_limits(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, dict[st
     return d, outcome(d, chain)
 
 
+@pytest.mark.slow
 def test_the_campaign_with_limits_and_a_prior_uses_both(live_limits: tuple[Path, dict[str, Any]]) -> None:
     d, out = live_limits
     events = [json.loads(x) for x in (d / JOURNAL_NAME).read_text().splitlines()]
@@ -438,6 +440,7 @@ def test_the_campaign_with_limits_and_a_prior_uses_both(live_limits: tuple[Path,
     assert out["recommendation_json"]["violated_trials"] == out["violated"]
 
 
+@pytest.mark.slow
 def test_every_cut_of_a_journal_with_limits_and_a_prior_resumes_to_the_same_campaign(
     live_limits: tuple[Path, dict[str, Any]], tmp_path: Path, monkeypatch: pytest.MonkeyPatch
 ) -> None:
@@ -506,6 +509,7 @@ def live_safe(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, dict[str,
     return d, outcome(d, chain)
 
 
+@pytest.mark.slow
 def test_every_cut_of_a_journal_with_a_safe_start_resumes_to_the_same_campaign(
     live_safe: tuple[Path, dict[str, Any]], tmp_path: Path, monkeypatch: pytest.MonkeyPatch
 ) -> None:

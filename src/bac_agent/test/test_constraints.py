@@ -54,6 +54,7 @@ def _campaign(limit: float | None, budget: int = 15, seed: int = 0) -> tuple[Eng
     return eng, asked
 
 
+@pytest.mark.slow
 def test_the_engine_keeps_to_a_limit_its_optimum_would_break() -> None:
     assert travel_of(OPT) > 60.0  # the unconstrained optimum breaks the limit
     broken = []
@@ -123,6 +124,7 @@ def test_an_outcome_model_starts_its_fit_from_the_prior_mode_and_its_last_fit(mo
     assert p[1] > 0.5
 
 
+@pytest.mark.slow
 def test_the_acquisition_maximizer_stops_after_acq_maxiter(monkeypatch: pytest.MonkeyPatch) -> None:
     """The acquisition's L-BFGS-B is bounded by acq_maxiter (issue 23's latency), which is checked."""
     from scipy.optimize import minimize as real

@@ -255,6 +255,7 @@ def test_best_guesses_are_asked_first_and_the_design_still_spans_the_space() -> 
     assert again.config.initial_points == ({"a": 0.0, "b": 1.0},)
 
 
+@pytest.mark.slow
 def test_two_asks_without_tell_differ_and_tell_clears_pending() -> None:
     eng = Engine({"a": (0.0, 1.0), "b": (0.0, 1.0)}, budget=10, n_initial=3, seed=0)
     for _ in range(3):
@@ -403,6 +404,7 @@ def test_one_run_is_recommended_as_driven_not_an_arbitrary_point() -> None:
         assert eng.recommend().n_observations == 3
 
 
+@pytest.mark.slow
 def test_one_run_with_a_transfer_prior_the_runs_do_not_support_is_recommended_as_driven() -> None:
     """A transfer prior gives the model its shape only while it is in use: with a low prior_weight one run does
     not take it up (prior_in_use 0), the engine's own model of one run is flat, and its "argmin" would again be

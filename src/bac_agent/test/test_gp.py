@@ -131,6 +131,7 @@ def _argmin_on_grid(gp: GP) -> np.ndarray:
     return np.asarray(G[int(np.argmin(gp.predict(G)[0]))])
 
 
+@pytest.mark.slow
 def test_bowl_locates_a_cone_minimum_from_six_runs() -> None:
     from scipy.stats import qmc
 

@@ -207,6 +207,7 @@ def _replayed_asks_that_differ(gp: GPConfig) -> int:
     return diffs
 
 
+@pytest.mark.slow
 def test_a_replayed_campaign_with_the_warp_asks_what_it_asked() -> None:
     """The ask state carries the learned warp (the next fit's warm start; the outside review found one ask of 14
     differing without it)."""

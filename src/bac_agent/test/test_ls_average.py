@@ -22,6 +22,7 @@ def _runs(seed: int, n: int = 8) -> tuple[np.ndarray, np.ndarray]:
     return X, np.sin(5.0 * X[:, 0]) + 0.4 * X[:, 1] + 0.02 * rng.standard_normal(n)
 
 
+@pytest.mark.slow
 def test_laplace_evidence_matches_importance_sampling() -> None:
     """GP.log_evidence against an importance-sampling estimate of the same integral (the hyperparameters' prior
     times the likelihood; the proposal a widened Gaussian at the MAP), under both lengthscale priors."""

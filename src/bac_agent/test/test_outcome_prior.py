@@ -120,6 +120,7 @@ def _campaign(priors: bool, seed: int, budget: int = 12) -> tuple[Engine, list[n
     return eng, asked, kinds
 
 
+@pytest.mark.slow
 def test_with_the_simulators_outcome_the_first_runs_keep_the_limit() -> None:
     """The simulator's J optimum breaks the limit on the car; with its travel as the travel model's prior the first
     run is the simulator's best calibration that keeps the limit, and no run of the campaign breaks it."""

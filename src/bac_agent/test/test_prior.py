@@ -53,6 +53,7 @@ def _campaign(source: SourceSurface | None, budget: int, seed: int = 0) -> tuple
     return eng, recs
 
 
+@pytest.mark.slow
 def test_a_right_source_is_believed_from_the_first_run() -> None:
     src = SourceSurface.from_function(sim, 2, 64, label="right")
     eng = Engine({"a": (0.0, 1.0), "b": (0.0, 1.0)}, EngineConfig(budget=6, prior=src.to_dict()))
@@ -69,6 +70,7 @@ def test_a_right_source_is_believed_from_the_first_run() -> None:
     assert all(np.linalg.norm(r - OPT) < 0.08 for r in recs)
 
 
+@pytest.mark.slow
 def test_a_wrong_source_fades_and_the_engine_finds_the_optimum() -> None:
     def wrong(U: np.ndarray) -> np.ndarray:
         return sim(1.0 - np.atleast_2d(U))  # its optimum at (0.3, 0.75)
@@ -81,6 +83,7 @@ def test_a_wrong_source_fades_and_the_engine_finds_the_optimum() -> None:
     assert np.linalg.norm(src.argmin() - OPT) > 0.5
 
 
+@pytest.mark.slow
 def test_state_with_a_prior_continues_identically() -> None:
     src = SourceSurface.from_function(sim, 2, 32)
     eng, _ = _campaign(src, 4)
@@ -129,6 +132,7 @@ def test_the_source_is_evaluated_without_its_variance(monkeypatch: pytest.Monkey
     assert not calls
 
 
+@pytest.mark.slow
 def test_fitting_with_a_source_refines_the_residual_from_one_start(monkeypatch: pytest.MonkeyPatch) -> None:
     """The model with the source: MAP fits of the kernel without the source and of the residual (each from the
     prior's mode and the best prior draw), then the residual once more from the first fit alone (issue 23's
@@ -154,6 +158,7 @@ def test_fitting_with_a_source_refines_the_residual_from_one_start(monkeypatch: 
     assert np.allclose(gp.predict(U)[0], car(U), atol=0.05)
 
 
+@pytest.mark.slow
 def test_the_source_is_the_prior_mean_for_prior_runs_runs_then_the_engines_own_model() -> None:
     """issue 23: a source that is nearly right kept its weight and held the model near its own optimum; with
     ``prior_runs`` (0, the default: no limit) the car's runs alone are modelled after that many runs."""
@@ -197,6 +202,7 @@ def _told_near_the_source_optimum(average: bool, seed: int, ls: bool = True) -> 
     return eng, runs
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("seed", [0, 2])
 def test_the_acquisition_averages_the_models_with_and_without_the_source(seed: int) -> None:
     """issue 23 (prior_average, the default): while the runs support the source, the expected improvement is
@@ -232,6 +238,7 @@ def _assert_acquisition(values: Any, value_and_grad: Any, U: np.ndarray, want: n
         assert np.allclose(g[:, j], fd, rtol=1e-4, atol=1e-6)
 
 
+@pytest.mark.slow
 def test_the_averaged_acquisition_is_the_weighted_mean_of_the_two_expected_improvements() -> None:
     eng, _ = _told_near_the_source_optimum(True, 0, ls=False)  # (prior_average_ls: below)
     gp = eng._model()
@@ -255,6 +262,7 @@ def test_the_averaged_acquisition_is_the_weighted_mean_of_the_two_expected_impro
     assert eng._model_without_source(gp) is None
 
 
+@pytest.mark.slow
 def test_an_outcome_source_keeps_points_spread_over_the_cube() -> None:
     """More than MAX_SOURCE_POINTS points: J's source keeps its 64 lowest and a spread of the rest; an outcome's
     source (a limit may lie anywhere in its range) keeps points spread over the cube, here every one of 40 runs
@@ -280,6 +288,7 @@ def test_an_outcome_source_keeps_points_spread_over_the_cube() -> None:
     assert set(pick.tolist()) == {0, 2, 3}
 
 
+@pytest.mark.slow
 def test_prior_average_ls_averages_the_model_without_the_source_over_both_lengthscale_priors() -> None:
     """issue 23 (prior_average_ls, the default since 2026-11-25): the model without the source in the transfer
     prior's model average is itself the average of its fits under the two lengthscale priors (gp.ls_average), as the

@@ -84,6 +84,7 @@ def test_without_variants_the_configuration_reads_as_before() -> None:
     assert len(again.prior_variants) == len(DRAWN) and again.prior_variants[1]["label"] == "drawn 1"
 
 
+@pytest.mark.slow
 def test_the_runs_pick_the_drawn_vehicle_that_is_the_car() -> None:
     """Run 1 is the nominal vehicle's optimum (as with the prior alone); the runs weigh every source, and the model
     becomes the drawn vehicle whose shape the car has: the recommendation moves to the car's optimum, which the
@@ -103,6 +104,7 @@ def test_the_runs_pick_the_drawn_vehicle_that_is_the_car() -> None:
     assert np.linalg.norm(recs_alone[-1] - CAR_OPT) > 0.05  # the test is real: the nominal alone is not there yet
 
 
+@pytest.mark.slow
 def test_one_run_keeps_the_nominal_source() -> None:
     eng = _engine(True)
     _run(eng, 1)
@@ -111,6 +113,7 @@ def test_one_run_keeps_the_nominal_source() -> None:
     assert t["prior_source_weight"] == pytest.approx(0.5 / (1 + len(DRAWN)))
 
 
+@pytest.mark.slow
 def test_the_acquisition_averages_every_source_in_js_units() -> None:
     from bac_agent.bo.acquisition import NoisyEI
 
@@ -148,6 +151,7 @@ def test_the_acquisition_averages_every_source_in_js_units() -> None:
     assert math.isclose(sum(w for _, _, w in eng._variant_models) + eng._variant_none, 1.0, rel_tol=1e-9)
 
 
+@pytest.mark.slow
 def test_state_with_variants_continues_identically() -> None:
     eng = _engine(True, budget=8)
     _run(eng, 4)
@@ -163,6 +167,7 @@ def test_state_with_variants_continues_identically() -> None:
     assert a.info["transfer"]["prior_source_index"] == b.info["transfer"]["prior_source_index"]
 
 
+@pytest.mark.slow
 def test_the_average_recommendation_minimizes_the_sources_mean_averaged_by_their_probabilities() -> None:
     """prior_variants_recommend "average": after one run (every source as probable as a priori) the recommendation
     is the argmin of the sources' means averaged, which lies among the drawn vehicles' optima, not at the nominal's."""
@@ -192,6 +197,7 @@ def test_the_average_recommendation_minimizes_the_sources_mean_averaged_by_their
         EngineConfig(prior=srcs[0].to_dict(), prior_variants_recommend="mode")
 
 
+@pytest.mark.slow
 def test_sources_are_weighed_on_js_scale_not_each_on_its_own() -> None:
     """Two runs: a drawn vehicle whose J varies five times less than the car's across them must not take the weight
     (each source's likelihood is compared in J's units; a Bayes factor against each source's own model without it
@@ -209,6 +215,7 @@ def test_sources_are_weighed_on_js_scale_not_each_on_its_own() -> None:
     assert w[round(right.scale, 6)] > 5 * w[round(flat.scale, 6)]
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("prior_average", [True, False])
 def test_the_sources_stay_averaged_when_the_model_without_a_source_drops_out(prior_average: bool) -> None:
     """The outside review's case (2026-11-25): with prior_average off, or once the model without a source has a

@@ -42,6 +42,7 @@ def _design_phase(eng: Engine, seed: int) -> list[np.ndarray]:
     return asked
 
 
+@pytest.mark.slow
 def test_run_1_is_the_safe_start_and_the_design_grows_from_it_within_the_limit() -> None:
     broken_plain = 0
     for seed in range(6):
@@ -125,6 +126,7 @@ def _grown_design(
     return dists, infos
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("dim", [8, 20])
 def test_in_many_dimensions_every_design_proposal_stays_within_a_step_of_a_kept_run(dim: int) -> None:
     # before (2026-11-24) the candidates were Sobol points over the whole box: in 8-D about one in ten fell within
@@ -168,6 +170,7 @@ def _campaign(eng: Engine, seed: int, noise: float = 1.0) -> tuple[list[np.ndarr
     return asked, kept, kinds
 
 
+@pytest.mark.slow
 def test_after_the_design_the_acquisition_stays_within_a_safe_step_of_a_kept_run() -> None:
     # SafeOpt's safe set holds for the whole campaign, not only the design: J's optimum (0.2, 0.3) lies where the
     # travel breaks the limit (73.5 mm), and the acquisition, bounded before by the outcome model only, jumped
@@ -206,6 +209,7 @@ def test_the_recommendation_stays_within_a_safe_step_of_a_kept_run() -> None:
         assert np.min(dist) > 0.02  # it does move towards J's better side within the step
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("res", [0.1, 0.02])
 def test_every_proposal_as_the_ecu_holds_it_stays_in_the_safe_set(res: float) -> None:
     """A parameter with a resolution: the proposal is rounded to it before the ECU gets it, and a point inside a
@@ -248,6 +252,7 @@ def _whole_campaign(seed: int, **over: object) -> list[tuple[float, float]]:
     return asked
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("seed", [0, 1])
 def test_with_a_safe_start_the_retreats_trend_is_not_used(seed: int, monkeypatch: pytest.MonkeyPatch) -> None:
     # limit_trend (the retreat's model with a linear trend judging the design, the least risky calibrations and,
@@ -270,6 +275,7 @@ def test_with_a_safe_start_the_retreats_trend_is_not_used(seed: int, monkeypatch
     assert calls
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("seed", [0, 1])
 def test_with_a_safe_start_the_limit_models_are_not_widened(seed: int) -> None:
     # limit_far_sd (the limit models widened far from the runs) is not used with a safe start, whose safe set bounds

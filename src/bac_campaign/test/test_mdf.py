@@ -166,6 +166,7 @@ def test_bad_mdf_input_is_named(
     assert not cut.runs[0].score.valid
 
 
+@pytest.mark.slow
 def test_a_refused_mdf_file_gives_bac_s_message_only(tmp_path: Path, run: tuple[ImuArrays, OdomArrays]) -> None:
     """asammdf leaves a half-built reader behind when it refuses a file, whose ``__del__`` fails: Python printed
     "Exception ignored in MDF4.__del__" and a traceback after bac's own message."""

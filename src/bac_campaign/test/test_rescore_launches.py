@@ -138,6 +138,7 @@ def alone(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, dict[tuple[in
     return template, {k: r.j for k, r in js.items()}
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("index", [True, False], ids=["recorder index", "journal (older campaigns)"])
 def test_each_run_is_cut_from_its_own_launch(
     alone: tuple[Path, dict[tuple[int, int], float]], tmp_path: Path, index: bool
@@ -158,6 +159,7 @@ def test_each_run_is_cut_from_its_own_launch(
     assert any("not in launches.jsonl" in n for n in result.notes) != index
 
 
+@pytest.mark.slow
 def test_the_live_reference_run_is_the_reference(
     alone: tuple[Path, dict[tuple[int, int], float]], tmp_path: Path
 ) -> None:

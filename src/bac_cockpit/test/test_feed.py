@@ -7,6 +7,7 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
+import pytest
 from campaign_maker import make_campaign
 
 from bac_cockpit.feed import CampaignFeed
@@ -24,6 +25,7 @@ def wait(cond: Callable[[], Any], timeout: float = 60.0) -> Any:
     raise AssertionError(f"timed out waiting for {cond}")
 
 
+@pytest.mark.slow
 def test_a_growing_folder_is_followed_and_the_model_refitted_in_a_worker(tmp_path: Path) -> None:
     folder = tmp_path / "camp"
     make_campaign(folder, budget=6, stop_after=2)

@@ -17,6 +17,7 @@ from bac_cockpit.model import compute_model
 from bac_common.paramspace import CalibrationDefinition
 
 
+@pytest.mark.slow
 def test_two_parameters_give_the_posterior_mean_the_trials_and_the_recommendation(tmp_path: Path) -> None:
     folder = tmp_path / "camp"
     make_campaign(folder, budget=6)

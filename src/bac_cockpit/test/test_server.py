@@ -181,6 +181,7 @@ def test_the_relay_publishes_a_cockpit_served_on_a_unix_socket(tmp_path: Path) -
         relay.stop()
 
 
+@pytest.mark.slow
 def test_a_flood_of_diagnostics_is_sent_at_most_twice_a_second(server: CockpitServer) -> None:
     from bac_cockpit.state import DiagView
 

@@ -105,6 +105,7 @@ def test_split_groups_spreads_evenly() -> None:
     assert [s.index for g in split_groups(specs, 4) for s in g] == list(range(10))
 
 
+@pytest.mark.slow
 def test_groups_run_in_parallel_worker_processes() -> None:
     seen: list[Progress] = []
     out = run_campaigns(
@@ -124,6 +125,7 @@ def test_groups_run_in_parallel_worker_processes() -> None:
     assert {p.group for p in seen} == {0, 1} and max(p.trials_done for p in seen) == 8
 
 
+@pytest.mark.slow
 def test_groups_run_on_a_dask_cluster() -> None:
     distributed = pytest.importorskip("distributed")
     with (
@@ -209,6 +211,7 @@ def test_polish_finds_a_quadratic_minimum_with_batched_coordinate_steps() -> Non
     assert evals == sum(calls) and len(calls) == 31  # one batch per iteration (+ the start)
 
 
+@pytest.mark.slow
 def test_the_simulated_car_runs_on_a_cluster_of_worker_processes_as_locally() -> None:
     """A Dask worker process is daemonic: the simulator may not open its own process pool there (it did, and
     `bac reduce --scheduler` died with "daemonic processes are not allowed to have children"). Each group's first

@@ -32,6 +32,7 @@ def run_campaign(obj: SyntheticObjective, budget: int, seed: int) -> tuple[np.nd
     return x, mean
 
 
+@pytest.mark.slow
 def test_the_trust_region_reaches_a_20_dimensional_optimum_within_two_percent() -> None:
     """240 noisy runs (0.5 % noise) in 20 dimensions: within 2 % of J* (the noise-free polish does the rest)."""
     obj = twenty()
@@ -47,6 +48,7 @@ def test_the_trust_region_reaches_a_20_dimensional_optimum_within_two_percent() 
     assert float(obj.true_j(X).min()) > 1.08 * j_star
 
 
+@pytest.mark.slow
 def test_the_trust_region_shrinks_around_the_optimum_and_is_reproducible() -> None:
     obj = twenty()
     tr = TrustRegion(obj.definition, TurboConfig(budget=160, batch=16, seed=1))

@@ -21,6 +21,7 @@ def _both(fn):  # type: ignore[no-untyped-def]
     return fn("numpy"), fn("numba")
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("name", ["bump_c1", "road_c1", "road_c2"])
 @pytest.mark.parametrize("noisy", [False, True])
 def test_compiled_loop_matches_the_numpy_reference(name: str, noisy: bool) -> None:

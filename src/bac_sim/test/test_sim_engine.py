@@ -88,6 +88,7 @@ def engine_j(scenario: str, thetas: np.ndarray, dt: float) -> np.ndarray:
     return res.j
 
 
+@pytest.mark.slow
 def test_bump_j_matches_an_adaptive_reference() -> None:
     ref = reference_bump_j(0.1, 0.6)
     got = engine_j("bump", np.array([[0.1, 0.6]]), get_scenario("bump").dt)[0]
