@@ -95,7 +95,7 @@ def test_replay_into_the_live_chain_gives_the_same_j(campaign: Path, ros_env: di
     runs = [r for r in json.loads(out.read_text())["runs"] if r["recorded_j"] is not None]
     assert len(runs) == BUDGET
     for r in runs:
-        assert r["valid"], r
+        assert r["valid"], f"{r['reason']!r} in {r}\n{proc.stderr[-6000:]}"
         assert abs(r["replayed_j"] - r["recorded_j"]) <= 1e-9, r
 
 
