@@ -19,9 +19,12 @@ the argmin of the posterior mean) runs three ways on the same seeds and noise st
 Printed per family and pooled over the car families: median runs until the recommendation's true gap ≤ 0.05
 (budget + 1 when never), with a 90 % bootstrap interval, the share found after 1, 2 and 3 runs, and the gap of
 the simulator's own optimum on each car; with the ``none`` and ``misleading`` arms, per family the misleading
-prior's median minus no prior's with a 90 % interval that resamples the campaigns in pairs. ``--seed-list`` runs a
-**variant** with other seeds than the split's (each seed is one initial design of the engine: the split's two
-seeds are two designs per family, and a per-family median moves by runs with them). LAST lines:
+prior's median minus no prior's with a 90 % interval that resamples the campaigns in pairs, and the cars' run-to-run
+noise at their optimum in gap units (its sd over J_med - J*: the goal's 0.05 against what one run can tell).
+``--seed-list`` runs a **variant** with other seeds than the split's (each seed is one initial design of the
+engine: the split's two seeds are two designs per family, and a per-family median moves by runs with them);
+``--noise-scale`` a **variant** with the cars' run-to-run noise scaled (0: noise-free runs; what the noise costs).
+LAST lines:
 ``transfer_sim_median_runs <x>`` (goal ≤ 2) and ``transfer_misleading_extra_runs <x>`` (the misleading prior's
 median minus no prior's; goal ≤ 1).
 
@@ -31,6 +34,7 @@ median minus no prior's; goal ≤ 1).
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import math
 import os
@@ -111,14 +115,24 @@ def source_for(family: str, index: int, arm: str) -> dict[str, Any] | None:
     return SourceSurface.from_function(f, b.shape[0], SOURCE_POINTS, label=label, seed=index).to_dict()
 
 
-def _task(args: tuple[str, int, int, str, int, str, int, int]) -> dict[str, Any]:
-    family, index, seed, arm, budget, config, grid, tol_k = args
+def _with_noise_scale(inst: Any, factor: float) -> Any:
+    """``inst`` with its run-to-run J noise multiplied by ``factor`` (``--noise-scale``, a variant)."""
+    if factor == 1.0:
+        return inst
+    if dataclasses.is_dataclass(inst):  # the simulator's CarInstance (frozen)
+        return dataclasses.replace(inst, noise_rel=inst.noise_rel * factor)
+    inst.noise_rel = inst.noise_rel * factor  # the quick mode's GridInstance
+    return inst
+
+
+def _task(args: tuple[str, int, int, str, int, str, int, int, float]) -> dict[str, Any]:
+    family, index, seed, arm, budget, config, grid, tol_k, noise_scale = args
     from threadpoolctl import threadpool_limits
 
     from bac_agent.bo import Engine, EngineConfig
 
     with threadpool_limits(1):
-        inst = pf.instance(family, index, grid)
+        inst = _with_noise_scale(pf.instance(family, index, grid), noise_scale)
         truth = pf.truth_of(family, index)
         b = inst.bounds
         names = [f"x{i}" for i in range(b.shape[0])]
@@ -153,6 +167,8 @@ def _task(args: tuple[str, int, int, str, int, str, int, int]) -> dict[str, Any]
         "gaps": [float(g) for g in gap(js, truth["j_star"], truth["j_med"])],
         "weights": weights,
         "source_optimum_gap": sim_gap,
+        # the run-to-run noise's sd at the optimum in gap units (what one run can tell against the goal's 0.05)
+        "noise_gap": float(inst.noise_rel * truth["j_star"] / (truth["j_med"] - truth["j_star"])),
         "seconds": dt,
     }
 
@@ -200,6 +216,12 @@ def main(argv: list[str] | None = None) -> int:
         default="",
         help="comma list of seeds in place of the split's (a variant, not the split: more designs per instance)",
     )
+    ap.add_argument(
+        "--noise-scale",
+        type=float,
+        default=1.0,
+        help="the cars' run-to-run noise multiplied by this (a variant, not the split's conditions; 0: noise-free)",
+    )
     ap.add_argument("--budget", type=int, default=15)
     ap.add_argument("--bac-config", default="")
     ap.add_argument("--workers", type=int, default=os.cpu_count() or 1)
@@ -214,10 +236,12 @@ def main(argv: list[str] | None = None) -> int:
     arms = [x for x in a.arms.split(",") if x]
     if set(arms) - set(ALL_ARMS):
         ap.error(f"unknown arms {sorted(set(arms) - set(ALL_ARMS))}; known: {', '.join(ALL_ARMS)}")
+    if not (math.isfinite(a.noise_scale) and a.noise_scale >= 0.0):
+        ap.error(f"--noise-scale must be a finite number >= 0, got {a.noise_scale}")
     if a.grid_truth and a.split != "tuning":
         ap.error("--grid-truth is for exploring defaults on the tuning split only")
     tasks = [
-        (f, i, s, arm, a.budget, a.bac_config, a.grid_truth, a.tolerance_k)
+        (f, i, s, arm, a.budget, a.bac_config, a.grid_truth, a.tolerance_k, a.noise_scale)
         for f in fams
         for i in insts
         for s in seeds
@@ -234,7 +258,8 @@ def main(argv: list[str] | None = None) -> int:
             results = list(ex.map(_task, tasks))
     wall = time.perf_counter() - t0
     print(
-        f"# transfer, split {a.split}{' (VARIANT: --seed-list)' if a.seed_list else ''}: instances "
+        f"# transfer, split {a.split}{' (VARIANT: --seed-list)' if a.seed_list else ''}"
+        f"{f' (VARIANT: run-to-run noise x{a.noise_scale:g})' if a.noise_scale != 1.0 else ''}: instances "
         f"{insts[0]}..{insts[-1]}, seeds {seeds}, budget {a.budget}, "
         f"rule (a); bac config {a.bac_config or 'defaults'}; wall {wall:.0f} s, {a.workers} workers, "
         f"load {os.getloadavg()[0]:.1f}"
@@ -242,7 +267,9 @@ def main(argv: list[str] | None = None) -> int:
     medians: dict[tuple[str, str], float] = {}
     for fam in [*fams, "all car families"]:
         rows = [r for r in results if fam == "all car families" or r["family"] == fam]
-        print(f"\n## {fam}")
+        ng = [r["noise_gap"] for r in rows if "noise_gap" in r]  # (results written before it have none)
+        noise = f" (run-to-run noise at the optimum: {np.median(ng):.3f} gap units in median)" if ng else ""
+        print(f"\n## {fam}{noise}")
         print(
             f"   {'prior':<11} {'runs':>5} {'90% CI':>9} {'by 1':>5} {'by 2':>5} {'by 3':>5} {'gap@end':>8} "
             f"{'weight@end':>10} {'source opt. gap':>15} {'n':>4}"
