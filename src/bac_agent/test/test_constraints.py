@@ -289,6 +289,46 @@ def test_limit_trend_far_is_validated_and_reads_back_off_from_a_state_saved_befo
     assert Engine.from_state_dict(state).config.limit_trend_far == 0.0
 
 
+# --- limit_reach (issue 23, 2026-11-25, opt-in) -----------------------------------------------------------------------
+
+
+def _reach_ask(seed: int, reach: float, runs: tuple[tuple[tuple[float, float], float], ...] = FAR_RUNS) -> np.ndarray:
+    eng = Engine(
+        {"a": (0.0, 1.0), "b": (0.0, 1.0)},
+        EngineConfig(budget=20, seed=seed, constraints=("travel<=60",), limit_reach=reach, limit_far_sd=0.0),
+    )
+    for (a, b), j in runs:
+        eng.tell({"a": a, "b": b}, j, {"travel": 80.0 - 40.0 * a})
+    s = eng.ask_with_info()
+    assert s.kind == "optimized" and "no_safe_candidate" not in s.info
+    return np.array([s.params["a"], s.params["b"]])
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_with_limit_reach_a_proposal_stays_within_reach_of_a_run_that_kept_the_limits(seed: int) -> None:
+    # the six stiff runs of the tests above (all keep the limit 60): without the option (and without the widening)
+    # the acquisition proposes a calibration far from every run whose travel breaks the limit (a ~ 0.4, > 62 mm);
+    # with limit_reach 0.2 the proposal lies within 0.2 of a run that kept the limit, and keeps it
+    X = np.array([r[0] for r in FAR_RUNS])
+    before, after = _reach_ask(seed, 0.0), _reach_ask(seed, 0.2)
+    assert 80.0 - 40.0 * before[0] > 62.0, before
+    assert np.min(np.linalg.norm(X - before, axis=1)) > 0.2
+    assert np.min(np.linalg.norm(X - after, axis=1)) <= 0.2 + 1e-9, after
+    assert 80.0 - 40.0 * after[0] <= 60.0, after
+
+
+def test_limit_reach_is_validated_and_reads_back_off_from_a_state_saved_before_it() -> None:
+    with pytest.raises(EngineError, match="limit_reach"):
+        EngineConfig(limit_reach=-0.1)
+    with pytest.raises(EngineError, match="limit_reach"):
+        EngineConfig(limit_reach=float("inf"))
+    eng = Engine({"a": (0.0, 1.0)}, EngineConfig(budget=5, constraints=("travel<=44",), limit_reach=0.25))
+    state = eng.state_dict()
+    assert Engine.from_state_dict(state).config.limit_reach == 0.25
+    del state["config"]["limit_reach"]  # an engine state written before it: off, as it ran
+    assert Engine.from_state_dict(state).config.limit_reach == 0.0
+
+
 # --- limit_far_sd (issue 23, 2026-11-25) ----------------------------------------------------------------------------
 
 
