@@ -169,6 +169,7 @@ def _task(args: tuple[str, int, int, str, int, str, int, int, float]) -> dict[st
         "source_optimum_gap": sim_gap,
         # the run-to-run noise's sd at the optimum in gap units (what one run can tell against the goal's 0.05)
         "noise_gap": float(inst.noise_rel * truth["j_star"] / (truth["j_med"] - truth["j_star"])),
+        "noise_scale": noise_scale,  # 1: the split's own noise; else the --noise-scale variant
         "seconds": dt,
     }
 
@@ -257,9 +258,15 @@ def main(argv: list[str] | None = None) -> int:
         with ProcessPoolExecutor(max_workers=a.workers) as ex:
             results = list(ex.map(_task, tasks))
     wall = time.perf_counter() - t0
+    # the noise variant is read from the results (a --from-json summary labels each file by what it holds)
+    scales = sorted({float(r.get("noise_scale", 1.0)) for r in results})
+    if len(scales) > 1:
+        sys.stderr.write(f"bench/transfer.py: the results mix run-to-run noise factors {scales}: summarize apart\n")
+        return 2
+    noise_scale = scales[0] if scales else a.noise_scale
     print(
         f"# transfer, split {a.split}{' (VARIANT: --seed-list)' if a.seed_list else ''}"
-        f"{f' (VARIANT: run-to-run noise x{a.noise_scale:g})' if a.noise_scale != 1.0 else ''}: instances "
+        f"{f' (VARIANT: run-to-run noise x{noise_scale:g})' if noise_scale != 1.0 else ''}: instances "
         f"{insts[0]}..{insts[-1]}, seeds {seeds}, budget {a.budget}, "
         f"rule (a); bac config {a.bac_config or 'defaults'}; wall {wall:.0f} s, {a.workers} workers, "
         f"load {os.getloadavg()[0]:.1f}"
@@ -301,7 +308,8 @@ def main(argv: list[str] | None = None) -> int:
                 if math.isfinite(d):
                     print(f"   {x} - {y}: {d:+g} runs (90% CI {lo:+g} to {hi:+g}, paired)")
     if not a.from_json:
-        out = Path(a.out or f"bench/out/transfer_{a.split}.json")
+        variant = f"_noise{a.noise_scale:g}" if a.noise_scale != 1.0 else ""  # never over the split's own results
+        out = Path(a.out or f"bench/out/transfer_{a.split}{variant}.json")
         out.parent.mkdir(parents=True, exist_ok=True)
         out.write_text(json.dumps({"results": results}))
         print(f"\n# raw results {out}")

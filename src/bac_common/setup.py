@@ -26,5 +26,7 @@ setup(
     license="Apache-2.0",
     entry_points={
         "console_scripts": [],
+        # the markers of the packages' unit tests, for pytest wherever they run (bac_common.pytest_markers)
+        "pytest11": ["bac_markers = bac_common.pytest_markers"],
     },
 )

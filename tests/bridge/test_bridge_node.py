@@ -137,13 +137,15 @@ class BridgeCaller:
         req.calibration.names = ["__handshake__"]
         req.calibration.values = [0.0]
         deadline = time.monotonic() + timeout
+        futures = []  # every request stays awaited: a slow answer to an earlier one counts as well
         while True:
-            fut = self.apply_cli.call_async(req)
+            futures.append(self.apply_cli.call_async(req))
             end = time.monotonic() + 2.0
-            while not fut.done() and time.monotonic() < end:
+            while not any(f.done() for f in futures) and time.monotonic() < end:
                 time.sleep(0.02)
-            if fut.done():
-                resp = fut.result()
+            done = [f for f in futures if f.done()]
+            if done:
+                resp = done[0].result()
                 assert resp is not None and resp.error_code == ErrorCode.UNKNOWN_PARAMETER, resp
                 return
             if time.monotonic() > deadline:

@@ -56,9 +56,10 @@ NODES: dict[str, str] = {
     "trial_listener": "bac_bringup",
 }
 TOOLS = {"bac"}  # console scripts that are not nodes
-# colcon test runs the quick unit tests (the workspace has no pyproject.toml, so the marker is declared here too)
+# colcon test runs the quick unit tests (bac_common's pytest plugin declares the marker, so a workspace without the
+# repository's pyproject.toml knows it; with --strict-markers an undeclared one would be an error)
 SLOW_FILTER = ["-m", "not slow"]
-COLCON_PYTEST_ARGS = [*SLOW_FILTER, "-o", "markers=slow: a unit test of a few seconds or more"]
+COLCON_PYTEST_ARGS = [*SLOW_FILTER, "--strict-markers"]
 
 
 def run(cmd: list[str], cwd: Path, env: dict[str, str], timeout: float, log: Path) -> subprocess.CompletedProcess[str]:
@@ -196,7 +197,7 @@ def test_colcon_build_and_test_pass_and_every_unit_test_is_counted(workspace: Wo
     expected = collected_unit_tests(*SLOW_FILTER)
     assert all(n > 0 for n in expected.values()), expected  # every package has quick unit tests
     every = collected_unit_tests()
-    assert all(every[p] >= expected[p] for p in PY_PACKAGES) and sum(every.values()) > sum(expected.values()), every
+    assert sum(every.values()) > sum(expected.values()), every  # the filter deselects some: there are slow ones
     assert per_package == expected, proc.stdout
     total = re.search(r"Summary: (\d+) tests, (\d+) errors, (\d+) failures, (\d+) skipped", proc.stdout)
     assert total is not None, proc.stdout

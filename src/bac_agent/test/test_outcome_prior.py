@@ -140,6 +140,7 @@ def test_with_the_simulators_outcome_the_first_runs_keep_the_limit() -> None:
     assert broke_without >= 3  # without the prior the first runs break it: the test is real
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("seed", [0, 1])
 def test_with_outcome_priors_limit_reach_is_not_used(seed: int) -> None:
     # limit_reach (opt-in: after the design, proposals within it of a run that kept the limits) is for limits with

@@ -286,6 +286,7 @@ def test_with_a_safe_start_the_limit_models_are_not_widened(seed: int) -> None:
     assert _whole_campaign(seed, limit_far_sd=2.0) != _whole_campaign(seed, limit_far_sd=0.0)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("seed", [0, 1])
 def test_with_a_safe_start_limit_reach_is_not_used(seed: int) -> None:
     # limit_reach (opt-in: after the design, proposals within it of a run that kept the limits) is not used with a
