@@ -258,15 +258,23 @@ def main(argv: list[str] | None = None) -> int:
         with ProcessPoolExecutor(max_workers=a.workers) as ex:
             results = list(ex.map(_task, tasks))
     wall = time.perf_counter() - t0
-    # the noise variant is read from the results (a --from-json summary labels each file by what it holds)
-    scales = sorted({float(r.get("noise_scale", 1.0)) for r in results})
+    # the noise variant is read from the results (a --from-json summary labels each file by what it holds; results
+    # written before the factor was recorded have none: unknown, since --noise-scale existed for a while without it)
+    scales = {r.get("noise_scale") for r in results}
     if len(scales) > 1:
-        sys.stderr.write(f"bench/transfer.py: the results mix run-to-run noise factors {scales}: summarize apart\n")
+        sys.stderr.write(
+            f"bench/transfer.py: the results mix run-to-run noise factors {sorted(map(str, scales))} "
+            "(None: not recorded): summarize them apart\n"
+        )
         return 2
-    noise_scale = scales[0] if scales else a.noise_scale
+    noise_scale = scales.pop() if scales else a.noise_scale
+    noise_label = (
+        " (run-to-run noise factor not recorded)"
+        if noise_scale is None
+        else (f" (VARIANT: run-to-run noise x{noise_scale:g})" if noise_scale != 1.0 else "")
+    )
     print(
-        f"# transfer, split {a.split}{' (VARIANT: --seed-list)' if a.seed_list else ''}"
-        f"{f' (VARIANT: run-to-run noise x{noise_scale:g})' if noise_scale != 1.0 else ''}: instances "
+        f"# transfer, split {a.split}{' (VARIANT: --seed-list)' if a.seed_list else ''}{noise_label}: instances "
         f"{insts[0]}..{insts[-1]}, seeds {seeds}, budget {a.budget}, "
         f"rule (a); bac config {a.bac_config or 'defaults'}; wall {wall:.0f} s, {a.workers} workers, "
         f"load {os.getloadavg()[0]:.1f}"
@@ -308,7 +316,16 @@ def main(argv: list[str] | None = None) -> int:
                 if math.isfinite(d):
                     print(f"   {x} - {y}: {d:+g} runs (90% CI {lo:+g} to {hi:+g}, paired)")
     if not a.from_json:
-        variant = f"_noise{a.noise_scale:g}" if a.noise_scale != 1.0 else ""  # never over the split's own results
+        # a run that is not the split's whole default run never writes over the split's own results
+        whole = (
+            not (a.seed_list or a.bac_config or a.grid_truth or a.instances or a.seeds)
+            and a.noise_scale == 1.0
+            and a.budget == 15
+            and a.tolerance_k == ap.get_default("tolerance_k")
+            and a.arms == ap.get_default("arms")
+            and a.families == ap.get_default("families")
+        )
+        variant = "" if whole else (f"_noise{a.noise_scale:g}" if a.noise_scale != 1.0 else "") + "_variant"
         out = Path(a.out or f"bench/out/transfer_{a.split}{variant}.json")
         out.parent.mkdir(parents=True, exist_ok=True)
         out.write_text(json.dumps({"results": results}))

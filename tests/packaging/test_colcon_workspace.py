@@ -180,6 +180,13 @@ def collected_unit_tests(*filter_args: str) -> dict[str, int]:
 def test_colcon_build_and_test_pass_and_every_unit_test_is_counted(workspace: Workspace) -> None:
     assert f"Summary: {len(PACKAGES)} packages finished" in workspace.build.stdout, workspace.build.stdout[-3000:]
     assert workspace.test.returncode == 0, workspace.test.stdout[-6000:]
+    # the marker's plugin comes with the install space itself (here the venv's editable bac_common declares it too;
+    # on a laptop with apt ROS only install/ does)
+    entry_points = list(
+        (workspace.install / "bac_common").glob("lib/python3*/site-packages/bac_common*/entry_points.txt")
+    )
+    assert len(entry_points) == 1, entry_points
+    assert "bac_markers = bac_common.pytest_markers" in entry_points[0].read_text()
     proc = subprocess.run(
         [str(VENV / "bin" / "colcon"), "test-result", "--all"],
         cwd=workspace.root,
