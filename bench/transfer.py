@@ -320,7 +320,7 @@ def main(argv: list[str] | None = None) -> int:
         whole = (
             not (a.seed_list or a.bac_config or a.grid_truth or a.instances or a.seeds)
             and a.noise_scale == 1.0
-            and a.budget == 15
+            and a.budget == ap.get_default("budget")
             and a.tolerance_k == ap.get_default("tolerance_k")
             and a.arms == ap.get_default("arms")
             and a.families == ap.get_default("families")

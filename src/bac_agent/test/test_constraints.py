@@ -249,6 +249,20 @@ FAR_RUNS = (
 )
 
 
+def _far_ask(seed: int, **option: float) -> tuple[np.ndarray, dict[str, Any]]:
+    """The proposal after FAR_RUNS (travel 80 - 40 a, limit 60) and its travel's prediction, with the options given
+    (``limit_far_sd`` 0, the widening off, unless given)."""
+    eng = Engine(
+        {"a": (0.0, 1.0), "b": (0.0, 1.0)},
+        EngineConfig(budget=20, seed=seed, constraints=("travel<=60",), **{"limit_far_sd": 0.0, **option}),  # type: ignore[arg-type]
+    )
+    for (a, b), j in FAR_RUNS:
+        eng.tell({"a": a, "b": b}, j, {"travel": 80.0 - 40.0 * a})
+    s = eng.ask_with_info()
+    assert s.kind == "optimized" and "no_safe_candidate" not in s.info
+    return np.array([s.params["a"], s.params["b"]]), s.info["outcomes"]["travel <= 60"]
+
+
 @pytest.mark.parametrize("seed", [0, 1, 2])
 def test_after_the_design_a_calibration_far_from_every_run_is_judged_by_the_trend_with_limit_trend_far(
     seed: int,
@@ -259,49 +273,26 @@ def test_after_the_design_a_calibration_far_from_every_run_is_judged_by_the_tren
     # (the later runs of bench/outcome_limits.py that broke the limit far from every run). With limit_trend_far 0.2
     # a calibration farther than 0.2 from every run must be allowed by the retreat's trend model too: the proposal
     # stays within 0.2 of the runs and keeps the limit
-    def ask(far: float) -> np.ndarray:
-        eng = Engine(
-            {"a": (0.0, 1.0), "b": (0.0, 1.0)},
-            EngineConfig(budget=20, seed=seed, constraints=("travel<=60",), limit_trend_far=far, limit_far_sd=0.0),
-        )
-        for (a, b), j in FAR_RUNS:
-            eng.tell({"a": a, "b": b}, j, {"travel": 80.0 - 40.0 * a})
-        s = eng.ask_with_info()
-        assert s.kind == "optimized" and "no_safe_candidate" not in s.info
-        return np.array([s.params["a"], s.params["b"]])
-
     X = np.array([r[0] for r in FAR_RUNS])
-    before, after = ask(0.0), ask(0.2)
+    before, after = _far_ask(seed, limit_trend_far=0.0)[0], _far_ask(seed, limit_trend_far=0.2)[0]
     assert 80.0 - 40.0 * before[0] > 62.0, before  # the default: off, as before
     assert np.min(np.linalg.norm(X - after, axis=1)) <= 0.2 + 1e-9, after
     assert 80.0 - 40.0 * after[0] <= 60.0, after
 
 
-def test_limit_trend_far_is_validated_and_reads_back_off_from_a_state_saved_before_it() -> None:
-    with pytest.raises(EngineError, match="limit_trend_far"):
-        EngineConfig(limit_trend_far=-0.1)
-    with pytest.raises(EngineError, match="limit_trend_far"):
-        EngineConfig(limit_trend_far=float("nan"))
-    eng = Engine({"a": (0.0, 1.0)}, EngineConfig(budget=5, constraints=("travel<=44",), limit_trend_far=0.2))
+@pytest.mark.parametrize("key", ["limit_trend_far", "limit_reach"])
+def test_an_opt_in_distance_is_validated_and_reads_back_off_from_a_state_saved_before_it(key: str) -> None:
+    for bad in (-0.1, float("nan"), float("inf")):
+        with pytest.raises(EngineError, match=key):
+            EngineConfig(**{key: bad})  # type: ignore[arg-type]
+    eng = Engine({"a": (0.0, 1.0)}, EngineConfig(budget=5, constraints=("travel<=44",), **{key: 0.2}))  # type: ignore[arg-type]
     state = eng.state_dict()
-    assert Engine.from_state_dict(state).config.limit_trend_far == 0.2
-    del state["config"]["limit_trend_far"]  # an engine state written before it: off, as it ran
-    assert Engine.from_state_dict(state).config.limit_trend_far == 0.0
+    assert getattr(Engine.from_state_dict(state).config, key) == 0.2
+    del state["config"][key]  # an engine state written before it: off, as it ran
+    assert getattr(Engine.from_state_dict(state).config, key) == 0.0
 
 
 # --- limit_reach (issue 23, 2026-11-25, opt-in) -----------------------------------------------------------------------
-
-
-def _reach_ask(seed: int, reach: float, runs: tuple[tuple[tuple[float, float], float], ...] = FAR_RUNS) -> np.ndarray:
-    eng = Engine(
-        {"a": (0.0, 1.0), "b": (0.0, 1.0)},
-        EngineConfig(budget=20, seed=seed, constraints=("travel<=60",), limit_reach=reach, limit_far_sd=0.0),
-    )
-    for (a, b), j in runs:
-        eng.tell({"a": a, "b": b}, j, {"travel": 80.0 - 40.0 * a})
-    s = eng.ask_with_info()
-    assert s.kind == "optimized" and "no_safe_candidate" not in s.info
-    return np.array([s.params["a"], s.params["b"]])
 
 
 @pytest.mark.parametrize("seed", [0, 1, 2])
@@ -310,38 +301,14 @@ def test_with_limit_reach_a_proposal_stays_within_reach_of_a_run_that_kept_the_l
     # the acquisition proposes a calibration far from every run whose travel breaks the limit (a ~ 0.4, > 62 mm);
     # with limit_reach 0.2 the proposal lies within 0.2 of a run that kept the limit, and keeps it
     X = np.array([r[0] for r in FAR_RUNS])
-    before, after = _reach_ask(seed, 0.0), _reach_ask(seed, 0.2)
+    before, after = _far_ask(seed, limit_reach=0.0)[0], _far_ask(seed, limit_reach=0.2)[0]
     assert 80.0 - 40.0 * before[0] > 62.0, before
     assert np.min(np.linalg.norm(X - before, axis=1)) > 0.2
     assert np.min(np.linalg.norm(X - after, axis=1)) <= 0.2 + 1e-9, after
     assert 80.0 - 40.0 * after[0] <= 60.0, after
 
 
-def test_limit_reach_is_validated_and_reads_back_off_from_a_state_saved_before_it() -> None:
-    with pytest.raises(EngineError, match="limit_reach"):
-        EngineConfig(limit_reach=-0.1)
-    with pytest.raises(EngineError, match="limit_reach"):
-        EngineConfig(limit_reach=float("inf"))
-    eng = Engine({"a": (0.0, 1.0)}, EngineConfig(budget=5, constraints=("travel<=44",), limit_reach=0.25))
-    state = eng.state_dict()
-    assert Engine.from_state_dict(state).config.limit_reach == 0.25
-    del state["config"]["limit_reach"]  # an engine state written before it: off, as it ran
-    assert Engine.from_state_dict(state).config.limit_reach == 0.0
-
-
 # --- limit_far_sd (issue 23, 2026-11-25) ----------------------------------------------------------------------------
-
-
-def _far_ask(seed: int, far_sd: float) -> tuple[np.ndarray, dict[str, Any]]:
-    eng = Engine(
-        {"a": (0.0, 1.0), "b": (0.0, 1.0)},
-        EngineConfig(budget=20, seed=seed, constraints=("travel<=60",), limit_far_sd=far_sd),
-    )
-    for (a, b), j in FAR_RUNS:
-        eng.tell({"a": a, "b": b}, j, {"travel": 80.0 - 40.0 * a})
-    s = eng.ask_with_info()
-    assert s.kind == "optimized" and "no_safe_candidate" not in s.info
-    return np.array([s.params["a"], s.params["b"]]), s.info["outcomes"]["travel <= 60"]
 
 
 @pytest.mark.parametrize("seed", [0, 1, 2])
@@ -351,8 +318,8 @@ def test_far_from_every_run_the_outcome_model_is_widened_with_limit_far_sd(seed:
     # travel is 65.8 mm. With limit_far_sd 2 the outcome's sd there is multiplied by up to 3 (1 + 2 rho, rho its
     # posterior variance over its kernel's variance): the proposal keeps the limit (57.5 mm), nearer the runs
     X = np.array([r[0] for r in FAR_RUNS])
-    before, info0 = _far_ask(seed, 0.0)
-    after, info = _far_ask(seed, 2.0)
+    before, info0 = _far_ask(seed, limit_far_sd=0.0)
+    after, info = _far_ask(seed, limit_far_sd=2.0)
     assert 80.0 - 40.0 * before[0] > 62.0 and info0["p_violation"] < 0.01, (before, info0)
     assert 80.0 - 40.0 * after[0] <= 59.0, after
     assert np.min(np.linalg.norm(X - after, axis=1)) < np.min(np.linalg.norm(X - before, axis=1)) - 0.1
@@ -462,21 +429,20 @@ def test_the_std_said_with_a_probability_is_the_one_it_was_computed_with() -> No
     # limit_far_sd widens each limit's model far from the runs for the probabilities; the proposal's and the
     # recommendation's outcomes said the model's own sd beside them (outside review, 2026-11-25): 37.8 +- 0.67 mm
     # at p 0.019 on a limit of 42, where the widened sd is 2.0. "std" is now the one the probability goes with
-    eng = Engine({"a": (0.0, 1.0), "b": (0.0, 1.0)}, EngineConfig(budget=20, seed=0, constraints=("travel<=42",)))
-    for (a, b), travel, j in (*STIFF_RUNS, ((0.7, 0.7), 37.5, 0.97)):
-        eng.tell({"a": a, "b": b}, j, {"travel": travel})
-    eng.ask()
-    outc = eng._outcome_models()
+
+    def asked(limit_far_sd: float = 2.0) -> Engine:
+        cfg = EngineConfig(budget=20, seed=0, constraints=("travel<=42",), limit_far_sd=limit_far_sd)
+        eng = Engine({"a": (0.0, 1.0), "b": (0.0, 1.0)}, cfg)
+        for (a, b), travel, j in (*STIFF_RUNS, ((0.7, 0.7), 37.5, 0.97)):
+            eng.tell({"a": a, "b": b}, j, {"travel": travel})
+        eng.ask()
+        return eng
+
+    outc = asked()._outcome_models()
     d = outc.describe(np.array([[0.0, 0.0]]))["travel <= 42"]
     assert d["std"] > 2.0 * d["std_model"]  # far from every run
     assert 1.0 - ndtr((42.0 - d["mean"]) / d["std"]) == pytest.approx(d["p_violation_true"], rel=1e-9)
     near = outc.describe(np.array([[0.78, 0.65]]))["travel <= 42"]  # at a run: hardly widened
     assert near["std"] < 1.5 * near["std_model"]
-    off = Engine(
-        {"a": (0.0, 1.0), "b": (0.0, 1.0)},
-        EngineConfig(budget=20, seed=0, constraints=("travel<=42",), limit_far_sd=0.0),
-    )
-    for (a, b), travel, j in (*STIFF_RUNS, ((0.7, 0.7), 37.5, 0.97)):
-        off.tell({"a": a, "b": b}, j, {"travel": travel})
-    off.ask()
-    assert "std_model" not in off._outcome_models().describe(np.array([[0.0, 0.0]]))["travel <= 42"]
+    off = asked(limit_far_sd=0.0)._outcome_models()
+    assert "std_model" not in off.describe(np.array([[0.0, 0.0]]))["travel <= 42"]
