@@ -24,6 +24,9 @@ noise at their optimum in gap units (its sd over J_med - J*: the goal's 0.05 aga
 ``--seed-list`` runs a **variant** with other seeds than the split's (each seed is one initial design of the
 engine: the split's two seeds are two designs per family, and a per-family median moves by runs with them);
 ``--noise-scale`` a **variant** with the cars' run-to-run noise scaled (0: noise-free runs; what the noise costs).
+The results file records the run's arguments and conditions (``run``: split, seed list, budget, bac config, ...);
+``--from-json`` takes the heading from what the files record ("unknown" for a file written before they were
+recorded) and refuses files that record different values (summarize them apart).
 LAST lines:
 ``transfer_sim_median_runs <x>`` (goal ≤ 2) and ``transfer_misleading_extra_runs <x>`` (the misleading prior's
 median minus no prior's; goal ≤ 1).
@@ -174,6 +177,64 @@ def _task(args: tuple[str, int, int, str, int, str, int, int, float]) -> dict[st
     }
 
 
+# the arguments a results file records (its "run") that a --from-json summary must agree on and shows in its heading
+# (besides them the file records the seed list, which files may differ in, the noise factor, which each result
+# records too, and the run's conditions)
+RUN_KEYS = ("split", "budget", "bac_config", "grid_truth")
+
+
+class SummaryError(Exception):
+    """Results that must not be summarized together (they record different runs' arguments)."""
+
+
+def pooled_run(runs: list[dict[str, Any] | None], results: list[dict[str, Any]]) -> dict[str, Any]:
+    """What the results files' ``run`` records (None: a file written before it, or without the key) say of
+    RUN_KEYS together: the one value all record, None when a file records none ("unknown"); files that record
+    different values raise SummaryError. ``seed_list``: true when a file ran other seeds than the split's (a
+    variant), else None when a file does not say, else false. ``budget`` is checked against the runs themselves (a
+    campaign's gaps: one per run) and ``runs_per_campaign`` is that length (the budget the summary counts with,
+    recorded or not)."""
+    out: dict[str, Any] = {}
+    seed_lists = [r.get("seed_list") if r is not None else None for r in runs]
+    out["seed_list"] = True if any(seed_lists) else (None if None in seed_lists else False)
+    for key in RUN_KEYS:
+        vals = {json.dumps(r[key], sort_keys=True) for r in runs if r is not None and key in r}
+        if len(vals) > 1:
+            raise SummaryError(f"the files record different {key}: {', '.join(sorted(vals))}: summarize them apart")
+        known = bool(vals) and all(r is not None and key in r for r in runs)
+        out[key] = json.loads(vals.pop()) if known else None
+    lengths = {len(r["gaps"]) for r in results}
+    if len(lengths) > 1:
+        raise SummaryError(f"the results hold campaigns of {sorted(lengths)} runs: summarize them apart")
+    out["runs_per_campaign"] = lengths.pop() if lengths else out["budget"]
+    if out["budget"] is not None and out["runs_per_campaign"] != out["budget"]:
+        raise SummaryError(f"the files record budget {out['budget']} but hold campaigns of {out['runs_per_campaign']}")
+    return out
+
+
+def heading(run: dict[str, Any], noise_label: str, instances: list[int], seeds: list[int], conditions: str) -> str:
+    """The summary's first line, from what the run records (``pooled_run``'s None: unknown)."""
+
+    def shown(v: Any, none: str = "unknown") -> str:
+        return none if v is None else str(v)
+
+    seed_tag = (
+        " (seed list unknown)" if run["seed_list"] is None else (" (VARIANT: --seed-list)" if run["seed_list"] else "")
+    )
+    budget = shown(run["budget"], f"unknown (campaigns of {run['runs_per_campaign']} runs)")
+    config = "unknown" if run["bac_config"] is None else (run["bac_config"] or "defaults")
+    quick = (
+        "; --grid-truth unknown"
+        if run["grid_truth"] is None
+        else (f"; quick mode --grid-truth {run['grid_truth']}" if run["grid_truth"] else "")
+    )
+    insts = f"{min(instances)}..{max(instances)}" if instances else "none"
+    return (
+        f"# transfer, split {shown(run['split'])}{seed_tag}{noise_label}: instances {insts}, seeds {seeds}, "
+        f"budget {budget}, rule (a); bac config {config}{quick}; {conditions}"
+    )
+
+
 def _ci(runs: np.ndarray, draws: int = 4000) -> tuple[float, float]:
     rng = np.random.default_rng(0)
     m = np.median(runs[rng.integers(0, runs.size, (draws, runs.size))], axis=1)
@@ -250,14 +311,57 @@ def main(argv: list[str] | None = None) -> int:
     ]
     t0 = time.perf_counter()
     if a.from_json:  # e.g. one run per family: summarized together (the pooled line over all of them)
-        results = [r for f in a.from_json.split(",") if f for r in json.loads(Path(f).read_text())["results"]]
+        results: list[dict[str, Any]] = []
+        recorded: list[dict[str, Any] | None] = []
+        for f in (f for f in a.from_json.split(",") if f):
+            data = json.loads(Path(f).read_text())
+            results += data["results"]
+            rec = data.get("run")  # (files written before 2026-11-25, late, record no arguments)
+            recorded.append(rec)
+            print(
+                f"# summarized {f}: "
+                + (
+                    f"finished {rec.get('finished_utc', '?')}, wall {rec.get('wall_s', math.nan):.0f} s, "
+                    f"{rec.get('workers', '?')} workers, load {rec.get('load', math.nan):.1f}"
+                    if rec
+                    else "its run's arguments and conditions not recorded"
+                )
+            )
         fams = list(dict.fromkeys(r["family"] for r in results))
         seeds = sorted({int(r["seed"]) for r in results})
-        print(f"# summarized {a.from_json}")
+        present = {r["arm"] for r in results}
+        # the arms the files hold (--arms, when given, picks among them)
+        arms = [x for x in (arms if a.arms != ap.get_default("arms") else ALL_ARMS) if x in present]
+        try:
+            pooled_args = pooled_run(recorded, results)
+        except SummaryError as exc:
+            sys.stderr.write(f"bench/transfer.py: {exc}\n")
+            return 2
+        conditions = f"summarized from {len(recorded)} file(s)"
     else:
         with ProcessPoolExecutor(max_workers=a.workers) as ex:
             results = list(ex.map(_task, tasks))
-    wall = time.perf_counter() - t0
+        wall = time.perf_counter() - t0
+        run = {
+            "split": a.split,
+            "seed_list": a.seed_list,
+            "budget": a.budget,
+            "bac_config": a.bac_config,
+            "grid_truth": a.grid_truth,
+            "tolerance_k": a.tolerance_k,
+            "noise_scale": a.noise_scale,
+            "families": fams,
+            "arms": arms,
+            "instances": list(insts),
+            "seeds": seeds,
+            "workers": a.workers,
+            "wall_s": wall,
+            "load": os.getloadavg()[0],
+            "finished_utc": time.strftime("%Y-%m-%d %H:%M:%S", time.gmtime()),
+        }
+        pooled_args = pooled_run([run], results)
+        conditions = f"wall {wall:.0f} s, {a.workers} workers, load {run['load']:.1f}"
+    budget = int(pooled_args["runs_per_campaign"])  # the runs per campaign (the recorded budget when there is one)
     # the noise variant is read from the results (a --from-json summary labels each file by what it holds; results
     # written before the factor was recorded have none: unknown, since --noise-scale existed for a while without it)
     scales = {r.get("noise_scale") for r in results}
@@ -273,12 +377,8 @@ def main(argv: list[str] | None = None) -> int:
         if noise_scale is None
         else (f" (VARIANT: run-to-run noise x{noise_scale:g})" if noise_scale != 1.0 else "")
     )
-    print(
-        f"# transfer, split {a.split}{' (VARIANT: --seed-list)' if a.seed_list else ''}{noise_label}: instances "
-        f"{insts[0]}..{insts[-1]}, seeds {seeds}, budget {a.budget}, "
-        f"rule (a); bac config {a.bac_config or 'defaults'}; wall {wall:.0f} s, {a.workers} workers, "
-        f"load {os.getloadavg()[0]:.1f}"
-    )
+    instances = sorted({int(r["instance"]) for r in results})
+    print(heading(pooled_args, noise_label, instances, seeds, conditions))
     medians: dict[tuple[str, str], float] = {}
     for fam in [*fams, "all car families"]:
         rows = [r for r in results if fam == "all car families" or r["family"] == fam]
@@ -291,7 +391,7 @@ def main(argv: list[str] | None = None) -> int:
         )
         for arm in arms:
             rs = [r for r in rows if r["arm"] == arm]
-            runs = np.array([min(runs_to_optimum(r["gaps"]), a.budget + 1) for r in rs])
+            runs = np.array([min(runs_to_optimum(r["gaps"]), budget + 1) for r in rs])
             med = float(np.median(runs))
             medians[(fam, arm)] = med
             lo, hi = _ci(runs)
@@ -301,18 +401,18 @@ def main(argv: list[str] | None = None) -> int:
             sg = np.array([r["source_optimum_gap"] for r in rs])
             wtxt = f"{np.nanmedian(w):.2f}" if np.any(np.isfinite(w)) else "-"
             stxt = f"{np.nanmedian(sg):.3f}" if np.any(np.isfinite(sg)) else "-"
-            shown = f">{a.budget}" if med > a.budget else f"{med:g}"
+            shown = f">{budget}" if med > budget else f"{med:g}"
             print(
                 f"   {arm:<11} {shown:>5} {f'{lo:g}-{hi:g}':>9} {by[0]:>5.0%} {by[1]:>5.0%} {by[2]:>5.0%} "
                 f"{gend:>8.3f} {wtxt:>10} {stxt:>15} {len(rs):>4}"
             )
         if "misleading" in arms and "none" in arms:
-            d, lo, hi = _paired_extra(rows, a.budget)
+            d, lo, hi = _paired_extra(rows, budget)
             if math.isfinite(d):
                 print(f"   misleading - none: {d:+g} runs (90% CI {lo:+g} to {hi:+g}, campaigns resampled in pairs)")
         for x, y in (("tol", "sim"), ("tol_misleading", "misleading"), ("tol_misleading", "none")):
             if x in arms and y in arms:
-                d, lo, hi = _paired_extra(rows, a.budget, arms=(x, y))
+                d, lo, hi = _paired_extra(rows, budget, arms=(x, y))
                 if math.isfinite(d):
                     print(f"   {x} - {y}: {d:+g} runs (90% CI {lo:+g} to {hi:+g}, paired)")
     if not a.from_json:
@@ -328,7 +428,7 @@ def main(argv: list[str] | None = None) -> int:
         variant = "" if whole else (f"_noise{a.noise_scale:g}" if a.noise_scale != 1.0 else "") + "_variant"
         out = Path(a.out or f"bench/out/transfer_{a.split}{variant}.json")
         out.parent.mkdir(parents=True, exist_ok=True)
-        out.write_text(json.dumps({"results": results}))
+        out.write_text(json.dumps({"run": run, "results": results}))
         print(f"\n# raw results {out}")
     pooled = "all car families"
     if (pooled, "sim") in medians:

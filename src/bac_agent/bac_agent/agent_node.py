@@ -273,6 +273,27 @@ class BoAgentNode(BacNode):
             10.0,
             read_only=True,
         )
+        limit_trend_far = self.declare_float(
+            "limit_trend_far",
+            D.limit_trend_far,
+            "bo with constraints and limit_trend (opt-in): after the initial design a calibration farther than this "
+            "(unit cube, Euclidean) from every run is proposed only when the outcome's model with a linear trend "
+            "allows it too (no effect with safe_start or when every limit has an outcome prior); 0: off, and a "
+            "campaign journaled without it resumes without it",
+            0.0,
+            10.0,
+            read_only=True,
+        )
+        limit_reach = self.declare_float(
+            "limit_reach",
+            D.limit_reach,
+            "bo with constraints (opt-in): after the initial design a proposal lies within this distance (unit cube, "
+            "Euclidean) of a run that kept every limit, once one has (no effect with safe_start or outcome priors); "
+            "0: off, and a campaign journaled without it resumes without it",
+            0.0,
+            10.0,
+            read_only=True,
+        )
         grid_size = self.declare_int(
             "grid_size", D.grid_size, "levels per dimension of the grid strategy", 1, 100, True
         )
@@ -382,6 +403,8 @@ class BoAgentNode(BacNode):
             safe_start=safe_start,
             limit_trend=limit_trend,
             limit_far_sd=limit_far_sd,
+            limit_trend_far=limit_trend_far,
+            limit_reach=limit_reach,
             grid_size=grid_size,
             max_attempts=max_attempts,
             apply_timeout_s=apply_timeout,

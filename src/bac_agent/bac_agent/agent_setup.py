@@ -67,6 +67,8 @@ class AgentSettings:
     safe_start: bool = False
     limit_trend: bool = True
     limit_far_sd: float = LIMIT_FAR_SD
+    limit_trend_far: float = 0.0
+    limit_reach: float = 0.0
     grid_size: int = 4
     max_attempts: int = 3
     apply_timeout_s: float = 10.0
@@ -206,6 +208,11 @@ def _build(s: AgentSettings, definition: CalibrationDefinition, cdir: Path, cid:
     limit_trend = s.limit_trend and not (isinstance(started_config, dict) and "limit_trend" not in started_config)
     # a campaign started before limit_far_sd (no such key) resumes as it ran: without it (0)
     limit_far_sd = 0.0 if isinstance(started_config, dict) and "limit_far_sd" not in started_config else s.limit_far_sd
+    # (the same for the opt-in limit_trend_far and limit_reach, bo_agent parameters since 2026-11-25: 0, off)
+    limit_trend_far = (
+        0.0 if isinstance(started_config, dict) and "limit_trend_far" not in started_config else s.limit_trend_far
+    )
+    limit_reach = 0.0 if isinstance(started_config, dict) and "limit_reach" not in started_config else s.limit_reach
     # a campaign started before the model average over two lengthscale priors (no such key) resumes without it
     ls_average = 0.0 if isinstance(started_config, dict) and "gp_ls_average" not in started_config else s.gp_ls_average
     # a campaign started before the exploration along the faces (no such key) resumes without it
@@ -228,6 +235,10 @@ def _build(s: AgentSettings, definition: CalibrationDefinition, cdir: Path, cid:
         overridden.append((f"gp_ls_average {s.gp_ls_average:g}", f"gp_ls_average {ls_average:g}, one fit"))
     if s.strategy == "bo" and constraints and limit_far_sd != s.limit_far_sd:
         overridden.append((f"limit_far_sd {s.limit_far_sd:g}", f"limit_far_sd {limit_far_sd:g}"))
+    if s.strategy == "bo" and constraints and limit_trend_far != s.limit_trend_far:
+        overridden.append((f"limit_trend_far {s.limit_trend_far:g}", f"limit_trend_far {limit_trend_far:g}"))
+    if s.strategy == "bo" and constraints and limit_reach != s.limit_reach:
+        overridden.append((f"limit_reach {s.limit_reach:g}", f"limit_reach {limit_reach:g}"))
     # (prior_average_ls acts only in the transfer average with the lengthscale average on)
     if s.strategy == "bo" and source is not None and s.prior_average and ls_average > 0 and not prior_average_ls:
         overridden.append(("prior_average_ls true", "prior_average_ls false"))
@@ -273,6 +284,8 @@ def _build(s: AgentSettings, definition: CalibrationDefinition, cdir: Path, cid:
                 limit_trend=limit_trend,
                 face_explore=face_explore,
                 limit_far_sd=limit_far_sd,
+                limit_trend_far=limit_trend_far,
+                limit_reach=limit_reach,
             ),
         )
     cfg = CampaignConfig(
@@ -326,6 +339,10 @@ def _build(s: AgentSettings, definition: CalibrationDefinition, cdir: Path, cid:
             "limit_trend": limit_trend,
             # the limited outcomes' models widened far from the runs (issue 23, 2026-11-25; 0: off)
             "limit_far_sd": limit_far_sd,
+            # after the design, calibrations this far from every run judged by the retreat's trend too (opt-in; 0: off)
+            "limit_trend_far": limit_trend_far,
+            # after the design, proposals within this of a run that kept the limits (opt-in; 0: off)
+            "limit_reach": limit_reach,
         },
         outcome_limits=tuple(constraints),
     )

@@ -1002,7 +1002,8 @@ RESUME_MAY_CHANGE = frozenset(
 # journal without the key is compared as if it held that value, so it resumes when the agent keeps it (issue 23,
 # 2026-11-24: no outcome priors, no limit on the transfer prior's runs, no safe start, no model average, the bowl
 # unchecked by leave-one-out; 2026-11-25: the outcome limits' least risky calibrations and design without the
-# retreat's trend, one GP fit without the model average over two lengthscale priors, no exploration along the faces)
+# retreat's trend, one GP fit without the model average over two lengthscale priors, no exploration along the faces;
+# neither of the opt-in limit_trend_far and limit_reach, journaled since they became bo_agent parameters)
 ADDED_LATER: Mapping[str, Any] = {
     "recommend_rule": "mean",
     "outcome_priors": {},
@@ -1015,14 +1016,17 @@ ADDED_LATER: Mapping[str, Any] = {
     "limit_far_sd": 0.0,
     "prior_average_ls": False,
     "face_explore": 0,
+    "limit_trend_far": 0.0,
+    "limit_reach": 0.0,
 }
 # configuration keys that change nothing where what they act on is absent, with the test for that absence: a
 # difference in them does not refuse a resume (the bowl's length and leave-one-out check without the bowl; the model
-# average without a transfer prior, outside review D2; the retreat's trend without outcome limits)
+# average without a transfer prior, outside review D2; the retreat's trend and the limits' other options without
+# outcome limits)
 INERT_UNLESS: tuple[tuple[Callable[[Mapping[str, Any]], bool], tuple[str, ...]], ...] = (
     (lambda c: c.get("gp_mean", "bowl") != "bowl", ("bowl_runs", "gp_bowl_loo")),
     (lambda c: not c.get("prior"), ("prior_average", "prior_average_ls")),
-    (lambda c: not c.get("constraints"), ("limit_trend", "limit_far_sd")),
+    (lambda c: not c.get("constraints"), ("limit_trend", "limit_far_sd", "limit_trend_far", "limit_reach")),
 )
 _MISSING = object()
 

@@ -6,7 +6,7 @@ from pathlib import Path
 
 import pytest
 
-from bac_agent.agent_setup import BACKSTOP_RUN_TIMEOUT_S, AgentSettings, build_agent, make_verifier
+from bac_agent.agent_setup import BACKSTOP_RUN_TIMEOUT_S, AgentSettings, AgentSetup, build_agent, make_verifier
 from bac_agent.bo.baselines import GridStrategy
 from bac_agent.bo.engine import Engine
 from bac_agent.journal import Journal, journaled_engine_options
@@ -286,6 +286,51 @@ def test_limit_far_sd_is_passed_journaled_and_off_for_a_journal_started_before_i
     assert journaled_engine_options({"config": {"constraints": list(limit)}})["limit_far_sd"] == 0.0
     opts = journaled_engine_options({"config": {"constraints": list(limit), "limit_far_sd": 2.0}})
     assert opts["limit_far_sd"] == 2.0
+
+
+@pytest.mark.parametrize("key", ["limit_trend_far", "limit_reach"])
+def test_the_opt_in_limit_distances_are_passed_journaled_and_off_for_a_journal_started_before_them(
+    tmp_path: Path, key: str
+) -> None:
+    """limit_trend_far and limit_reach (engine options, bo_agent parameters since 2026-11-25; 0: off, the default)."""
+    limit = ("max_travel_mm<=60",)
+    assert getattr(AgentSettings(), key) == 0.0
+
+    def said(setup: AgentSetup) -> list[str]:  # what the node warns of this option (the older ones' aside)
+        return [n for n in setup.resumed_as_journaled if n.startswith(key)]
+
+    for r in (0.15, 0.0):
+        setup = build_agent(AgentSettings(campaign_dir=str(tmp_path / str(r)), constraints=limit, **{key: r}))  # type: ignore[arg-type]
+        setup.journal.close()
+        assert isinstance(setup.optimizer, Engine)
+        assert getattr(setup.optimizer.config, key) == r and setup.config.extra[key] == r
+        assert setup.resumed_as_journaled == []
+    # a journal whose campaign_started has no such key ran without it: it resumes without it (not refused) and the
+    # node says that the parameter is not used
+    _journal_started(tmp_path / "old", {"constraints": list(limit)})
+    old = build_agent(AgentSettings(campaign_dir=str(tmp_path / "old"), constraints=limit, **{key: 0.15}))  # type: ignore[arg-type]
+    old.journal.close()
+    assert isinstance(old.optimizer, Engine) and getattr(old.optimizer.config, key) == 0.0
+    assert old.config.extra[key] == 0.0
+    (note,) = said(old)
+    assert note.startswith(f"{key} 0.15 is not used") and f"resumes as it ran ({key} 0)" in note
+    # a journal that has the key resumes with it; without limits the option acts on nothing: nothing to say
+    _journal_started(tmp_path / "knew", {"constraints": list(limit), key: 0.15})
+    knew = build_agent(AgentSettings(campaign_dir=str(tmp_path / "knew"), constraints=limit, **{key: 0.15}))  # type: ignore[arg-type]
+    knew.journal.close()
+    assert isinstance(knew.optimizer, Engine) and getattr(knew.optimizer.config, key) == 0.15
+    assert said(knew) == []
+    _journal_started(tmp_path / "free", {"budget": 15})
+    free = build_agent(AgentSettings(campaign_dir=str(tmp_path / "free"), **{key: 0.15}))  # type: ignore[arg-type]
+    free.journal.close()
+    assert said(free) == [] and free.optimizer.config.limit_reach == free.optimizer.config.limit_trend_far == 0.0  # type: ignore[union-attr]
+    # an offline refit models as the campaign did
+    assert journaled_engine_options({"config": {"constraints": list(limit)}})[key] == 0.0
+    assert journaled_engine_options({"config": {"constraints": list(limit), key: 0.15}})[key] == 0.15
+    # a value out of range is refused with its name, before a journal is left behind
+    with pytest.raises(BacError, match=f"{key} must be >= 0"):
+        build_agent(AgentSettings(campaign_dir=str(tmp_path / "bad"), constraints=limit, **{key: -0.1}))  # type: ignore[arg-type]
+    assert not (tmp_path / "bad").exists()
 
 
 def test_gp_ls_average_is_passed_journaled_and_off_for_a_journal_started_before_it(tmp_path: Path) -> None:

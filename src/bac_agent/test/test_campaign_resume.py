@@ -578,6 +578,16 @@ LIMITS_REFUSED: dict[str, tuple[str, Callable[[], CampaignConfig]]] = {
         "config.limit_far_sd: journaled 0.0, this agent 2.0",
         lambda: config_limits(extra={**config_limits().extra, "limit_far_sd": 2.0}),
     ),
+    "the trend judging the far calibrations": (
+        # a journal from before limit_trend_far was a bo_agent parameter ran without it (campaign.ADDED_LATER)
+        "config.limit_trend_far: journaled 0.0, this agent 0.2",
+        lambda: config_limits(extra={**config_limits().extra, "limit_trend_far": 0.2}),
+    ),
+    "the reach around the runs that kept the limits": (
+        # (the same for limit_reach)
+        "config.limit_reach: journaled 0.0, this agent 0.15",
+        lambda: config_limits(extra={**config_limits().extra, "limit_reach": 0.15}),
+    ),
 }
 
 
@@ -593,6 +603,22 @@ def test_a_resume_with_other_limits_or_another_prior_is_refused(what: str, tmp_p
         camp.start()
     assert message in str(err.value)
     assert "cannot resume" in str(err.value)
+
+
+def test_a_journal_with_limits_from_before_the_opt_in_limit_distances_resumes_with_them_off(tmp_path: Path) -> None:
+    """A campaign with limits journaled before limit_trend_far and limit_reach were bo_agent parameters (no such keys)
+    ran without them: an agent that journals them off (0, the default) resumes it (campaign.ADDED_LATER)."""
+    chain = start_limits(tmp_path, Clock())
+    for _ in range(4):
+        chain.step()
+    chain.c.journal.close()
+    started = chain.c.journal.events[0]["config"]
+    assert started["constraints"] and "limit_reach" not in started and "limit_trend_far" not in started
+    cfg = config_limits(extra={**config_limits().extra, "limit_trend_far": 0.0, "limit_reach": 0.0})
+    again = start(tmp_path, Clock(), cfg, engine_limits(), travel)
+    assert again.pending is not None
+    (resumed,) = [e for e in again.c.journal.events if e["event"] == "campaign_resumed"]
+    assert resumed["changed"] == []
 
 
 # --- refused configurations ---------------------------------------------------------------------------------------
@@ -777,7 +803,14 @@ def test_the_bowl_length_does_not_refuse_a_resume_without_the_bowl(tmp_path: Pat
 
 @pytest.mark.parametrize(
     ("key", "value"),
-    [("prior_average", True), ("prior_average_ls", True), ("limit_trend", True), ("limit_far_sd", 2.0)],
+    [
+        ("prior_average", True),
+        ("prior_average_ls", True),
+        ("limit_trend", True),
+        ("limit_far_sd", 2.0),
+        ("limit_trend_far", 0.2),
+        ("limit_reach", 0.15),
+    ],
 )
 def test_a_key_that_changes_nothing_here_does_not_refuse_a_resume(tmp_path: Path, key: str, value: object) -> None:
     """prior_average and limit_trend are journaled whatever the prior and the limits; without a prior, without
