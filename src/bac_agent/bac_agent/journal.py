@@ -198,6 +198,7 @@ def journaled_engine_options(started: Mapping[str, Any]) -> dict[str, Any]:
         },
         "bowl_runs": int(cfg.get("bowl_runs", 0) or 0),
         "output_warp": str(cfg.get("output_warp", "none") or "none"),
+        "face_explore": int(cfg.get("face_explore", 0) or 0),  # a journal from before it ran without it
     }
     # issue 23: the transfer prior (its source surface, as the engine used it) and the outcome limits
     if cfg.get("prior"):
@@ -205,6 +206,7 @@ def journaled_engine_options(started: Mapping[str, Any]) -> dict[str, Any]:
         options["prior_weight"] = float(cfg.get("prior_weight", 0.5) or 0.5)
         options["prior_runs"] = int(cfg.get("prior_runs", 0) or 0)
         options["prior_average"] = bool(cfg.get("prior_average", False))  # a journal from before it: without
+        options["prior_average_ls"] = bool(cfg.get("prior_average_ls", False))  # (the same)
     if cfg.get("constraints"):
         options["constraints"] = [str(c) for c in cfg["constraints"]]
         options["constraint_level"] = float(cfg.get("constraint_level", 0.05) or 0.05)

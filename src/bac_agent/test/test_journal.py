@@ -121,3 +121,16 @@ def test_journaled_engine_options_rebuild_the_live_model_and_old_journals_their_
     # a journal from before these settings existed: what the agent used then
     old = EngineConfig.from_dict({**journaled_engine_options({"config": {}}), "budget": 12})
     assert (old.recommend_beta, old.gp.mean, old.bowl_runs, old.output_warp) == (0.0, "constant", 0, "none")
+
+
+def test_journaled_engine_options_carry_the_face_exploration_and_the_transfer_average_over_lengthscales() -> None:
+    """A refit models a campaign with a prior as it ran: with or without the model without the source over both
+    lengthscale priors (a journal from before the key ran without it), and with its face exploration."""
+    prior = {"kind": "test"}
+    for started, ls, face in (
+        ({"prior": prior, "prior_average": True, "prior_average_ls": True, "face_explore": 1}, True, 1),
+        ({"prior": prior, "prior_average": True, "prior_average_ls": False, "face_explore": 0}, False, 0),
+        ({"prior": prior, "prior_average": True}, False, 0),  # journals from before both keys
+    ):
+        opts = journaled_engine_options({"config": started})
+        assert (opts["prior_average_ls"], opts["face_explore"]) == (ls, face), started
