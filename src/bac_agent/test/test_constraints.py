@@ -357,6 +357,42 @@ def test_in_6d_limit_reach_keeps_the_proposal_within_its_scaled_radius(seed: int
     assert 80.0 - 40.0 * on[0] <= 61.0, on
 
 
+def _reach_ask_20d(seed: int, limit_reach: float) -> tuple[np.ndarray, np.ndarray, dict[str, Any]]:
+    """60 random runs in 20-D (J a bowl whose minimum lies where the travel breaks the limit, travel 50 + 20 x2, limit
+    58): the runs that kept the limit, the next proposal (unit cube) and its info."""
+    d = 20
+    rng = np.random.default_rng(seed)
+    X = rng.random((60, d))
+    c = np.full(d, 0.3)
+    c[2] = 0.9
+    names = [f"p{i:02d}" for i in range(d)]
+    eng = Engine(
+        {n: (0.0, 1.0) for n in names},
+        EngineConfig(budget=200, n_initial=10, seed=seed, constraints=("travel<=58",), limit_reach=limit_reach),
+    )
+    for x in X:
+        eng.tell(dict(zip(names, x.tolist(), strict=True)), float(np.sum((x - c) ** 2)), {"travel": 50.0 + 20.0 * x[2]})
+    s = eng.ask_with_info()
+    return X[50.0 + 20.0 * X[:, 2] <= 58.0], np.array([s.params[n] for n in names]), dict(s.info)
+
+
+def test_in_20d_limit_reach_is_left_out_of_an_ask_where_it_leaves_no_candidate_within_the_level() -> None:
+    # in 20-D few candidates lie within the reach (radius 0.15 sqrt(10) = 0.47) of a run that kept the limit: with
+    # seed 0 none of them is within the level, and the proposal was the least risky calibration anywhere
+    # (no_safe_candidate, 1.05 from every kept run), not the acquisition's. Now that ask goes without the reach: the
+    # acquisition's proposal, the one made without the option. Seeds 1, 2: the reach has candidates and bounds it
+    kept, on, info = _reach_ask_20d(0, 0.15)
+    assert "no_safe_candidate" not in info, info
+    assert np.array_equal(on, _reach_ask_20d(0, 0.0)[1])
+    for seed in (1, 2):
+        kept, on, info = _reach_ask_20d(seed, 0.15)
+        off = _reach_ask_20d(seed, 0.0)[1]
+        assert "no_safe_candidate" not in info, info
+        assert float(np.min(np.linalg.norm(kept - on, axis=1))) <= 0.15 * math.sqrt(10.0) + 1e-9
+        assert float(np.min(np.linalg.norm(kept - off, axis=1))) > 0.9, off  # without it: the far jump
+        assert 50.0 + 20.0 * on[2] <= 58.0, on
+
+
 # --- limit_far_sd (issue 23, 2026-11-25) ----------------------------------------------------------------------------
 
 
