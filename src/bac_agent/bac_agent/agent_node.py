@@ -287,9 +287,10 @@ class BoAgentNode(BacNode):
         limit_reach = self.declare_float(
             "limit_reach",
             D.limit_reach,
-            "bo with constraints (opt-in): after the initial design a proposal lies within this distance (unit cube, "
-            "Euclidean) of a run that kept every limit, once one has (no effect with safe_start or outcome priors); "
-            "0: off, and a campaign journaled without it resumes without it",
+            "bo with constraints: after the initial design a proposal lies within this distance times sqrt(d/2) "
+            "(unit cube, Euclidean; d tuned parameters) of a run that kept every limit, once one has; an ask where "
+            "it leaves nothing within constraint_level goes without it (no effect with safe_start or outcome "
+            "priors); 0: off, and a campaign journaled without it resumes without it",
             0.0,
             10.0,
             read_only=True,

@@ -18,7 +18,7 @@ from typing import Any
 
 from bac_agent.bo.baselines import GridStrategy, RandomStrategy
 from bac_agent.bo.constraints import parse_limits
-from bac_agent.bo.engine import LIMIT_FAR_SD, Engine, EngineConfig
+from bac_agent.bo.engine import LIMIT_FAR_SD, LIMIT_REACH, Engine, EngineConfig
 from bac_agent.bo.gp import GPConfig
 from bac_agent.bo.prior import SourceSurface
 from bac_agent.bo.space import SearchSpace
@@ -68,7 +68,7 @@ class AgentSettings:
     limit_trend: bool = True
     limit_far_sd: float = LIMIT_FAR_SD
     limit_trend_far: float = 0.0
-    limit_reach: float = 0.0
+    limit_reach: float = LIMIT_REACH
     grid_size: int = 4
     max_attempts: int = 3
     apply_timeout_s: float = 10.0
@@ -208,7 +208,8 @@ def _build(s: AgentSettings, definition: CalibrationDefinition, cdir: Path, cid:
     limit_trend = s.limit_trend and not (isinstance(started_config, dict) and "limit_trend" not in started_config)
     # a campaign started before limit_far_sd (no such key) resumes as it ran: without it (0)
     limit_far_sd = 0.0 if isinstance(started_config, dict) and "limit_far_sd" not in started_config else s.limit_far_sd
-    # (the same for the opt-in limit_trend_far and limit_reach, bo_agent parameters since 2026-11-25: 0, off)
+    # (the same for limit_trend_far (opt-in) and limit_reach (the default since 2026-11-25), bo_agent parameters since
+    # 2026-11-25: 0, off)
     limit_trend_far = (
         0.0 if isinstance(started_config, dict) and "limit_trend_far" not in started_config else s.limit_trend_far
     )
@@ -341,7 +342,7 @@ def _build(s: AgentSettings, definition: CalibrationDefinition, cdir: Path, cid:
             "limit_far_sd": limit_far_sd,
             # after the design, calibrations this far from every run judged by the retreat's trend too (opt-in; 0: off)
             "limit_trend_far": limit_trend_far,
-            # after the design, proposals within this of a run that kept the limits (opt-in; 0: off)
+            # after the design, proposals within this (times sqrt(d/2)) of a run that kept the limits (0: off)
             "limit_reach": limit_reach,
         },
         outcome_limits=tuple(constraints),

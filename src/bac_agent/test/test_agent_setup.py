@@ -8,7 +8,7 @@ import pytest
 
 from bac_agent.agent_setup import BACKSTOP_RUN_TIMEOUT_S, AgentSettings, AgentSetup, build_agent, make_verifier
 from bac_agent.bo.baselines import GridStrategy
-from bac_agent.bo.engine import Engine
+from bac_agent.bo.engine import Engine, EngineConfig
 from bac_agent.journal import Journal, journaled_engine_options
 from bac_common.errors import BacError
 from bac_common.paramspace import CalibrationDefinition
@@ -289,12 +289,17 @@ def test_limit_far_sd_is_passed_journaled_and_off_for_a_journal_started_before_i
 
 
 @pytest.mark.parametrize("key", ["limit_trend_far", "limit_reach"])
-def test_the_opt_in_limit_distances_are_passed_journaled_and_off_for_a_journal_started_before_them(
+def test_the_limit_distances_are_passed_journaled_and_off_for_a_journal_started_before_them(
     tmp_path: Path, key: str
 ) -> None:
-    """limit_trend_far and limit_reach (engine options, bo_agent parameters since 2026-11-25; 0: off, the default)."""
+    """limit_trend_far (opt-in, 0: off) and limit_reach (the engine's default 0.15), bo_agent parameters since
+    2026-11-25; a journal from before them ran both off."""
     limit = ("max_travel_mm<=60",)
-    assert getattr(AgentSettings(), key) == 0.0
+    assert (
+        getattr(AgentSettings(), key)
+        == getattr(EngineConfig(), key)
+        == {"limit_trend_far": 0.0, "limit_reach": 0.15}[key]
+    )
 
     def said(setup: AgentSetup) -> list[str]:  # what the node warns of this option (the older ones' aside)
         return [n for n in setup.resumed_as_journaled if n.startswith(key)]
@@ -360,7 +365,7 @@ def test_a_resumed_journal_that_overrides_a_parameter_says_so(tmp_path: Path) ->
     fresh = build_agent(AgentSettings(campaign_dir=str(tmp_path / "new"), **settings))  # type: ignore[arg-type]
     fresh.journal.close()
     assert fresh.resumed_as_journaled == []
-    _journal_started(tmp_path / "old", {"constraints": [LIMIT]})  # none of the seven options' keys
+    _journal_started(tmp_path / "old", {"constraints": [LIMIT]})  # none of the eight options' keys
     old = build_agent(AgentSettings(campaign_dir=str(tmp_path / "old"), **settings))  # type: ignore[arg-type]
     old.journal.close()
     notes = old.resumed_as_journaled
@@ -370,6 +375,7 @@ def test_a_resumed_journal_that_overrides_a_parameter_says_so(tmp_path: Path) ->
         "limit_trend true",
         "gp_ls_average 0.5",
         "limit_far_sd 2",
+        "limit_reach 0.15",
         "face_explore 1",
     ]  # (prior_average_ls acts only with the lengthscale average, which this journal ran without)
     assert "resumes as it ran (gp_ls_average 0, one fit)" in notes[3]
@@ -381,6 +387,7 @@ def test_a_resumed_journal_that_overrides_a_parameter_says_so(tmp_path: Path) ->
         "limit_trend": True,
         "gp_ls_average": 0.5,
         "limit_far_sd": 2.0,
+        "limit_reach": 0.15,
         "prior_average_ls": True,
         "face_explore": 1,
     }

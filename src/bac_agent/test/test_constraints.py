@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import math
 from typing import Any
 
 import numpy as np
@@ -251,10 +252,15 @@ FAR_RUNS = (
 
 def _far_ask(seed: int, **option: float) -> tuple[np.ndarray, dict[str, Any]]:
     """The proposal after FAR_RUNS (travel 80 - 40 a, limit 60) and its travel's prediction, with the options given
-    (``limit_far_sd`` 0, the widening off, unless given)."""
+    (``limit_far_sd`` and ``limit_reach`` 0, the widening and the reach off, unless given)."""
     eng = Engine(
         {"a": (0.0, 1.0), "b": (0.0, 1.0)},
-        EngineConfig(budget=20, seed=seed, constraints=("travel<=60",), **{"limit_far_sd": 0.0, **option}),  # type: ignore[arg-type]
+        EngineConfig(
+            budget=20,
+            seed=seed,
+            constraints=("travel<=60",),
+            **{"limit_far_sd": 0.0, "limit_reach": 0.0, **option},  # type: ignore[arg-type]
+        ),
     )
     for (a, b), j in FAR_RUNS:
         eng.tell({"a": a, "b": b}, j, {"travel": 80.0 - 40.0 * a})
@@ -281,7 +287,7 @@ def test_after_the_design_a_calibration_far_from_every_run_is_judged_by_the_tren
 
 
 @pytest.mark.parametrize("key", ["limit_trend_far", "limit_reach"])
-def test_an_opt_in_distance_is_validated_and_reads_back_off_from_a_state_saved_before_it(key: str) -> None:
+def test_a_distance_option_is_validated_and_reads_back_off_from_a_state_saved_before_it(key: str) -> None:
     for bad in (-0.1, float("nan"), float("inf")):
         with pytest.raises(EngineError, match=key):
             EngineConfig(**{key: bad})  # type: ignore[arg-type]
@@ -290,9 +296,11 @@ def test_an_opt_in_distance_is_validated_and_reads_back_off_from_a_state_saved_b
     assert getattr(Engine.from_state_dict(state).config, key) == 0.2
     del state["config"][key]  # an engine state written before it: off, as it ran
     assert getattr(Engine.from_state_dict(state).config, key) == 0.0
+    # an override dict without it gets the default (limit_reach 0.15 since 2026-11-25, limit_trend_far off)
+    assert getattr(EngineConfig.from_dict({"budget": 5}), key) == {"limit_trend_far": 0.0, "limit_reach": 0.15}[key]
 
 
-# --- limit_reach (issue 23, 2026-11-25, opt-in) -----------------------------------------------------------------------
+# --- limit_reach (issue 23, 2026-11-25; the default 0.15 since the afternoon) -----------------------------------------
 
 
 @pytest.mark.parametrize("seed", [0, 1, 2])
@@ -306,6 +314,83 @@ def test_with_limit_reach_a_proposal_stays_within_reach_of_a_run_that_kept_the_l
     assert np.min(np.linalg.norm(X - before, axis=1)) > 0.2
     assert np.min(np.linalg.norm(X - after, axis=1)) <= 0.2 + 1e-9, after
     assert 80.0 - 40.0 * after[0] <= 60.0, after
+
+
+def _reach_ask_6d(seed: int, limit_reach: float) -> tuple[np.ndarray, np.ndarray]:
+    """FAR_RUNS and one more in 6-D (four more parameters near 0.5 that change J a little, travel 80 - 40 a, limit
+    60): the runs and the next proposal (unit cube; the widening off)."""
+    names = ["a", "b", "c0", "c1", "c2", "c3"]
+    eng = Engine(
+        {n: (0.0, 1.0) for n in names},
+        EngineConfig(budget=20, seed=seed, constraints=("travel<=60",), limit_far_sd=0.0, limit_reach=limit_reach),
+    )
+    rng = np.random.default_rng(7)
+    X = []
+    for (a, b), j in (*FAR_RUNS, ((0.8, 0.8), 0.9)):  # 7 runs: the 6-D design's
+        c = rng.uniform(0.4, 0.6, 4)
+        p = {"a": a, "b": b, **{f"c{k}": float(v) for k, v in enumerate(c)}}
+        X.append([p[n] for n in names])
+        eng.tell(p, j + 0.05 * float(np.sum((c - 0.5) ** 2)), {"travel": 80.0 - 40.0 * a})
+    s = eng.ask_with_info()
+    assert s.kind == "optimized" and "no_safe_candidate" not in s.info
+    return np.array(X), np.array([s.params[n] for n in names])
+
+
+def test_limit_reach_radius_scales_with_the_dimension() -> None:
+    assert Engine({"a": (0.0, 1.0), "b": (0.0, 1.0)}, EngineConfig(limit_reach=0.2)).limit_reach_radius == 0.2
+    six = Engine({f"x{k}": (0.0, 1.0) for k in range(6)}, EngineConfig(limit_reach=0.2))
+    assert six.limit_reach_radius == pytest.approx(0.2 * math.sqrt(3.0))
+    assert Engine({"a": (0.0, 1.0)}, EngineConfig(limit_reach=0.0)).limit_reach_radius == 0.0
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_in_6d_limit_reach_keeps_the_proposal_within_its_scaled_radius(seed: int) -> None:
+    # the stiff runs in 6-D (7 runs, the design's; all keep the limit 60): without the option the acquisition jumps
+    # 0.51 from every run (a = 0.37, travel 65.3 mm); with limit_reach 0.2, whose radius in 6-D is 0.2 sqrt(3) = 0.35,
+    # the proposal lies within it of a run that kept the limit, 0.31-0.34 away (an unscaled 0.2 would refuse those),
+    # and breaks the limit by 0.8 mm at most (seed 0: 60.8 mm; seeds 1, 2 keep it)
+    X, off = _reach_ask_6d(seed, 0.0)
+    assert float(np.min(np.linalg.norm(X - off, axis=1))) > 0.45 and 80.0 - 40.0 * off[0] > 62.0, off
+    on = _reach_ask_6d(seed, 0.2)[1]
+    d_on = float(np.min(np.linalg.norm(X - on, axis=1)))
+    assert 0.2 < d_on <= 0.2 * math.sqrt(3.0) + 1e-9, (d_on, on)
+    assert 80.0 - 40.0 * on[0] <= 61.0, on
+
+
+def _reach_ask_20d(seed: int, limit_reach: float) -> tuple[np.ndarray, np.ndarray, dict[str, Any]]:
+    """60 random runs in 20-D (J a bowl whose minimum lies where the travel breaks the limit, travel 50 + 20 x2, limit
+    58): the runs that kept the limit, the next proposal (unit cube) and its info."""
+    d = 20
+    rng = np.random.default_rng(seed)
+    X = rng.random((60, d))
+    c = np.full(d, 0.3)
+    c[2] = 0.9
+    names = [f"p{i:02d}" for i in range(d)]
+    eng = Engine(
+        {n: (0.0, 1.0) for n in names},
+        EngineConfig(budget=200, n_initial=10, seed=seed, constraints=("travel<=58",), limit_reach=limit_reach),
+    )
+    for x in X:
+        eng.tell(dict(zip(names, x.tolist(), strict=True)), float(np.sum((x - c) ** 2)), {"travel": 50.0 + 20.0 * x[2]})
+    s = eng.ask_with_info()
+    return X[50.0 + 20.0 * X[:, 2] <= 58.0], np.array([s.params[n] for n in names]), dict(s.info)
+
+
+def test_in_20d_limit_reach_is_left_out_of_an_ask_where_it_leaves_no_candidate_within_the_level() -> None:
+    # in 20-D few candidates lie within the reach (radius 0.15 sqrt(10) = 0.47) of a run that kept the limit: with
+    # seed 0 none of them is within the level, and the proposal was the least risky calibration anywhere
+    # (no_safe_candidate, 1.05 from every kept run), not the acquisition's. Now that ask goes without the reach: the
+    # acquisition's proposal, the one made without the option. Seeds 1, 2: the reach has candidates and bounds it
+    kept, on, info = _reach_ask_20d(0, 0.15)
+    assert "no_safe_candidate" not in info, info
+    assert np.array_equal(on, _reach_ask_20d(0, 0.0)[1])
+    for seed in (1, 2):
+        kept, on, info = _reach_ask_20d(seed, 0.15)
+        off = _reach_ask_20d(seed, 0.0)[1]
+        assert "no_safe_candidate" not in info, info
+        assert float(np.min(np.linalg.norm(kept - on, axis=1))) <= 0.15 * math.sqrt(10.0) + 1e-9
+        assert float(np.min(np.linalg.norm(kept - off, axis=1))) > 0.9, off  # without it: the far jump
+        assert 50.0 + 20.0 * on[2] <= 58.0, on
 
 
 # --- limit_far_sd (issue 23, 2026-11-25) ----------------------------------------------------------------------------

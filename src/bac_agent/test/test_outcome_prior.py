@@ -143,13 +143,14 @@ def test_with_the_simulators_outcome_the_first_runs_keep_the_limit() -> None:
 @pytest.mark.slow
 @pytest.mark.parametrize("seed", [0, 1])
 def test_with_outcome_priors_limit_reach_is_not_used(seed: int) -> None:
-    # limit_reach (opt-in: after the design, proposals within it of a run that kept the limits) is for limits with
-    # nothing known; with the simulator's outcome a campaign asks the same with it at 0.1 and off; without, it differs
-    on = _campaign(True, seed, budget=14, limit_reach=0.1)[1]
-    off = _campaign(True, seed, budget=14)[1]
+    # limit_reach (the default 0.15: after the design, proposals within it of a run that kept the limits) is for
+    # limits with nothing known; with the simulator's outcome a campaign asks the same with the default and off;
+    # without, it differs
+    on = _campaign(True, seed, budget=14)[1]
+    off = _campaign(True, seed, budget=14, limit_reach=0.0)[1]
     assert all(np.array_equal(a, b) for a, b in zip(on, off, strict=True))
-    on = _campaign(False, seed, budget=14, limit_reach=0.1)[1]
-    off = _campaign(False, seed, budget=14)[1]
+    on = _campaign(False, seed, budget=14)[1]
+    off = _campaign(False, seed, budget=14, limit_reach=0.0)[1]
     assert not all(np.array_equal(a, b) for a, b in zip(on, off, strict=True))
 
 

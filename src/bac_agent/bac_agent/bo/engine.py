@@ -68,6 +68,8 @@ WHOLE_GP_KEYS = frozenset({"maxiter", "ls_loc", "ls_scale", "os_loc", "noise_loc
 TREND_MODEL = "the retreat's model with a linear trend"  # named in the least risky calibration's warning
 # EngineConfig.limit_far_sd's default (see there; bo_agent's limit_far_sd)
 LIMIT_FAR_SD = 2.0
+# EngineConfig.limit_reach's default (see there)
+LIMIT_REACH = 0.15
 # a safe start's design grows from the runs that kept every limit by steps (SafeOpt's safe set, Sui et al. 2015: a
 # calibration is safe when a safe run's margin to the limit exceeds the Lipschitz constant times the distance), not
 # by the outcome model's extrapolation alone: fitted to a few runs close together it is confident far beyond them
@@ -253,16 +255,20 @@ class EngineConfig:
     # of 3600 (seeds 0-35), final keeps and gaps as before; a small gain, measured in 2-D only (in many dimensions
     # nearly every candidate is that far from every run): not the default (docs/agent.md)
     limit_trend_far: float = 0.0
-    # > 0 (opt-in, off by default; issue 23, 2026-11-25): with outcome limits and no outcome prior nor safe start, after
-    # the initial design a proposal lies within this distance (unit cube, Euclidean) of a run that kept every limit (as
-    # measured), once one has: the acquisition's jumps far from the runs that kept the limits are where the outcome's
-    # model is least right (the tuning instances of bench/outcome_limits.py, 36 seeds: later proposals within the level
-    # but 0.2 or more from every run broke the limit 19 times in 61). 0.15 there: 427 -> 408 breaking runs of 3600,
-    # final keeps 171 of 180 as before, runs to the 2 mm optimum 13 -> 12 (median), final gap 0.76 -> 0.78; held-out
-    # 10.8 % -> 10.0 %. Not the default: measured in 2-D only, and in many dimensions few candidates lie that near a
-    # run (the proposals would fall back to the least risky calibration). The least risky calibration, when none is
-    # allowed, is chosen as before (docs/agent.md)
-    limit_reach: float = 0.0
+    # > 0 (issue 23, 2026-11-25; the default since the same day's afternoon, 0 = off): with outcome limits and no
+    # outcome prior nor safe start, after the initial design a proposal lies within this distance of a run that kept
+    # every limit (as measured), once one has: the acquisition's jumps far from the runs that kept the limits are where
+    # the outcome's model is least right (the tuning instances of bench/outcome_limits.py, 36 seeds: later proposals
+    # within the level but 0.2 or more from every run broke the limit 19 times in 61). The distance is Euclidean in the
+    # unit cube, given for 2 dimensions and scaled by sqrt(d / 2) in d (Engine.limit_reach_radius: the distances between
+    # points of the unit cube grow as sqrt(d)). An ask where it leaves no candidate within the level goes without it (in
+    # 20-D with 100 runs few candidates lie within its reach, and the least risky calibration anywhere was proposed
+    # instead of the acquisition's); when none is within the level at all, the least risky calibration as before. 0.15
+    # on the tuning instances: 427 -> 408 breaking runs of 3600, final keeps 171 of 180 as before, runs to the 2 mm
+    # optimum 13 -> 12 (median), final gap 0.76 -> 0.78; held-out 10.8 % -> 10.0 %; the same cars with 2 and 4 weak
+    # parameters more (d = 4, 6) no worse (docs/agent.md). An engine state or whole configuration saved before it reads
+    # back 0
+    limit_reach: float = LIMIT_REACH
     # >= 0 (issue 23, 2026-11-25): far from the runs a limited outcome's model (without an outcome prior) is widened:
     # its latent sd multiplied by 1 + limit_far_sd * rho, rho its posterior variance over the kernel's variance (0 at
     # a run, 1 far from every run), for the proposals and the recommendation. The constant-mean GP reverts to the
@@ -384,6 +390,8 @@ class EngineConfig:
             data["prior_average_ls"] = False
         if "n_candidates" in data and "face_explore" not in data:  # (the same: before the exploration along faces)
             data["face_explore"] = 0
+        if "n_candidates" in data and "limit_reach" not in data:  # (the same: before limit_reach was the default)
+            data["limit_reach"] = 0.0
         gp = dict(data.pop("gp", {}) or {})
         # a whole GPConfig saved (its oldest fields all there), not a partial override such as {"maxiter": 100},
         # which keeps today's defaults
@@ -529,6 +537,7 @@ class Engine:
             self._design = np.vstack([guesses[:n_g], self._design[remaining]])
             self._n_guess = n_g
         self._n_safe = 0
+        self._reach_dropped = False  # limit_reach left out of one ask (see _maximize_acquisition)
         if self.safe_start_used:
             self._start_safe()
             for m in self._outcomes.models:  # the safe set bounds every proposal: the models are not widened
@@ -640,6 +649,7 @@ class Engine:
     def _ask_with_info(self) -> Suggestion:
         k = self.n_trials + len(self.pending)
         self._acq_info: dict[str, Any] = {}
+        self._reach_dropped = False
         s: Suggestion | None = None
         if self._n_safe and k == 1 and len(self.observations) == 1:
             self._say_safe_start_broke(self.observations[0])
@@ -732,13 +742,37 @@ class Engine:
             if chk.size:
                 ok = np.array(ok, dtype=bool)
                 ok[chk] = outc.retreat_prob(U[chk]) <= outc.level
-        if self.config.limit_reach > 0.0 and n >= self.n_initial and not self._n_safe and not outc.has_prior:
-            # after the design: within limit_reach of a run that kept every limit (once one has; see EngineConfig)
-            kept = self._kept_runs()
-            if kept.shape[0]:
-                d2 = np.min(np.sum((U[:, None, :] - kept[None, :, :]) ** 2, axis=2), axis=1)
-                ok = np.asarray(ok, dtype=bool) & (d2 <= self.config.limit_reach**2)
+        near = self._within_reach(U, outc)
+        if near is not None:
+            ok = np.asarray(ok, dtype=bool) & near
         return np.asarray(ok)
+
+    def _within_reach(self, U: FloatArray, outc: OutcomeModels) -> NDArray[np.bool_] | None:
+        """With ``limit_reach`` in use (limits without an outcome prior nor a safe start, after the design, once a run
+        kept every limit): the rows of ``U`` within its radius of such a run; else None."""
+        kept = None if self._reach_dropped else self._reach_centres(outc)
+        if kept is None:
+            return None
+        d2 = np.min(np.sum((U[:, None, :] - kept[None, :, :]) ** 2, axis=2), axis=1)
+        return np.asarray(d2 <= self.limit_reach_radius**2)
+
+    def _reach_centres(self, outc: OutcomeModels) -> FloatArray | None:
+        """The runs (unit cube) that kept every limit, when ``limit_reach`` is in use (see :meth:`_within_reach`)."""
+        if not (
+            self.config.limit_reach > 0.0
+            and len(self.observations) >= self.n_initial
+            and not self._n_safe
+            and not outc.has_prior
+        ):
+            return None
+        kept = self._kept_runs()
+        return kept if kept.shape[0] else None
+
+    @property
+    def limit_reach_radius(self) -> float:
+        """``limit_reach``'s radius in this space (unit cube, Euclidean): the value given in 2-D, scaled by
+        sqrt(d / 2) (a typical distance between points of the unit cube grows as sqrt(d)); 0 = off."""
+        return self.config.limit_reach * math.sqrt(self.space.dim / 2.0)
 
     def _trend_fallback(self) -> bool:
         """The least risky calibration is judged by the retreat's model (a linear trend): while no run has kept every
@@ -1136,6 +1170,7 @@ class Engine:
         return _nei_mixture(neis)
 
     def _maximize_acquisition(self) -> FloatArray:
+        self._reach_dropped = False  # set for this ask when limit_reach leaves no candidate within the level
         gp = self._model()
         d = self.space.dim
         X_obs = gp.X
@@ -1257,6 +1292,11 @@ class Engine:
                     )
                     return np.asarray(face[int(np.argmax(sd))], dtype=float)
         ok = allowed(cand)
+        if not np.any(ok) and outc is not None and self._within_reach(cand, outc) is not None:
+            # limit_reach leaves no candidate within the level (in many dimensions few lie within its reach): this ask
+            # goes without it, as before it existed, rather than to the least risky calibration anywhere
+            self._reach_dropped = True
+            ok = allowed(cand)
         if not np.any(ok):
             if outc is None:
                 return self.rng.random(d)
