@@ -187,6 +187,17 @@ class SummaryError(Exception):
     """Results that must not be summarized together (they record different runs' arguments)."""
 
 
+def _canonical(key: str, value: Any) -> str:
+    """A recorded value as compared between files: the bac config as the JSON it parses to (``{"a":1}`` and
+    ``{"a": 1}`` are one config), the rest as recorded."""
+    if key == "bac_config" and isinstance(value, str) and value.strip():
+        try:
+            value = json.loads(value)
+        except json.JSONDecodeError:
+            pass  # compared as written
+    return json.dumps(value, sort_keys=True)
+
+
 def pooled_run(runs: list[dict[str, Any] | None], results: list[dict[str, Any]]) -> dict[str, Any]:
     """What the results files' ``run`` records (None: a file written before it, or without the key) say of
     RUN_KEYS together: the one value all record, None when a file records none ("unknown"); files that record
@@ -198,15 +209,17 @@ def pooled_run(runs: list[dict[str, Any] | None], results: list[dict[str, Any]])
     seed_lists = [r.get("seed_list") if r is not None else None for r in runs]
     out["seed_list"] = True if any(seed_lists) else (None if None in seed_lists else False)
     for key in RUN_KEYS:
-        vals = {json.dumps(r[key], sort_keys=True) for r in runs if r is not None and key in r}
+        vals = {_canonical(key, r[key]) for r in runs if r is not None and key in r}
         if len(vals) > 1:
             raise SummaryError(f"the files record different {key}: {', '.join(sorted(vals))}: summarize them apart")
         known = bool(vals) and all(r is not None and key in r for r in runs)
-        out[key] = json.loads(vals.pop()) if known else None
+        out[key] = next(r[key] for r in runs if r is not None) if known else None  # (the first file's spelling)
     lengths = {len(r["gaps"]) for r in results}
     if len(lengths) > 1:
         raise SummaryError(f"the results hold campaigns of {sorted(lengths)} runs: summarize them apart")
-    out["runs_per_campaign"] = lengths.pop() if lengths else out["budget"]
+    if not lengths:
+        raise SummaryError("the files hold no campaigns: nothing to summarize")
+    out["runs_per_campaign"] = lengths.pop()
     if out["budget"] is not None and out["runs_per_campaign"] != out["budget"]:
         raise SummaryError(f"the files record budget {out['budget']} but hold campaigns of {out['runs_per_campaign']}")
     return out

@@ -358,7 +358,7 @@ def test_a_safe_start_drives_the_baseline_first_and_grows_within_the_limit(procs
         "constraints:=['peak_accel_z<=6.0']",
         "safe_start:=true",
         "limit_trend_far:=0.2",
-        "limit_reach:=0.15",
+        "limit_reach:=0.2",  # not the default 0.15: the journal must show the parameter reached the engine
     )
     agent = start_agent(procs, "agent", cdir, *params)
     assert wait_exit(agent, 120, "bo_agent to finish") == 0, procs.log("agent")
@@ -366,7 +366,7 @@ def test_a_safe_start_drives_the_baseline_first_and_grows_within_the_limit(procs
     start = next(e for e in ev if e["event"] == "campaign_started")
     baseline = {"damping_front": 0.5, "damping_rear": 0.5}  # controller_i.yaml's baseline
     assert start["config"]["safe_start"] == baseline
-    assert start["config"]["limit_trend_far"] == 0.2 and start["config"]["limit_reach"] == 0.15
+    assert start["config"]["limit_trend_far"] == 0.2 and start["config"]["limit_reach"] == 0.2
     proposed = [e for e in ev if e["event"] == "trial_proposed"]
     assert proposed[0]["reason"] == "safe" and proposed[0]["params"] == baseline
     scored = [e for e in ev if e["event"] == "trial_scored"]

@@ -14,7 +14,7 @@ from __future__ import annotations
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Any, TypeVar
 
 from bac_agent.bo.baselines import GridStrategy, RandomStrategy
 from bac_agent.bo.constraints import parse_limits
@@ -29,6 +29,8 @@ from bac_agent.transfer import summary as source_summary
 from bac_common.errors import BacError
 from bac_common.paramspace import CalibrationDefinition
 from bac_common.paths import resolve_definition
+
+_T = TypeVar("_T")
 
 STRATEGIES = ("bo", "grid", "random")
 START_FROM = ("guess", "design")
@@ -204,25 +206,22 @@ def _build(s: AgentSettings, definition: CalibrationDefinition, cdir: Path, cid:
         and not (isinstance(started_config, dict) and "safe_start" not in started_config)
         else None
     )
-    # a campaign started before limit_trend (its journal has no such key) resumes as it ran: without it
-    limit_trend = s.limit_trend and not (isinstance(started_config, dict) and "limit_trend" not in started_config)
-    # a campaign started before limit_far_sd (no such key) resumes as it ran: without it (0)
-    limit_far_sd = 0.0 if isinstance(started_config, dict) and "limit_far_sd" not in started_config else s.limit_far_sd
-    # (the same for limit_trend_far (opt-in) and limit_reach (the default since 2026-11-25), bo_agent parameters since
-    # 2026-11-25: 0, off)
-    limit_trend_far = (
-        0.0 if isinstance(started_config, dict) and "limit_trend_far" not in started_config else s.limit_trend_far
-    )
-    limit_reach = 0.0 if isinstance(started_config, dict) and "limit_reach" not in started_config else s.limit_reach
-    # a campaign started before the model average over two lengthscale priors (no such key) resumes without it
-    ls_average = 0.0 if isinstance(started_config, dict) and "gp_ls_average" not in started_config else s.gp_ls_average
-    # a campaign started before the exploration along the faces (no such key) resumes without it
-    face_explore = 0 if isinstance(started_config, dict) and "face_explore" not in started_config else s.face_explore
-    # a campaign started before the transfer average's model without the source averaged over both lengthscale
-    # priors (no such key) resumes with its one fit
-    prior_average_ls = s.prior_average_ls and not (
-        isinstance(started_config, dict) and "prior_average_ls" not in started_config
-    )
+
+    def as_ran(key: str, value: _T, before: _T) -> _T:
+        """``value``, or ``before`` for a campaign whose journal has no such key: started before the option existed,
+        it resumes as it ran."""
+        return before if isinstance(started_config, dict) and key not in started_config else value
+
+    # without: limit_trend, the limits' models widened far from the runs (limit_far_sd), limit_trend_far and
+    # limit_reach (bo_agent parameters since 2026-11-25), the model average over two lengthscale priors, the
+    # exploration along the faces, the transfer average's model without the source over both lengthscale priors
+    limit_trend = as_ran("limit_trend", s.limit_trend, False)
+    limit_far_sd = as_ran("limit_far_sd", s.limit_far_sd, 0.0)
+    limit_trend_far = as_ran("limit_trend_far", s.limit_trend_far, 0.0)
+    limit_reach = as_ran("limit_reach", s.limit_reach, 0.0)
+    ls_average = as_ran("gp_ls_average", s.gp_ls_average, 0.0)
+    face_explore = as_ran("face_explore", s.face_explore, 0)
+    prior_average_ls = as_ran("prior_average_ls", s.prior_average_ls, False)
     # what the parameters ask and the resumed journal overrides: said, not silent (the parameters are read-only)
     overridden: list[tuple[str, str]] = []
     before = isinstance(started_config, dict) and "outcome_priors" not in started_config
@@ -234,12 +233,10 @@ def _build(s: AgentSettings, definition: CalibrationDefinition, cdir: Path, cid:
         overridden.append(("limit_trend true", "limit_trend false"))
     if s.strategy == "bo" and ls_average != s.gp_ls_average:
         overridden.append((f"gp_ls_average {s.gp_ls_average:g}", f"gp_ls_average {ls_average:g}, one fit"))
-    if s.strategy == "bo" and constraints and limit_far_sd != s.limit_far_sd:
-        overridden.append((f"limit_far_sd {s.limit_far_sd:g}", f"limit_far_sd {limit_far_sd:g}"))
-    if s.strategy == "bo" and constraints and limit_trend_far != s.limit_trend_far:
-        overridden.append((f"limit_trend_far {s.limit_trend_far:g}", f"limit_trend_far {limit_trend_far:g}"))
-    if s.strategy == "bo" and constraints and limit_reach != s.limit_reach:
-        overridden.append((f"limit_reach {s.limit_reach:g}", f"limit_reach {limit_reach:g}"))
+    ran_limits = {"limit_far_sd": limit_far_sd, "limit_trend_far": limit_trend_far, "limit_reach": limit_reach}
+    for key, ran in ran_limits.items():
+        if s.strategy == "bo" and constraints and ran != getattr(s, key):
+            overridden.append((f"{key} {getattr(s, key):g}", f"{key} {ran:g}"))
     # (prior_average_ls acts only in the transfer average with the lengthscale average on)
     if s.strategy == "bo" and source is not None and s.prior_average and ls_average > 0 and not prior_average_ls:
         overridden.append(("prior_average_ls true", "prior_average_ls false"))

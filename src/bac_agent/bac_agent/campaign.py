@@ -1003,7 +1003,8 @@ RESUME_MAY_CHANGE = frozenset(
 # 2026-11-24: no outcome priors, no limit on the transfer prior's runs, no safe start, no model average, the bowl
 # unchecked by leave-one-out; 2026-11-25: the outcome limits' least risky calibrations and design without the
 # retreat's trend, one GP fit without the model average over two lengthscale priors, no exploration along the faces;
-# neither of the opt-in limit_trend_far and limit_reach, journaled since they became bo_agent parameters)
+# neither limit_trend_far (opt-in) nor limit_reach (the default since 2026-11-25), journaled since they became
+# bo_agent parameters)
 ADDED_LATER: Mapping[str, Any] = {
     "recommend_rule": "mean",
     "outcome_priors": {},

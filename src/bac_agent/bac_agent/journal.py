@@ -212,8 +212,8 @@ def journaled_engine_options(started: Mapping[str, Any]) -> dict[str, Any]:
         options["constraint_level"] = float(cfg.get("constraint_level", 0.05) or 0.05)
         options["limit_trend"] = bool(cfg.get("limit_trend", False))  # a journal from before it: without
         options["limit_far_sd"] = float(cfg.get("limit_far_sd", 0.0) or 0.0)  # (the same)
-        options["limit_trend_far"] = float(cfg.get("limit_trend_far", 0.0) or 0.0)  # (the same; opt-in)
-        options["limit_reach"] = float(cfg.get("limit_reach", 0.0) or 0.0)  # (the same; opt-in)
+        options["limit_trend_far"] = float(cfg.get("limit_trend_far", 0.0) or 0.0)  # (the same)
+        options["limit_reach"] = float(cfg.get("limit_reach", 0.0) or 0.0)  # (the same)
         if cfg.get("outcome_priors"):  # what the prior source knew of the limited outcomes
             options["outcome_priors"] = {str(k): dict(v) for k, v in cfg["outcome_priors"].items()}
     return options
