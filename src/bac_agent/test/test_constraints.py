@@ -383,11 +383,12 @@ def test_in_20d_limit_reach_is_left_out_of_an_ask_where_it_leaves_no_candidate_w
     # acquisition's proposal, the one made without the option. Seeds 1, 2: the reach has candidates and bounds it
     kept, on, info = _reach_ask_20d(0, 0.15)
     assert "no_safe_candidate" not in info, info
+    assert "within 0.474 (limit_reach)" in info["limit_reach_left_out"]  # the proposal's record says so
     assert np.array_equal(on, _reach_ask_20d(0, 0.0)[1])
     for seed in (1, 2):
         kept, on, info = _reach_ask_20d(seed, 0.15)
         off = _reach_ask_20d(seed, 0.0)[1]
-        assert "no_safe_candidate" not in info, info
+        assert "no_safe_candidate" not in info and "limit_reach_left_out" not in info, info
         assert float(np.min(np.linalg.norm(kept - on, axis=1))) <= 0.15 * math.sqrt(10.0) + 1e-9
         assert float(np.min(np.linalg.norm(kept - off, axis=1))) > 0.9, off  # without it: the far jump
         assert 50.0 + 20.0 * on[2] <= 58.0, on

@@ -727,8 +727,8 @@ class Engine:
     def _design_allowed(self, U: FloatArray) -> NDArray[np.bool_]:
         """The outcome models allow the rows of ``U``; with ``limit_trend``, during the initial design (fewer runs told
         than ``n_initial``), the retreat's model with a linear trend must allow them too, and after it those farther
-        than ``limit_trend_far`` from every run; with ``limit_reach``, after the design, only rows within it of a run
-        that kept every limit (see EngineConfig)."""
+        than ``limit_trend_far`` from every run; with ``limit_reach``, after the design, only rows within
+        ``limit_reach_radius`` (``limit_reach`` sqrt(d/2)) of a run that kept every limit (see EngineConfig)."""
         outc = self._outcome_models()
         ok = outc.allowed(U)
         n = len(self.observations)
@@ -1281,22 +1281,42 @@ class Engine:
                 ok &= _in_balls(self._snap(U), *safe)
             return ok & self._design_allowed(U) if outc is not None else ok
 
-        if self.config.face_explore > 0 and safe is None and d <= FACE_MAX_DIM:
+        def face_proposal() -> FloatArray | None:
+            """After a stall at a face of the box, the allowed calibration along it the model knows least of."""
+            if not (self.config.face_explore > 0 and safe is None and d <= FACE_MAX_DIM):
+                return None
             face = self._face_candidates()
-            if face is not None:
-                face_ok = allowed(face)
-                if np.any(face_ok):
-                    sd = np.where(face_ok, self._mean_var(gp, face)[1], -np.inf)
-                    self._acq_info["acquisition"] = (
-                        "exploration along a face: the runs stalled at the recommendation on it (face_explore)"
-                    )
-                    return np.asarray(face[int(np.argmax(sd))], dtype=float)
+            if face is None:
+                return None
+            face_ok = allowed(face)
+            if not np.any(face_ok):
+                return None
+            sd = np.where(face_ok, self._mean_var(gp, face)[1], -np.inf)
+            self._acq_info["acquisition"] = (
+                "exploration along a face: the runs stalled at the recommendation on it (face_explore)"
+            )
+            return np.asarray(face[int(np.argmax(sd))], dtype=float)
+
+        proposal = face_proposal()
+        if proposal is not None:
+            return proposal
         ok = allowed(cand)
         if not np.any(ok) and outc is not None and self._within_reach(cand, outc) is not None:
             # limit_reach leaves no candidate within the level (in many dimensions few lie within its reach): this ask
-            # goes without it, as before it existed, rather than to the least risky calibration anywhere
+            # goes without it, as before it existed (the face exploration judged again too), rather than to the
+            # least risky calibration anywhere; the proposal's record says so
             self._reach_dropped = True
+            left_out = (
+                f"no candidate within {self.limit_reach_radius:.3g} (limit_reach) of a run that kept every limit is "
+                "within the level: this ask went without the reach"
+            )
+            proposal = face_proposal()
+            if proposal is not None:
+                self._acq_info["limit_reach_left_out"] = left_out
+                return proposal
             ok = allowed(cand)
+            if np.any(ok):  # (else nothing is within the level at all: the least risky calibration, which says so)
+                self._acq_info["limit_reach_left_out"] = left_out
         if not np.any(ok):
             if outc is None:
                 return self.rng.random(d)
