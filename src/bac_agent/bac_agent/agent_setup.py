@@ -14,7 +14,7 @@ from __future__ import annotations
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, TypeVar
+from typing import Any, TypeVar, cast
 
 from bac_agent.bo.baselines import GridStrategy, RandomStrategy
 from bac_agent.bo.constraints import parse_limits
@@ -22,7 +22,7 @@ from bac_agent.bo.engine import LIMIT_FAR_SD, LIMIT_REACH, Engine, EngineConfig
 from bac_agent.bo.gp import GPConfig
 from bac_agent.bo.prior import SourceSurface
 from bac_agent.bo.space import SearchSpace
-from bac_agent.campaign import CampaignConfig, Optimizer
+from bac_agent.campaign import ADDED_LATER, CampaignConfig, Optimizer
 from bac_agent.journal import Journal
 from bac_agent.transfer import load_outcome_sources, load_source
 from bac_agent.transfer import summary as source_summary
@@ -207,21 +207,22 @@ def _build(s: AgentSettings, definition: CalibrationDefinition, cdir: Path, cid:
         else None
     )
 
-    def as_ran(key: str, value: _T, before: _T) -> _T:
-        """``value``, or ``before`` for a campaign whose journal has no such key: started before the option existed,
-        it resumes as it ran."""
-        return before if isinstance(started_config, dict) and key not in started_config else value
+    def as_ran(key: str, value: _T) -> _T:
+        """``value``, or what the agent did before the option existed (campaign.ADDED_LATER) for a campaign whose
+        journal has no such key: it resumes as it ran."""
+        missing = isinstance(started_config, dict) and key not in started_config
+        return cast(_T, ADDED_LATER[key]) if missing else value
 
     # without: limit_trend, the limits' models widened far from the runs (limit_far_sd), limit_trend_far and
     # limit_reach (bo_agent parameters since 2026-11-25), the model average over two lengthscale priors, the
     # exploration along the faces, the transfer average's model without the source over both lengthscale priors
-    limit_trend = as_ran("limit_trend", s.limit_trend, False)
-    limit_far_sd = as_ran("limit_far_sd", s.limit_far_sd, 0.0)
-    limit_trend_far = as_ran("limit_trend_far", s.limit_trend_far, 0.0)
-    limit_reach = as_ran("limit_reach", s.limit_reach, 0.0)
-    ls_average = as_ran("gp_ls_average", s.gp_ls_average, 0.0)
-    face_explore = as_ran("face_explore", s.face_explore, 0)
-    prior_average_ls = as_ran("prior_average_ls", s.prior_average_ls, False)
+    limit_trend = as_ran("limit_trend", s.limit_trend)
+    limit_far_sd = as_ran("limit_far_sd", s.limit_far_sd)
+    limit_trend_far = as_ran("limit_trend_far", s.limit_trend_far)
+    limit_reach = as_ran("limit_reach", s.limit_reach)
+    ls_average = as_ran("gp_ls_average", s.gp_ls_average)
+    face_explore = as_ran("face_explore", s.face_explore)
+    prior_average_ls = as_ran("prior_average_ls", s.prior_average_ls)
     # what the parameters ask and the resumed journal overrides: said, not silent (the parameters are read-only)
     overridden: list[tuple[str, str]] = []
     before = isinstance(started_config, dict) and "outcome_priors" not in started_config

@@ -649,7 +649,7 @@ class Engine:
     def _ask_with_info(self) -> Suggestion:
         k = self.n_trials + len(self.pending)
         self._acq_info: dict[str, Any] = {}
-        self._reach_dropped = False
+        self._reach_dropped = False  # set for this ask when limit_reach leaves no candidate within the level
         s: Suggestion | None = None
         if self._n_safe and k == 1 and len(self.observations) == 1:
             self._say_safe_start_broke(self.observations[0])
@@ -1170,7 +1170,6 @@ class Engine:
         return _nei_mixture(neis)
 
     def _maximize_acquisition(self) -> FloatArray:
-        self._reach_dropped = False  # set for this ask when limit_reach leaves no candidate within the level
         gp = self._model()
         d = self.space.dim
         X_obs = gp.X
@@ -1281,11 +1280,10 @@ class Engine:
                 ok &= _in_balls(self._snap(U), *safe)
             return ok & self._design_allowed(U) if outc is not None else ok
 
+        face = self._face_candidates() if self.config.face_explore > 0 and safe is None and d <= FACE_MAX_DIM else None
+
         def face_proposal() -> FloatArray | None:
             """After a stall at a face of the box, the allowed calibration along it the model knows least of."""
-            if not (self.config.face_explore > 0 and safe is None and d <= FACE_MAX_DIM):
-                return None
-            face = self._face_candidates()
             if face is None:
                 return None
             face_ok = allowed(face)
@@ -1301,7 +1299,7 @@ class Engine:
         if proposal is not None:
             return proposal
         ok = allowed(cand)
-        if not np.any(ok) and outc is not None and self._within_reach(cand, outc) is not None:
+        if not np.any(ok) and outc is not None and not self._reach_dropped and self._reach_centres(outc) is not None:
             # limit_reach leaves no candidate within the level (in many dimensions few lie within its reach): this ask
             # goes without it, as before it existed (the face exploration judged again too), rather than to the
             # least risky calibration anywhere; the proposal's record says so
