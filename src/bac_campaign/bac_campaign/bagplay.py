@@ -19,9 +19,10 @@ from typing import Any, cast
 from rosbags.highlevel import AnyReader
 from rosbags.typesys.store import Typestore
 
+from bac_common.contracts import TOPIC_TRIAL
 from bac_common.errors import BacError
 from bac_measure.mdfio import ChannelMap, is_mdf
-from bac_measure.recording import bac_typestore
+from bac_measure.recording import bac_typestore, cdr_stamp_ns
 
 
 class BagReadError(BacError, OSError):
@@ -51,6 +52,31 @@ def expand_bag_paths(paths: Sequence[str | Path]) -> list[Path]:
         else:
             out.append(p)
     return out
+
+
+def launch_groups(paths: Sequence[Path]) -> list[list[Path]]:
+    """``paths`` cut into runs of consecutive bags that one launch of the graph recorded (a campaign folder's
+    ``launches.jsonl``): their stamps share one clock, so a player can merge them into one timeline. A bag that no
+    index names (a foreign bag, an MDF file, a bag from before the index) is a group of its own."""
+    from bac_campaign.launches import LAUNCH_INDEX_NAME, launch_of_bags
+
+    indexes: dict[Path, dict[str, tuple[int, str]]] = {}
+    groups: list[list[Path]] = []
+    last: tuple[Path, str] | None = None
+    for p in paths:
+        camp = p.parent.parent
+        key: tuple[Path, str] | None = None
+        if p.parent.name == "bags" and (camp / LAUNCH_INDEX_NAME).is_file():
+            if camp not in indexes:
+                indexes[camp] = launch_of_bags(camp)
+            launch = indexes[camp].get(p.name)
+            key = (camp, launch[1]) if launch is not None else None
+        if key is not None and key == last:
+            groups[-1].append(p)
+        else:
+            groups.append([p])
+        last = key
+    return groups
 
 
 def parse_topic_map(items: Sequence[str]) -> dict[str, str]:
@@ -103,6 +129,29 @@ def mdf_messages(path: Path, topics: Sequence[str], channels: ChannelMap | None 
         items += [BagMessage("vehicle/odom", ODOM_TYPE, t, b) for t, b in odom_to_cdr(rec.odom)]
     items.sort(key=lambda m: m.time_ns)
     yield from items
+
+
+def in_event_order(messages: Sequence[BagMessage]) -> list[BagMessage]:
+    """One bag's messages in the order their events happened: each ``bac/trial`` message at its own stamp (when
+    the agent entered that state), every other message at its bag time (a stream's header stamp, as
+    campaign_recorder writes it); stable, so messages at the same time keep their recorded order.
+
+    The recorder took a trial message's bag time from its own clock when the message arrived (until
+    2026-11-28). On a loaded machine that clock lags the simulation by up to seconds: a run's SCORED message, or
+    the next run's READY_TO_DRIVE, landed before the last IMU samples of the run's window, and a player that holds
+    it until the replayed run is scored (as bac's does) never played those samples. The stamp puts the message
+    after every sample the live chain had used. A trial message without a stamp (0) keeps its bag time. Given the
+    bags of one launch (:func:`launch_groups`) together, a run's late samples that the recorder wrote into the
+    next trial's bag also come back before that trial starts.
+    """
+
+    def when(m: BagMessage) -> int:
+        if m.topic == TOPIC_TRIAL:
+            return cdr_stamp_ns(m.cdr) or m.time_ns
+        return m.time_ns
+
+    timed = sorted(((when(m), k, m) for k, m in enumerate(messages)), key=lambda x: (x[0], x[1]))
+    return [m if t == m.time_ns else dataclasses.replace(m, time_ns=t) for t, _, m in timed]
 
 
 def iter_bag_messages(

@@ -13,7 +13,9 @@ message goes to a trial by its *stamp*: trial k owns the stamps from its first
 ``bac/trial`` message up to the next trial's. The previous trial's bag stays
 open for ``close_grace_s`` after the next trial starts, to take late arrivals;
 Trial, RunSegment, RunScore and Calibration messages go by their trial id (and
-wait for their trial's announcement when they overtake it).
+wait for their trial's announcement when they overtake it). Stamped streams and
+``bac/trial`` are written at their own stamps (a Trial's: when the agent entered
+that state), the other messages at their arrival on this node's clock.
 
 Each bag opened is first written down in ``<campaign_dir>/launches.jsonl``
 with this process's launch id (:mod:`bac_campaign.launches`): a resumed campaign
@@ -169,9 +171,13 @@ class CampaignRecorderNode(BacNode):
                 trial = deserialize_message(data, Trial)
                 if trial.trial_id == 0:
                     return
+                at = cdr_stamp_ns(data) or now_ns
                 if trial.trial_id not in self._open_bags and trial.trial_id > self._current:
-                    self._start_trial(trial.trial_id, cdr_stamp_ns(data) or now_ns)
-                self._write(trial.trial_id, topic, now_ns, data)
+                    self._start_trial(trial.trial_id, at)
+                # at its stamp (when the agent entered the state), like the streams at theirs: this process's clock
+                # lags the simulation on a loaded machine, and a SCORED message written at its arrival came before
+                # the run's last samples (a player that holds it until the run is scored then stalled)
+                self._write(trial.trial_id, topic, at, data)
                 if trial.state == Trial.STATE_DONE:
                     self._close_later(trial.trial_id)
                 return

@@ -26,7 +26,14 @@ from rclpy.clock_type import ClockType
 from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy
 from rclpy.serialization import deserialize_message
 
-from bac_campaign.bagplay import BagMessage, expand_bag_paths, iter_bag_messages, parse_topic_map
+from bac_campaign.bagplay import (
+    BagMessage,
+    expand_bag_paths,
+    in_event_order,
+    iter_bag_messages,
+    launch_groups,
+    parse_topic_map,
+)
 from bac_common.contracts import TOPIC_CLOCK, TOPIC_RUN_SCORE, TOPIC_TRIAL
 from bac_common.rosnode import QOS_EVENTS, QOS_LATCHED, BacNode, run_node
 from bac_measure.recording import OLD_MESSAGE_PAD
@@ -149,6 +156,7 @@ class BagPlayerNode(BacNode):
         queue: list[BagMessage] = []
         recorded: dict[RunKey, float] = {}
         self.expected: set[RunKey] = set()
+        plays: dict[Path, list[BagMessage]] = {}
         for k, path in enumerate(self.paths, start=1):
             msgs = list(iter_bag_messages(path, [*PLAY_TOPICS, TOPIC_RUN_SCORE], self.topic_map, self.channels))
             play = [m for m in msgs if m.topic in PLAY_TOPICS]
@@ -161,7 +169,7 @@ class BagPlayerNode(BacNode):
                 if t.state == Trial.STATE_READY_TO_DRIVE:
                     self.expected.add((t.campaign_id, t.trial_id, t.attempt))
             if not trials and self.synthesize_trials and play:
-                t0 = play[0].time_ns - 1
+                t0 = min(m.time_ns for m in play) - 1
                 trial = Trial(
                     campaign_id=self.campaign_id,
                     trial_id=k,
@@ -178,8 +186,12 @@ class BagPlayerNode(BacNode):
 
                 play.insert(0, BagMessage(TOPIC_TRIAL, "bac_msgs/msg/Trial", t0, serialize_message(trial)))
                 self.expected.add((self.campaign_id, k, 1))
+            plays[path] = play
+        # the bags of one launch as one timeline in event order (bagplay.in_event_order), one launch after another
+        for group in launch_groups(self.paths):
+            play = in_event_order([m for p in group for m in plays[p]])
             if queue and play and play[0].time_ns < queue[-1].time_ns:
-                self.get_logger().warning(f"{path} starts before the previous bag ends: the clock will jump back")
+                self.get_logger().warning(f"{group[0]} starts before the previous bag ends: the clock will jump back")
             queue.extend(play)
         return queue, recorded
 
