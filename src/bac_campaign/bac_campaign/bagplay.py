@@ -54,29 +54,62 @@ def expand_bag_paths(paths: Sequence[str | Path]) -> list[Path]:
     return out
 
 
-def launch_groups(paths: Sequence[Path]) -> list[list[Path]]:
+@dataclass(frozen=True)
+class LaunchGroup:
+    """Consecutive bags (their positions in the list given) that one launch of the graph recorded, or one bag."""
+
+    positions: list[int]
+    indexed: bool  # named by a campaign's launches.jsonl: campaign_recorder wrote it (streams at their stamps)
+
+
+def launch_groups(paths: Sequence[Path], notes: list[str] | None = None) -> list[LaunchGroup]:
     """``paths`` cut into runs of consecutive bags that one launch of the graph recorded (a campaign folder's
     ``launches.jsonl``): their stamps share one clock, so a player can merge them into one timeline. A bag that no
-    index names (a foreign bag, an MDF file, a bag from before the index) is a group of its own."""
+    index names (a foreign bag, an MDF file, a bag from before the index, a bag given a second time in the same
+    run) is a group of its own; an unreadable index is named in ``notes`` and its bags are taken as not indexed."""
+    from bac_agent.journal import JournalError
     from bac_campaign.launches import LAUNCH_INDEX_NAME, launch_of_bags
 
     indexes: dict[Path, dict[str, tuple[int, str]]] = {}
-    groups: list[list[Path]] = []
+    groups: list[LaunchGroup] = []
     last: tuple[Path, str] | None = None
-    for p in paths:
+    for k, p in enumerate(paths):
         camp = p.parent.parent
         key: tuple[Path, str] | None = None
         if p.parent.name == "bags" and (camp / LAUNCH_INDEX_NAME).is_file():
             if camp not in indexes:
-                indexes[camp] = launch_of_bags(camp)
+                try:
+                    indexes[camp] = launch_of_bags(camp)
+                except JournalError as exc:
+                    indexes[camp] = {}
+                    if notes is not None:
+                        notes.append(f"{camp / LAUNCH_INDEX_NAME} is unreadable ({exc}): its bags play as recorded")
             launch = indexes[camp].get(p.name)
             key = (camp, launch[1]) if launch is not None else None
-        if key is not None and key == last:
-            groups[-1].append(p)
+        same = key is not None and key == last and all(paths[i] != p for i in groups[-1].positions)
+        if same:
+            groups[-1].positions.append(k)
         else:
-            groups.append([p])
+            groups.append(LaunchGroup([k], key is not None))
         last = key
     return groups
+
+
+def play_timeline(
+    paths: Sequence[Path], plays: Sequence[Sequence[BagMessage]], notes: list[str] | None = None
+) -> list[BagMessage]:
+    """The messages to play, ``plays[k]`` being bag ``paths[k]``'s in recorded order: the bags of one launch
+    (:func:`launch_groups`) as one timeline in event order (:func:`in_event_order`), one group after another; any
+    other bag as it was recorded (its bag times may be arrival times, on another clock than the stamps). Where a
+    group starts before the previous one ends (the clock will jump back), ``notes`` says so."""
+    queue: list[BagMessage] = []
+    for group in launch_groups(paths, notes):
+        msgs = [m for k in group.positions for m in plays[k]]
+        play = in_event_order(msgs) if group.indexed else msgs
+        if queue and play and play[0].time_ns < queue[-1].time_ns and notes is not None:
+            notes.append(f"{paths[group.positions[0]]} starts before the previous bag ends: the clock will jump back")
+        queue.extend(play)
+    return queue
 
 
 def parse_topic_map(items: Sequence[str]) -> dict[str, str]:
@@ -132,17 +165,18 @@ def mdf_messages(path: Path, topics: Sequence[str], channels: ChannelMap | None 
 
 
 def in_event_order(messages: Sequence[BagMessage]) -> list[BagMessage]:
-    """One bag's messages in the order their events happened: each ``bac/trial`` message at its own stamp (when
-    the agent entered that state), every other message at its bag time (a stream's header stamp, as
-    campaign_recorder writes it); stable, so messages at the same time keep their recorded order.
+    """Messages of bags campaign_recorder wrote in the order their events happened: each ``bac/trial`` message at
+    its own stamp (when the agent entered that state), every other message at its bag time (the recorder writes a
+    stream sample at its header stamp); stable, so messages at the same time keep their recorded order.
 
-    The recorder took a trial message's bag time from its own clock when the message arrived (until
-    2026-11-28). On a loaded machine that clock lags the simulation by up to seconds: a run's SCORED message, or
-    the next run's READY_TO_DRIVE, landed before the last IMU samples of the run's window, and a player that holds
-    it until the replayed run is scored (as bac's does) never played those samples. The stamp puts the message
-    after every sample the live chain had used. A trial message without a stamp (0) keeps its bag time. Given the
-    bags of one launch (:func:`launch_groups`) together, a run's late samples that the recorder wrote into the
-    next trial's bag also come back before that trial starts.
+    The recorder wrote a trial message at its own clock when the message arrived (until 2026-11-28). On a loaded
+    machine that clock lags the simulation by up to seconds: a run's SCORED message, or the next run's
+    READY_TO_DRIVE, landed before the last IMU samples of the run's window, and a player that holds it until the
+    replayed run is scored (as bac's does) never played those samples. At its stamp the message comes after every
+    sample stamped before it; the agent waits idle for a run's score, so its clock, and the SCORED stamp, are
+    current when the score comes. A trial message without a stamp (0) keeps its bag time. Given all the bags of
+    one launch (:func:`play_timeline`), a run's late samples that the recorder wrote into the next trial's bag
+    also come back before that trial starts.
     """
 
     def when(m: BagMessage) -> int:
@@ -150,8 +184,10 @@ def in_event_order(messages: Sequence[BagMessage]) -> list[BagMessage]:
             return cdr_stamp_ns(m.cdr) or m.time_ns
         return m.time_ns
 
-    timed = sorted(((when(m), k, m) for k, m in enumerate(messages)), key=lambda x: (x[0], x[1]))
-    return [m if t == m.time_ns else dataclasses.replace(m, time_ns=t) for t, _, m in timed]
+    return [
+        m if t == m.time_ns else dataclasses.replace(m, time_ns=t)
+        for t, m in sorted(((when(m), m) for m in messages), key=lambda tm: tm[0])
+    ]
 
 
 def iter_bag_messages(

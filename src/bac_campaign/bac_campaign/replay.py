@@ -26,14 +26,7 @@ from rclpy.clock_type import ClockType
 from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy
 from rclpy.serialization import deserialize_message
 
-from bac_campaign.bagplay import (
-    BagMessage,
-    expand_bag_paths,
-    in_event_order,
-    iter_bag_messages,
-    launch_groups,
-    parse_topic_map,
-)
+from bac_campaign.bagplay import BagMessage, expand_bag_paths, iter_bag_messages, parse_topic_map, play_timeline
 from bac_common.contracts import TOPIC_CLOCK, TOPIC_RUN_SCORE, TOPIC_TRIAL
 from bac_common.rosnode import QOS_EVENTS, QOS_LATCHED, BacNode, run_node
 from bac_measure.recording import OLD_MESSAGE_PAD
@@ -153,10 +146,9 @@ class BagPlayerNode(BacNode):
 
     # --- loading ------------------------------------------------------------------------
     def _load(self) -> tuple[list[BagMessage], dict[RunKey, float]]:
-        queue: list[BagMessage] = []
         recorded: dict[RunKey, float] = {}
         self.expected: set[RunKey] = set()
-        plays: dict[Path, list[BagMessage]] = {}
+        plays: list[list[BagMessage]] = []
         for k, path in enumerate(self.paths, start=1):
             msgs = list(iter_bag_messages(path, [*PLAY_TOPICS, TOPIC_RUN_SCORE], self.topic_map, self.channels))
             play = [m for m in msgs if m.topic in PLAY_TOPICS]
@@ -186,13 +178,11 @@ class BagPlayerNode(BacNode):
 
                 play.insert(0, BagMessage(TOPIC_TRIAL, "bac_msgs/msg/Trial", t0, serialize_message(trial)))
                 self.expected.add((self.campaign_id, k, 1))
-            plays[path] = play
-        # the bags of one launch as one timeline in event order (bagplay.in_event_order), one launch after another
-        for group in launch_groups(self.paths):
-            play = in_event_order([m for p in group for m in plays[p]])
-            if queue and play and play[0].time_ns < queue[-1].time_ns:
-                self.get_logger().warning(f"{group[0]} starts before the previous bag ends: the clock will jump back")
-            queue.extend(play)
+            plays.append(play)
+        notes: list[str] = []
+        queue = play_timeline(self.paths, plays, notes)  # a launch's bags as one timeline, in event order
+        for note in notes:
+            self.get_logger().warning(note)
         return queue, recorded
 
     # --- playing --------------------------------------------------------------------------

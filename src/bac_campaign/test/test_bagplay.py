@@ -71,31 +71,78 @@ def test_a_trial_message_plays_at_its_stamp_after_the_samples_before_it(tmp_path
     assert [m.cdr for m in in_event_order(msgs) if m.topic == "bac/trial"][-1] == msgs[2].cdr
 
 
-def test_the_bags_of_one_launch_play_as_one_timeline(tmp_path: Path) -> None:
+def _campaign_bags(root: Path, launches: list[list[str]]) -> Path:
+    """A campaign folder whose bags (empty folders) were opened by one recorder process per list."""
+    from bac_campaign.launches import LaunchIndex
+
+    bags = root / "bags"
+    for names in launches:
+        index = LaunchIndex(root)
+        for n in names:
+            (bags / n).mkdir(parents=True)
+            index.bag_opened(bags / n, int(n[6:10]), 0)
+        index.close()
+    return bags
+
+
+def test_the_bags_of_one_launch_are_one_group(tmp_path: Path) -> None:
     """A resumed campaign: trials 1-2 from one launch, trial 2 again and 3 from a second (sim time restarted), then
     a bag no index names. Consecutive bags of one launch form a group; each other bag stands alone."""
     from bac_campaign.bagplay import launch_groups
-    from bac_campaign.launches import LaunchIndex
 
-    bags = tmp_path / "c" / "bags"
-    names = ["trial_0001", "trial_0002", "trial_0002.r1", "trial_0003", "trial_0004"]
-    for n in names:
-        (bags / n).mkdir(parents=True)
-    first = LaunchIndex(tmp_path / "c")
-    first.bag_opened(bags / names[0], 1, 10)
-    first.bag_opened(bags / names[1], 2, 20)
-    first.close()
-    second = LaunchIndex(tmp_path / "c")
-    second.bag_opened(bags / names[2], 2, 5)
-    second.bag_opened(bags / names[3], 3, 15)
-    second.close()
-    other = tmp_path / "other.mcap"
-    paths = [bags / n for n in names] + [other]
-    assert launch_groups(paths) == [
-        [bags / "trial_0001", bags / "trial_0002"],
-        [bags / "trial_0002.r1", bags / "trial_0003"],
-        [bags / "trial_0004"],  # not in the index (recorded before it existed)
-        [other],
-    ]
+    bags = _campaign_bags(tmp_path / "c", [["trial_0001", "trial_0002"], ["trial_0002.r1", "trial_0003"]])
+    (bags / "trial_0004").mkdir()  # recorded before the index existed
+    paths = [bags / n for n in ("trial_0001", "trial_0002", "trial_0002.r1", "trial_0003", "trial_0004")]
+    paths.append(tmp_path / "other.mcap")
+    got = launch_groups(paths)
+    assert [(g.positions, g.indexed) for g in got] == [([0, 1], True), ([2, 3], True), ([4], False), ([5], False)]
     # a launch's bags given out of order are not merged across the other launch's bags
-    assert launch_groups([paths[0], paths[2], paths[1]]) == [[paths[0]], [paths[2]], [paths[1]]]
+    assert [g.positions for g in launch_groups([paths[0], paths[2], paths[1]])] == [[0], [1], [2]]
+    # a campaign given twice: the second pass is a group of its own, not merged into the first
+    assert [g.positions for g in launch_groups([paths[0], paths[1], paths[0], paths[1]])] == [[0, 1], [2, 3]]
+    # an unreadable index: named, and its bags are not indexed
+    (tmp_path / "c" / "launches.jsonl").write_text("{not json\n{damaged\n")  # damaged before its end
+    notes: list[str] = []
+    assert all(not g.indexed for g in launch_groups(paths[:2], notes))
+    assert len(notes) == 1 and "launches.jsonl is unreadable" in notes[0]
+
+
+def test_a_runs_late_samples_in_the_next_trials_bag_play_before_that_trial(tmp_path: Path) -> None:
+    """The recorder lagged: trial 2's READY_TO_DRIVE (stamp 10 s) sits in its bag at 7 s, and trial 1's last
+    samples (9 s, 9.5 s) arrived after trial 1's bag closed, so they are in trial 2's bag. One launch's bags play
+    as one timeline: those samples before trial 2 starts. A bag of no campaign plays as recorded."""
+    from rclpy.serialization import serialize_message
+
+    from bac_campaign.bagplay import play_timeline
+    from bac_measure.bagio import IMU_TYPE
+    from bac_msgs.msg import Trial
+
+    s = 1_000_000_000
+    bags = _campaign_bags(tmp_path / "c", [["trial_0001", "trial_0002"]])
+    ready2 = Trial(campaign_id="c", trial_id=2, attempt=1, state=Trial.STATE_READY_TO_DRIVE)
+    ready2.stamp.sec = 10
+    imu = b"\x00\x01\x00\x00" + bytes(8)
+
+    def sample(t: int) -> BagMessage:
+        return BagMessage("imu/data_raw", IMU_TYPE, t, imu)
+
+    bag1 = [BagMessage("bac/trial", "bac_msgs/msg/Trial", 1 * s, trial_cdr(1)), sample(2 * s), sample(8 * s)]
+    bag2 = [BagMessage("bac/trial", "bac_msgs/msg/Trial", 7 * s, bytes(serialize_message(ready2)))]
+    bag2 += [sample(9 * s), sample(9_500_000_000), sample(11 * s)]
+    notes: list[str] = []
+    got = play_timeline([bags / "trial_0001", bags / "trial_0002"], [bag1, bag2], notes)
+    assert [(m.topic, m.time_ns) for m in got] == [
+        ("bac/trial", 1 * s),
+        ("imu/data_raw", 2 * s),
+        ("imu/data_raw", 8 * s),
+        ("imu/data_raw", 9 * s),
+        ("imu/data_raw", 9_500_000_000),
+        ("bac/trial", 10 * s),
+        ("imu/data_raw", 11 * s),
+    ]
+    assert notes == []
+    # the same messages as bags of no campaign: as recorded (their bag times may be arrival times), the clock
+    # jumping back at the second bag's start
+    got = play_timeline([tmp_path / "a.mcap", tmp_path / "b.mcap"], [bag1, bag2], notes)
+    assert got == bag1 + bag2
+    assert notes == [f"{tmp_path / 'b.mcap'} starts before the previous bag ends: the clock will jump back"]
