@@ -19,6 +19,8 @@ from typing import Any, cast
 from rosbags.highlevel import AnyReader
 from rosbags.typesys.store import Typestore
 
+from bac_agent.journal import JournalError
+from bac_campaign.launches import LAUNCH_INDEX_NAME, launch_of_bags
 from bac_common.contracts import TOPIC_TRIAL
 from bac_common.errors import BacError
 from bac_measure.mdfio import ChannelMap, is_mdf
@@ -67,9 +69,6 @@ def launch_groups(paths: Sequence[Path], notes: list[str] | None = None) -> list
     ``launches.jsonl``): their stamps share one clock, so a player can merge them into one timeline. A bag that no
     index names (a foreign bag, an MDF file, a bag from before the index, a bag given a second time in the same
     run) is a group of its own; an unreadable index is named in ``notes`` and its bags are taken as not indexed."""
-    from bac_agent.journal import JournalError
-    from bac_campaign.launches import LAUNCH_INDEX_NAME, launch_of_bags
-
     indexes: dict[Path, dict[str, tuple[int, str]]] = {}
     groups: list[LaunchGroup] = []
     last: tuple[Path, str] | None = None
