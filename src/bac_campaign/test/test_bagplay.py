@@ -109,8 +109,9 @@ def test_the_bags_of_one_launch_are_one_group(tmp_path: Path) -> None:
 
 def test_a_runs_late_samples_in_the_next_trials_bag_play_before_that_trial(tmp_path: Path) -> None:
     """The recorder lagged: trial 2's READY_TO_DRIVE (stamp 10 s) sits in its bag at 7 s, and trial 1's last
-    samples (9 s, 9.5 s) arrived after trial 1's bag closed, so they are in trial 2's bag. One launch's bags play
-    as one timeline: those samples before trial 2 starts. A bag of no campaign plays as recorded."""
+    samples (9 s, 9.5 s) arrived after trial 1's bag closed, so they are in trial 2's bag, while run 1's SCORED
+    (stamp 9.8 s) is in trial 1's. One launch's bags play as one timeline: those samples before run 1's SCORED and
+    trial 2's start. A bag of no campaign plays as recorded."""
     from rclpy.serialization import serialize_message
 
     from bac_campaign.bagplay import play_timeline
@@ -126,7 +127,10 @@ def test_a_runs_late_samples_in_the_next_trials_bag_play_before_that_trial(tmp_p
     def sample(t: int) -> BagMessage:
         return BagMessage("imu/data_raw", IMU_TYPE, t, imu)
 
+    scored1 = Trial(campaign_id="c", trial_id=1, attempt=1, state=Trial.STATE_SCORED)
+    scored1.stamp.sec, scored1.stamp.nanosec = 9, 800_000_000
     bag1 = [BagMessage("bac/trial", "bac_msgs/msg/Trial", 1 * s, trial_cdr(1)), sample(2 * s), sample(8 * s)]
+    bag1.append(BagMessage("bac/trial", "bac_msgs/msg/Trial", 8 * s, bytes(serialize_message(scored1))))
     bag2 = [BagMessage("bac/trial", "bac_msgs/msg/Trial", 7 * s, bytes(serialize_message(ready2)))]
     bag2 += [sample(9 * s), sample(9_500_000_000), sample(11 * s)]
     notes: list[str] = []
@@ -137,6 +141,7 @@ def test_a_runs_late_samples_in_the_next_trials_bag_play_before_that_trial(tmp_p
         ("imu/data_raw", 8 * s),
         ("imu/data_raw", 9 * s),
         ("imu/data_raw", 9_500_000_000),
+        ("bac/trial", 9_800_000_000),  # run 1's SCORED after its late samples: each bag sorted alone would not
         ("bac/trial", 10 * s),
         ("imu/data_raw", 11 * s),
     ]
