@@ -7,14 +7,16 @@ Neither is an optimizer bac could ship; they bound what a model of J's *shape* c
   square, bilinear between) and its run-to-run noise model (multiplicative, ``noise_rel``), but not where the
   optimum lies: the hypotheses are the landscape moved so that its optimum sits at any grid point (uniform), and
   the runs' likelihood weighs them. Runs: the first k points of a 5-point Latin hypercube over [0.1, 0.9]^2 (bac's
-  design), then each at the recommendation. Nothing a real campaign from nothing knows.
+  design), then each at the recommendation. Nothing a real campaign from nothing knows. Outside the box a moved
+  landscape is its worst J (clamped edges made a corner optimum free, 2026-11-29).
 * ``shifted_sim``: the simulator's landscape (the family's nominal car on the same test, ``bench/transfer.py``'s
   "simulator") taken as the car's up to a shift of the unit square (prior N(0, tau^2) per axis, on a 21 x 21 grid
   of shifts over [-0.5, 0.5]^2) and a scale (log-uniform 0.7-1.4, 9 values); run 1 at the simulator's optimum,
-  then each at the recommendation (when that was driven already: the most uncertain point within 0.2 of it).
+  then each at the recommendation.
   A transfer model that moves the simulator's optimum rather than adding an offset to its J.
 
-The recommendation after each run is the argmin over the grid of the posterior expected J; a campaign has found
+The recommendation after each run is the argmin over the grid of the posterior expected J (in both arms, when
+that was driven already, the next run goes to the most uncertain point within 0.2 of it); a campaign has found
 the optimum at the first run whose recommendation's true gap is <= 0.05 (budget + 1 when never). Ten seeds per
 instance (the design and the noise), the split's instances.
 
@@ -83,14 +85,18 @@ class _Moved:
 
     def __init__(self, J: np.ndarray, shifts: np.ndarray, scales: np.ndarray | None, log_prior: np.ndarray) -> None:
         g = np.linspace(0.0, 1.0, N_GRID)
-        self.f = RegularGridInterpolator((g, g), J.reshape(N_GRID, N_GRID))
+        # outside the box a moved landscape is unknown: the worst J, so that no edge or corner is special (clipped
+        # coordinates repeated the edge's values, and a corner optimum came free with no run at all)
+        self.f = RegularGridInterpolator(
+            (g, g), J.reshape(N_GRID, N_GRID), bounds_error=False, fill_value=float(np.max(J))
+        )
         self.shifts = shifts
         self.scales = scales
         self.log_prior = log_prior
         self.on_grid = self(pf._grid(N_GRID, 2))
 
     def __call__(self, X: np.ndarray) -> np.ndarray:
-        Q = np.clip(X[None, :, :] - self.shifts[:, None, :], 0.0, 1.0)
+        Q = X[None, :, :] - self.shifts[:, None, :]
         base = self.f(Q.reshape(-1, 2)).reshape(self.shifts.shape[0], X.shape[0])
         if self.scales is None:
             return np.asarray(base)
