@@ -10,6 +10,7 @@ import pytest
 from rosbags.highlevel import AnyReader
 
 from bac_common.rosnode import QOS_EVENTS, QOS_LATCHED, QOS_STREAM
+from bac_measure.bagio import read_trials
 from bac_measure.recording import bac_typestore
 from bac_msgs.msg import RunScore, Trial
 
@@ -95,6 +96,12 @@ def test_one_bag_per_trial(procs: Any, ros_context: Any, tmp_path: Path) -> None
     assert [m.linear_acceleration.z for m in b2["imu/vehicle"]] == [-1.0] * 10
     assert [t.state for t in b2["bac/trial"]] == [Trial.STATE_READY_TO_DRIVE, Trial.STATE_DONE]
     assert list((camp / "bags" / "trial_0001").glob("*.mcap"))
+    # a trial message is written at its own stamp, as the streams are at theirs (not at the recorder's clock, here
+    # wall time 1.7e18 ns): a bag played in time order then gives a run's samples before its SCORED or the next
+    # run's READY_TO_DRIVE (docs/campaign.md, section 5)
+    events = read_trials(camp / "bags" / "trial_0001") + read_trials(camp / "bags" / "trial_0002")
+    assert [(e.trial_id, e.recv_ns) for e in events] == [(1, 10 * 10**9), (2, 20 * 10**9), (2, 22 * 10**9)]
+    assert all(e.recv_ns == e.stamp_ns for e in events)
 
 
 def test_bag_bytes_deserialize_with_rclpy(tmp_path: Path) -> None:
