@@ -23,7 +23,9 @@ None is an optimizer bac could ship; they bound what a model of J's *shape* can 
   A transfer model that moves the simulator's optimum rather than adding an offset to its J.
 * On ``bowl_sr`` and ``branin_sr`` (2-D standard functions, defined beyond the box: **honest**, no window) the
   hypotheses are the function moved so that its minimum sits at each grid point, evaluated exactly
-  (``_MovedFn``), with the family's additive noise or ``--noise-gap`` (sd in gap units; the cars' is 0.12-0.18).
+  (``_MovedFn``), with the family's additive noise or ``--noise-gap`` (sd in gap units; the car families' medians
+  0.12-0.18). Idealized beyond the shape: the truth is one hypothesis (its minimum moved onto the grid), J's level is
+  known, and Branin's hypotheses move only the truth's minimum (docs/agent.md, the outside review's measurements).
   Arms ``exact`` (as above) and ``adaptive``: no design; run 1 at the grid point most probably within the target
   under the prior, each later run where one step of look-ahead expects the best recommendation after it, the
   recommendation that most probable point. ``adaptive`` is refused on the car families (the window).
