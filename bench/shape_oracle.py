@@ -296,6 +296,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--tau", type=float, default=0.15, help="shifted_sim: the shift's prior sd, unit-box units")
     a = ap.parse_args(argv)
     families = a.families.split(",")
+    if a.noise_gap is not None and not (np.isfinite(a.noise_gap) and a.noise_gap > 0):
+        ap.error(f"--noise-gap must be a positive number (the likelihood needs noise), got {a.noise_gap}")
     for family in families:
         if family in pf.FUNCTION_FAMILIES and a.arm == "shifted_sim":
             ap.error(f"{family}: shifted_sim needs a simulator (the car families)")
