@@ -82,3 +82,50 @@ def test_bac_definition_from_a2l_writes_a_definition_the_bridge_loads(tmp_path: 
     assert yaml.safe_load(out.read_text())["xcp"]["can_id_master"] == 0x7E0
     # without values the definition is refused (the baseline is what a car is left on)
     assert definition_main(["from-a2l", str(shipped_a2l("controller_ii")), "-c", "p01"]) == 2
+
+
+def test_every_truncation_of_an_a2l_is_refused_and_never_read_to_a_wrong_bound(tmp_path: Path) -> None:
+    # outside review 2026-11-29: pya2ldb logs "Premature end of file" and goes on; a file cut within damping_rear's
+    # limits ("... 0.0 0.9" of 0.95) gave an upper bound of 0.9 with exit code 0
+    text = shipped_a2l("controller_i").read_text().replace("0.0 1.0\n", "0.0 0.95\n")
+    whole = tmp_path / "whole.a2l"
+    whole.write_text(text)
+    assert definition_from_a2l(whole, ["damping_rear"], values={"damping_rear": 0.5}).parameters[0].upper == 0.95
+    cut = tmp_path / "cut.a2l"
+    cut.write_text(text[: text.rindex("0.95") + 3])  # "... 0.0 0.9"
+    with pytest.raises(A2lError, match=r"ends inside /begin CHARACTERISTIC \(line 94\).*truncated"):
+        definition_from_a2l(cut, ["damping_rear"], values={"damping_rear": 0.5})
+    argv = ["from-a2l", str(cut), "-c", "damping_rear", "--set", "damping_rear=0.5", "-o", str(tmp_path / "d.yaml")]
+    assert definition_main(argv) == 2 and not (tmp_path / "d.yaml").exists()
+    lines = text.splitlines(keepends=True)
+    for k in range(1, len(lines)):  # every cut after a whole line, the last /end PROJECT's included
+        with pytest.raises(A2lError, match=r"truncated|never ends|not an A2L file"):
+            read_a2l_text(tmp_path, "".join(lines[:k]))
+
+
+def read_a2l_text(tmp_path: Path, text: str) -> object:
+    p = tmp_path / "t.a2l"
+    p.write_text(text)
+    return read_a2l(p)
+
+
+def test_a_broken_block_structure_is_named_and_comments_and_strings_do_not_count(tmp_path: Path) -> None:
+    text = shipped_a2l("controller_i").read_text()
+    with pytest.raises(A2lError, match=r"line 96: /end MODULE closes /begin CHARACTERISTIC of line 94"):
+        read_a2l_text(tmp_path, text.replace("    /end CHARACTERISTIC\n  /end MODULE", "  /end MODULE", 1))
+    with pytest.raises(A2lError, match="a comment that never ends"):
+        read_a2l_text(tmp_path, text.replace("/end PROJECT", "/end PROJECT /* cut"))
+    with pytest.raises(A2lError, match="not an A2L file"):
+        read_a2l_text(tmp_path, "ASAP2_VERSION 1 71\n")
+    # a /begin or /end within a comment or a string is text, not a block
+    noisy = text.replace('"constant damping command of both rear dampers"', '"rear /end MODULE"').replace(
+        "/end PROJECT", "/* /begin MODULE x */ // /end PROJECT\n/end PROJECT"
+    )
+    assert read_a2l_text(tmp_path, noisy).characteristics["damping_rear"].description == "rear /end MODULE"
+
+
+def test_a_limit_that_is_not_a_number_is_named_without_the_parsers_sql(tmp_path: Path) -> None:
+    text = shipped_a2l("controller_i").read_text().replace("CM_controller_i_1 0.0 1.0\n", "CM_controller_i_1 0.0 NaN\n")
+    with pytest.raises(A2lError, match="a CHARACTERISTIC has no valid upperLimit") as err:
+        read_a2l_text(tmp_path, text)
+    assert "SQL" not in str(err.value) and "INSERT" not in str(err.value)

@@ -106,11 +106,66 @@ def _decimals(fmt: str | None) -> int | None:
     return int(m.group(1)) if m else None
 
 
+# comments and strings, so that a /begin or /end in them is not taken for a block (newlines kept: line numbers)
+_A2L_NOISE = re.compile(r'/\*.*?\*/|//[^\n]*|"(?:\\.|[^"\\])*"', re.DOTALL)
+_A2L_BLOCK = re.compile(r"/(begin|end)\s+(\w+)")
+
+
+def check_a2l_structure(text: str, path: str | Path = "A2L") -> None:
+    """Refuse a truncated or broken A2L before it is parsed: every ``/begin X`` needs its ``/end X``.
+
+    pya2ldb reports a premature end of file on its log and goes on: a file cut within a CHARACTERISTIC's limits
+    read as an upper limit of 0.9 where the whole file says 0.95 (outside review, 2026-11-29)."""
+    if "\0" in text:
+        raise A2lError(f"{path}: holds NUL bytes: not an A2L text file")
+    body = _A2L_NOISE.sub(lambda m: "\n" * m.group().count("\n") + " ", text)
+    for opener in ("/*", '"'):
+        i = body.find(opener)
+        if i >= 0:
+            what = "a comment" if opener == "/*" else "a string"
+            raise A2lError(
+                f"{path}: line {body.count(chr(10), 0, i) + 1}: {what} that never ends: the file is truncated or broken"
+            )
+    stack: list[tuple[str, int]] = []
+    for m in _A2L_BLOCK.finditer(body):
+        line = body.count("\n", 0, m.start()) + 1
+        kind, name = m.group(1), m.group(2)
+        if kind == "begin":
+            stack.append((name, line))
+            continue
+        if not stack:
+            raise A2lError(f"{path}: line {line}: /end {name} without a /begin")
+        top, top_line = stack.pop()
+        if top != name:
+            raise A2lError(f"{path}: line {line}: /end {name} closes /begin {top} of line {top_line}")
+    if stack:
+        name, line = stack[-1]
+        raise A2lError(
+            f"{path}: the file ends inside /begin {name} (line {line}) and {len(stack) - 1} enclosing block(s): "
+            "it is truncated (copy it again from the ECU supplier's release)"
+        )
+    if not any(True for _ in _A2L_BLOCK.finditer(body)):
+        raise A2lError(f"{path}: no /begin ... /end block: not an A2L file")
+
+
+def _short_reason(exc: Exception) -> str:
+    """pya2ldb's error in a line: its database's errors carry the whole SQL statement and its parameters."""
+    first = (str(exc).strip().splitlines() or [type(exc).__name__])[0]
+    m = re.search(r"NOT NULL constraint failed: (\w+)\.(\w+)", first)
+    if m:
+        return (
+            f"a {m.group(1).upper()} has no valid {m.group(2)} (missing, or not a number such as NaN; the parser's "
+            "log above names the line)"
+        )
+    return re.sub(r"^\(\w+(\.\w+)*\)\s*", "", first)
+
+
 def read_a2l(path: str | Path) -> A2lModule:
     """Every VALUE characteristic of the A2L's (first) module, and its XCP-on-CAN settings."""
     p = Path(path)
     if not p.is_file():
         raise A2lError(f"A2L file not found: {p}")
+    check_a2l_structure(p.read_bytes().decode("latin-1"), p)
     pya2l, model = _load_pya2l()
     with tempfile.TemporaryDirectory(prefix="bac-a2l-") as tmp:
         try:
@@ -119,7 +174,7 @@ def read_a2l(path: str | Path) -> A2lModule:
                 str(p), in_memory=True, progress_bar=False, loglevel="ERROR", output_dir=tmp, encoding="latin-1"
             )
         except Exception as exc:  # pya2ldb raises many kinds on a malformed file
-            raise A2lError(f"{p}: not a readable A2L file: {exc}") from exc
+            raise A2lError(f"{p}: not a readable A2L file: {_short_reason(exc)}") from exc
         try:
             return _module(session, model, p)
         finally:
