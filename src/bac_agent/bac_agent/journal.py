@@ -8,7 +8,8 @@ newline, or not JSON): :class:`Journal` detects it when it opens the file,
 reports it (``Journal.torn``), moves the torn bytes to ``journal.jsonl.torn``
 and truncates the file after the last complete line, so the earlier events are
 kept and new ones start on a clean line. A bad line *before* the last one is
-not a torn write but corruption: :class:`JournalCorruptError`, nothing guessed.
+not a torn write but corruption: :class:`JournalCorruptError`, nothing guessed; so is a line whose ``seq`` is not
+its line number (lines inserted, removed, duplicated or moved) and one holding NaN or Infinity (never written).
 
 Every event has ``seq`` (0-based line number), ``event`` (its type), ``wall_time``
 (ISO 8601 UTC) and whatever fields its type defines; the schema is documented in
@@ -67,9 +68,23 @@ def strict_json(value: Any) -> Any:
     return _clean(value)
 
 
-def read_journal(path: str | Path) -> JournalRead:
-    """Read every complete event; a torn last line is returned apart, never guessed at."""
+class _NonFiniteError(ValueError):
+    pass
+
+
+def _no_constant(name: str) -> Any:
+    raise _NonFiniteError(name)
+
+
+def read_journal(path: str | Path, check_seq: bool | None = None) -> JournalRead:
+    """Read every complete event; a torn last line is returned apart, never guessed at.
+
+    ``check_seq`` (default: for the campaign journal, whose one writer is the agent; not for other logs kept the
+    same way, e.g. the recorder's index of bags, which two launches may append to): every event's ``seq`` must be
+    its line number."""
     p = Path(path)
+    if check_seq is None:
+        check_seq = p.name == JOURNAL_NAME
     try:
         data = p.read_bytes()
     except FileNotFoundError:
@@ -85,7 +100,12 @@ def read_journal(path: str | Path) -> JournalRead:
             # after the final newline: empty when the file ended cleanly, else a torn write
             return JournalRead(events, pos, raw)
         try:
-            obj = json.loads(raw)
+            obj = json.loads(raw, parse_constant=_no_constant)
+        except _NonFiniteError as exc:  # a whole line, parsed: not a torn write, an edit
+            raise JournalCorruptError(
+                f"{p}: line {i + 1} holds {exc}, which bac never writes (a non-finite value is written as null): "
+                "the file was edited. Keep a copy, then correct the line by hand or start a new campaign_dir."
+            ) from None
         except (json.JSONDecodeError, UnicodeDecodeError):
             obj = None
         if not isinstance(obj, dict) or "event" not in obj:
@@ -95,6 +115,15 @@ def read_journal(path: str | Path) -> JournalRead:
             raise JournalCorruptError(
                 f"{p}: line {i + 1} is not a journal event ({raw[:80]!r}); the file is damaged before its end. "
                 "Keep a copy, then remove the damaged lines by hand or start a new campaign_dir."
+            )
+        seq = obj.get("seq")
+        if check_seq and seq is not None and (not isinstance(seq, int) or isinstance(seq, bool) or seq != i):
+            # bac numbers the events 0, 1, 2, ... as it writes them (Journal.append): a line with another number was
+            # inserted, removed, duplicated or moved (outside review 2026-11-29: a second trial_scored for a trial,
+            # its seq copied, was read as the trial's J and became the best J of the report)
+            raise JournalCorruptError(
+                f"{p}: line {i + 1} has seq {seq!r}, not {i}: lines were inserted, removed, duplicated or reordered "
+                "after bac wrote them. Keep a copy, then restore the file or start a new campaign_dir."
             )
         events.append(obj)
         pos += len(raw) + 1

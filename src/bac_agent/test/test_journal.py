@@ -69,6 +69,48 @@ def test_damage_before_the_end_is_an_error(tmp_path: Path) -> None:
         Journal(tmp_path)
 
 
+def test_a_line_inserted_duplicated_or_removed_is_an_error_not_a_result(tmp_path: Path) -> None:
+    # outside review 2026-11-29: a second trial_scored for trial 4 (its seq copied, a better J) was read as the
+    # trial's J by rescore, report and the cockpit
+    with Journal(tmp_path) as j:
+        j.append("campaign_started")
+        j.append("trial_scored", trial_id=1, attempt=1, j=0.95)
+        j.append("trial_scored", trial_id=2, attempt=1, j=0.90)
+    path = tmp_path / JOURNAL_NAME
+    good = path.read_bytes()
+    lines = good.splitlines(keepends=True)
+    forged = lines[1].replace(b'"j":0.95', b'"j":0.55')
+    for damaged, line in (
+        (lines[0] + lines[1] + forged + lines[2], 3),  # duplicated, seq copied
+        (lines[0] + forged + lines[1] + lines[2], 3),  # inserted before its original
+        (lines[0] + lines[2], 2),  # removed
+        (lines[0] + lines[2] + lines[1], 2),  # reordered
+    ):
+        path.write_bytes(damaged)
+        with pytest.raises(JournalCorruptError, match=f"line {line} has seq .*inserted, removed"):
+            read_journal(path)
+        with pytest.raises(JournalCorruptError):
+            Journal(tmp_path)
+        assert path.read_bytes() == damaged  # nothing repaired, nothing truncated
+    path.write_bytes(good)
+    assert [e.get("j") for e in read_journal(path).events] == [None, 0.95, 0.90]
+
+
+@pytest.mark.parametrize("constant", ["NaN", "Infinity", "-Infinity"])
+def test_nan_or_infinity_in_a_line_is_an_error_even_in_the_last_line(tmp_path: Path, constant: str) -> None:
+    path = tmp_path / JOURNAL_NAME
+    for body in (
+        f'{{"seq":0,"event":"campaign_started"}}\n{{"seq":1,"event":"trial_scored","j":{constant}}}\n',
+        f'{{"seq":0,"event":"trial_scored","j":{constant}}}\n{{"seq":1,"event":"x"}}\n',
+    ):
+        path.write_text(body)
+        with pytest.raises(JournalCorruptError, match=f"holds {constant}, which bac never writes"):
+            read_journal(path)
+        with pytest.raises(JournalCorruptError):
+            Journal(tmp_path)  # not taken for a torn write: nothing moved away
+        assert path.read_text() == body
+
+
 def test_each_event_is_visible_to_other_readers_when_append_returns(tmp_path: Path) -> None:
     j = Journal(tmp_path)
     j.append("a", v=1)

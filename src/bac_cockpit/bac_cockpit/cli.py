@@ -23,7 +23,7 @@ from pathlib import Path
 from typing import Any
 
 from bac_cockpit.feed import CampaignFeed
-from bac_cockpit.folder import read_folder
+from bac_cockpit.folder import read_folder, why_no_campaign
 from bac_cockpit.model import GRID
 from bac_cockpit.server import DEFAULT_HOST, DEFAULT_PORT, CockpitError, CockpitServer
 from bac_cockpit.state import CockpitState
@@ -50,7 +50,7 @@ def cockpit_main(argv: Sequence[str] | None = None) -> int:
         say(f"bac cockpit: no such folder: {camp}", err=True)
         return 2
     if read_folder(camp) is None:
-        say(f"bac cockpit: {camp} has no campaign journal (journal.jsonl starting with campaign_started)", err=True)
+        say(f"bac cockpit: {why_no_campaign(camp)}", err=True)
         return 2
     try:
         server = CockpitServer(CockpitState("offline"), host=args.host, port=args.port, token=args.token)

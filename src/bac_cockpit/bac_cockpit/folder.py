@@ -49,6 +49,16 @@ def journal_path(campaign_dir: str | Path) -> Path:
     return Path(campaign_dir) / JOURNAL_NAME
 
 
+def why_no_campaign(campaign_dir: str | Path) -> str:
+    """Why :func:`read_folder` found no campaign in the folder: no journal yet, or the reading's own error (a
+    damaged line named by its number, as ``bac report`` names it)."""
+    try:
+        load_campaign(Path(campaign_dir))
+    except (ReportError, JournalError) as exc:
+        return str(exc)
+    return f"{campaign_dir} has no campaign journal ({JOURNAL_NAME} starting with campaign_started)"
+
+
 def read_folder(campaign_dir: str | Path) -> FolderFacts | None:
     """The campaign as its journal has it; None while there is no journal (the agent has not started)."""
     path = Path(campaign_dir)

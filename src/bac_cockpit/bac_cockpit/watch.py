@@ -282,7 +282,7 @@ class FolderSource:
 
     def poll(self) -> None:
         from bac_cockpit.feed import done_view
-        from bac_cockpit.folder import journal_path, read_bags, read_folder, speed_config
+        from bac_cockpit.folder import journal_path, read_bags, read_folder, speed_config, why_no_campaign
         from bac_cockpit.state import CockpitState
 
         try:
@@ -296,7 +296,7 @@ class FolderSource:
         self._stamp = stamp
         facts = read_folder(self.folder)
         if facts is None:
-            self.error = f"{self.folder} has no campaign journal"
+            self.error = why_no_campaign(self.folder)
             return
         state = CockpitState("offline")
         state.set_campaign_info(facts.info)

@@ -5,6 +5,7 @@ from __future__ import annotations
 import time
 from pathlib import Path
 
+import pytest
 from campaign_maker import make_campaign
 from rich.console import Console
 
@@ -71,3 +72,21 @@ def test_a_running_cockpit_is_followed_through_its_events() -> None:
 def test_sparkline() -> None:
     assert sparkline([3.0, 2.0, 1.0]) == "█▅▁"
     assert sparkline([]) == ""
+
+
+def test_a_damaged_journal_is_named_by_watch_and_cockpit_not_called_missing(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    # outside review 2026-11-29: both said "has no campaign journal" where bac report names the damaged line
+    from bac_cockpit.cli import cockpit_main
+
+    folder = tmp_path / "camp"
+    make_campaign(folder, budget=4)
+    journal = folder / "journal.jsonl"
+    lines = journal.read_text().splitlines(keepends=True)
+    journal.write_text("".join([*lines[:2], "garbage\n", *lines[2:]]))
+    assert cockpit_main([str(folder), "--port", "0"]) == 2
+    assert "line 3 is not a journal event" in capsys.readouterr().err
+    assert main([str(folder), "--once", "--timeout", "0.3"]) == 1
+    out = capsys.readouterr().out
+    assert "line 3 is not a journal event" in " ".join(out.split()) and "has no campaign journal" not in out
