@@ -33,6 +33,10 @@ from bac_measure.segmentation import RunId, Segment, from_params
 
 FloatArray = npt.NDArray[np.float64]
 KPIS = ("rms", "iso_wk_rms", "vdv")
+# the sample rates a vehicle IMU gives: below, the ISO 2631 Wk band (0.4-100 Hz, peak 4-8 Hz) is not sampled; above,
+# a time base in the wrong unit (an outside review's 1e15 Hz asked the spectrum for 256 PiB)
+MIN_SAMPLE_RATE_HZ = 20.0
+MAX_SAMPLE_RATE_HZ = 20_000.0
 
 
 class KpiError(BacError, ValueError):
@@ -49,6 +53,11 @@ class KpiConfig:
     detrend: bool = False  # remove each signal's mean over the window before the RMS (eq. 1 does not)
     psd_segment_s: float = 2.0  # Welch segment length, s (capped at the window)
     psd_max_hz: float = 50.0  # spectra are kept up to this frequency, Hz
+    # plausibility: a car body's RMS over a run stays far below these; beyond them the run is invalid (a gyro in deg/s
+    # or an accelerometer in mm/s^2 labelled rad/s, m/s^2 gave a valid J 5x too high, outside review 2026-11-29);
+    # 0 = no check (a rig that shakes harder than a car)
+    max_rms_accel_z: float = 50.0  # m/s^2 (5 g RMS)
+    max_rms_pitch_rate: float = 1.0  # rad/s (57 deg/s RMS; a car pitching ±3 deg at 1.5 Hz: 0.35 rad/s)
 
     def __post_init__(self) -> None:
         p = []
@@ -64,6 +73,10 @@ class KpiConfig:
             p.append(f"psd_segment_s must be in [0.05, 600], got {self.psd_segment_s}")
         if not self.psd_max_hz > 0:
             p.append("psd_max_hz must be > 0")
+        for name in ("max_rms_accel_z", "max_rms_pitch_rate"):
+            v = getattr(self, name)
+            if not (math.isfinite(v) and v >= 0):
+                p.append(f"{name} must be finite and >= 0 (0: no check), got {v}")
         if p:
             raise KpiError("invalid KPI configuration: " + "; ".join(p))
 
@@ -164,6 +177,11 @@ def score_signals(
         return invalid(f"window too short to score ({az.size} samples)")
     if not (math.isfinite(sample_rate_hz) and sample_rate_hz > 0):
         return invalid(f"bad sample rate {sample_rate_hz}")
+    if not MIN_SAMPLE_RATE_HZ <= sample_rate_hz <= MAX_SAMPLE_RATE_HZ:
+        return invalid(
+            f"sample rate {sample_rate_hz:g} Hz outside the {MIN_SAMPLE_RATE_HZ:g}-{MAX_SAMPLE_RATE_HZ:g} Hz of a "
+            "vehicle IMU: check the recording's time base (its unit) or resample"
+        )
     bad = int(np.count_nonzero(~np.isfinite(az)) + np.count_nonzero(~np.isfinite(q)))
     if bad:
         return invalid(f"{bad} non-finite sample(s) in the window")
@@ -175,13 +193,32 @@ def score_signals(
         az = az - mean_az
         pre = pre - mean_az
         q = q - q.mean()
-    rms_az = rms(az)
-    rms_q = rms(q)
-    aw = wk_filter(az, sample_rate_hz, pre)
-    wrms = rms(aw)
-    vdv = vibration_dose_value(aw, sample_rate_hz)
-    a_term = {"rms": rms_az, "iso_wk_rms": wrms, "vdv": vdv}[c.kpi]
-    j = c.weight_accel_z * a_term + c.weight_pitch_rate * rms_q
+    with np.errstate(over="ignore", invalid="ignore"):  # an overflow is judged below, as the run's reason
+        rms_az = rms(az)
+        rms_q = rms(q)
+        aw = wk_filter(az, sample_rate_hz, pre)
+        wrms = rms(aw)
+        vdv = vibration_dose_value(aw, sample_rate_hz)
+        a_term = {"rms": rms_az, "iso_wk_rms": wrms, "vdv": vdv}[c.kpi]
+        j = c.weight_accel_z * a_term + c.weight_pitch_rate * rms_q
+    if not all(math.isfinite(v) for v in (j, rms_az, rms_q, wrms, vdv)):
+        # finite samples whose squares overflow (e.g. 1e200 m/s^2): no car measures that, and an infinite J told
+        # to the optimizer would be taken for a very bad calibration
+        return invalid(
+            f"the KPI overflows (largest |a_z| {outcomes['peak_accel_z']:.3g} m/s^2, |pitch rate| "
+            f"{outcomes['peak_pitch_rate']:.3g} rad/s): these are not a vehicle's signals"
+        )
+    if c.max_rms_pitch_rate > 0 and rms_q > c.max_rms_pitch_rate:
+        return invalid(
+            f"RMS pitch rate {rms_q:.3g} rad/s is beyond a car body's (max_rms_pitch_rate {c.max_rms_pitch_rate:g}): "
+            f"a gyro in deg/s read as rad/s would give this ({rms_q:.3g} deg/s are {math.radians(rms_q):.3g} rad/s); "
+            "check the channel's unit (channel map) or the IMU driver"
+        )
+    if c.max_rms_accel_z > 0 and rms_az > c.max_rms_accel_z:
+        return invalid(
+            f"RMS a_z {rms_az:.3g} m/s^2 is beyond a car body's (max_rms_accel_z {c.max_rms_accel_z:g}): is the "
+            "accelerometer in mm/s^2 or cm/s^2? Check the channel's unit (channel map) or the IMU driver"
+        )
     f, p_az = welch_psd(az, sample_rate_hz, c.psd_segment_s, c.psd_max_hz)
     _, p_q = welch_psd(q, sample_rate_hz, c.psd_segment_s, c.psd_max_hz)
     return Score(

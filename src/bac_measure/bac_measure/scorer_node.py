@@ -33,6 +33,10 @@ KPI_PARAMS = {
     "detrend": ParamSpec("remove each signal's mean over the window first (eq. 1 does not)"),
     "psd_segment_s": ParamSpec("Welch segment length, s", 0.05, 600.0),
     "psd_max_hz": ParamSpec("spectra kept up to this frequency, Hz", 0.1, 10_000.0),
+    "max_rms_accel_z": ParamSpec("a run whose RMS a_z exceeds this is invalid (a unit error), m/s^2; 0: off", 0.0, 1e6),
+    "max_rms_pitch_rate": ParamSpec(
+        "a run whose RMS pitch rate exceeds this is invalid (a gyro in deg/s), rad/s; 0: no check", 0.0, 1e6
+    ),
 }
 REMEMBERED = 10_000  # scored runs remembered to refuse duplicates
 

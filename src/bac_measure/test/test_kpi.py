@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from bac_measure.iso2631 import WK_TABLE, vibration_dose_value, weighted_rms, wk_filter, wk_response
-from bac_measure.kpi import KpiConfig, KpiError, rms, score, score_signals
+from bac_measure.kpi import KPIS, KpiConfig, KpiError, rms, score, score_signals
 from bac_measure.segmentation import MODE_EVENT, RunId, Segment
 
 
@@ -225,3 +225,33 @@ def test_outcomes_travel_in_the_run_score_message() -> None:
     m = score_to_msg(s)
     got = dict(zip(m.outcome_names, m.outcome_values, strict=True))
     assert got == pytest.approx(dict(s.outcomes))
+
+
+def test_signals_no_vehicle_gives_are_an_invalid_run_with_the_reason_never_a_number() -> None:
+    # outside review 2026-11-29: 1e200 m/s^2 scored valid with J = inf; 1e15 Hz ran out of memory; 1e-9 Hz was valid
+    rng = np.random.default_rng(0)
+    for kpi in KPIS:
+        s = score_signals(np.full(1000, 1e200), np.zeros(1000), 200.0, KpiConfig(kpi=kpi))
+        assert not s.valid and math.isnan(s.j) and "overflows" in s.reason and "1e+200" in s.reason, kpi
+    for fs in (1e15, 1e-9, 19.0, 20_001.0):
+        s = score_signals(rng.standard_normal(1000), np.zeros(1000), fs)
+        assert not s.valid and math.isnan(s.j) and "outside the 20-20000 Hz" in s.reason, fs
+    for fs in (20.0, 20_000.0):  # the limits themselves are a vehicle IMU's
+        assert score_signals(rng.standard_normal(1000), np.zeros(1000), fs).valid, fs
+
+
+def test_a_gyro_in_deg_s_or_an_accelerometer_in_mm_s2_is_an_invalid_run_not_a_larger_j() -> None:
+    # outside review 2026-11-29: deg/s labelled rad/s scored valid, J 5x too high
+    fs = 200.0
+    az, q = sine(2.0, 1.5, fs, 5.0), sine(1.0, 0.08, fs, 5.0)
+    good = score_signals(az, q, fs)
+    assert good.valid and good.rms_pitch_rate == pytest.approx(0.08 / math.sqrt(2), rel=1e-2)
+    deg = score_signals(az, np.degrees(q), fs)
+    assert not deg.valid and math.isnan(deg.j)
+    assert "RMS pitch rate 3.24 rad/s is beyond a car body's" in deg.reason and "0.0566 rad/s" in deg.reason
+    mm = score_signals(az * 1000.0, q, fs)
+    assert not mm.valid and "RMS a_z 1.06e+03 m/s^2 is beyond" in mm.reason
+    # 0 turns the checks off (a rig), and the limits are validated
+    assert score_signals(az * 1000.0, np.degrees(q), fs, KpiConfig(max_rms_accel_z=0, max_rms_pitch_rate=0)).valid
+    with pytest.raises(KpiError, match="max_rms_pitch_rate must be finite and >= 0"):
+        KpiConfig(max_rms_pitch_rate=-1.0)
