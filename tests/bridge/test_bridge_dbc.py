@@ -188,3 +188,46 @@ def test_cantools_command_line_decodes_candump_output() -> None:
 def test_calibrations_folder_has_a_dbc_for_each_shipped_definition() -> None:
     for path in CALIBRATIONS.glob("*.yaml"):
         assert shipped_dbc(path.stem).is_file()
+
+
+def test_frames_the_protocol_refuses_are_flagged_with_the_reason_and_the_decoding_goes_on(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    # outside review 2026-11-29: raw values beyond the bounds printed as plain values (P_damping_front=2), an unknown
+    # index stopped the whole decode, a 3-byte frame was called a CRC-8 mismatch
+    from bac_ecu_bridge.cli import main as bridge_main
+    from bac_ecu_bridge.protocol import with_crc
+    from bac_ecu_bridge.trace import frame_problem
+
+    good = encode(Write(1, 0, 5000))
+    frames = [
+        (0x6C0, good),
+        (0x6C0, encode(Write(1, 0, 20000))),  # damping_front: raw 0..10000 is [0, 1]
+        (0x6C0, encode(Write(1, 9, 1))),  # no index 9 in controller_i
+        (0x6C0, with_crc(bytes([0x33, 1, 0, 0, 0, 0, 0]))),  # no opcode 0x33
+        (0x6C1, with_crc(bytes([int(Op.NACK), 1, int(Op.COMMIT), 238, 0, 0, 0]))),  # no reason 238
+        (0x6C0, good[:3]),
+        (0x6C0, bytes([good[0] ^ 0x01]) + good[1:]),  # garbled
+        (0x6C0, good),
+    ]
+    trace = tmp_path / "t.log"
+    with can.Logger(str(trace)) as log:
+        for i, data in frames:
+            log.on_message_received(can.Message(arbitration_id=i, is_extended_id=False, data=data, channel=0))
+    assert bridge_main(["decode", str(trace), "--definition", "controller_i"]) == 0
+    out, err = capsys.readouterr()
+    lines = out.splitlines()
+    assert len(lines) == 8 and "INVALID" not in lines[0] + lines[7] and "P_damping_front=0.5" in lines[0]
+    assert "[INVALID: 'damping_front' raw value 20000 outside 0..10000: 2 outside the declared [0, 1]]" in lines[1]
+    assert "[INVALID: index 9 is not a parameter of 'controller_i']" in lines[2]
+    assert "[INVALID: unknown opcode 0x33]" in lines[3]
+    assert "[INVALID: NACK with an unknown reason 0xEE]" in lines[4]
+    assert "[INVALID: frame has 3 data bytes, the protocol uses 8]" in lines[5] and "CRC-8" not in lines[5]
+    assert "[CRC-8 MISMATCH: garbled frame]" in lines[6] and "CRC-8 MISMATCH" not in lines[7]
+    assert "# 8 protocol frames, 1 with a CRC-8 mismatch, 6 invalid in all" in err
+    assert frame_problem(encode(Write(1, 0, 10000)), "request") == ""  # without a codec: the frame alone
+    # an unreadable trace is named, with the file
+    bad = tmp_path / "garbage.log"
+    bad.write_text("(1.0) can0 6C0#0102\ngarbage line\n")
+    assert bridge_main(["decode", str(bad), "--definition", "controller_i"]) != 0
+    assert f"{bad}: not a readable .log trace" in capsys.readouterr().err

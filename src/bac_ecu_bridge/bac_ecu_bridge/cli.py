@@ -37,7 +37,14 @@ from bac_common.paths import resolve_definition
 from bac_ecu_bridge.canbus import BusSettings, TracedBus, open_bus
 from bac_ecu_bridge.client import CalibrationClient, ClientConfig
 from bac_ecu_bridge.errors import BridgeError, ErrorCode
-from bac_ecu_bridge.protocol import DEFAULT_REQUEST_ID, DEFAULT_RESPONSE_ID, CalibrationCodec, CanIds, resolve_request
+from bac_ecu_bridge.protocol import (
+    DEFAULT_REQUEST_ID,
+    DEFAULT_RESPONSE_ID,
+    FRAME_LENGTH,
+    CalibrationCodec,
+    CanIds,
+    resolve_request,
+)
 
 
 def _hex(s: str) -> int:
@@ -125,18 +132,22 @@ def _run(args: argparse.Namespace) -> int:
     if args.cmd == "decode":
         from bac_ecu_bridge.trace import decode_trace, load_database
 
+        trace_codec: CalibrationCodec | None = None
         if args.dbc:
             db = load_database(args.dbc)
         else:
             from bac_ecu_bridge.dbc import build_database
 
-            db = build_database(CalibrationDefinition.load(resolve_definition(args.definition)), ids)
-        rows = decode_trace(args.trace, db, ids)
+            definition = CalibrationDefinition.load(resolve_definition(args.definition))
+            db = build_database(definition, ids)
+            trace_codec = CalibrationCodec(definition)  # the indexes and bounds checked too
+        rows = decode_trace(args.trace, db, ids, trace_codec)
         for row in rows:
             say(row.text())
-        bad = sum(not r.crc_ok for r in rows)
-        say(f"# {len(rows)} protocol frames, {bad} with a CRC-8 mismatch", err=True)
-        return 0
+        bad = sum(len(r.raw) == FRAME_LENGTH and not r.crc_ok for r in rows)
+        invalid = sum(bool(r.problem) for r in rows)
+        say(f"# {len(rows)} protocol frames, {bad} with a CRC-8 mismatch, {invalid} invalid in all", err=True)
+        return 1 if any(r.problem.endswith("the DBC and the protocol disagree") for r in rows) else 0
     definition = CalibrationDefinition.load(resolve_definition(args.definition))
     codec = CalibrationCodec(definition)
     bus = open_bus(BusSettings(args.interface, args.channel, args.bitrate, port=args.port), ids)

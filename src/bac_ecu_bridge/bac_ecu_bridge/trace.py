@@ -1,12 +1,17 @@
 """Reading CAN traces of the calibration protocol (candump .log, Vector .asc, .blf, .trc, .csv, ...).
 
 :func:`decode_trace` decodes every protocol frame of a trace with the DBC
-(cantools: engineering values by signal name) and checks each frame's CRC-8
-with the protocol codec, which a DBC cannot express.
+(cantools: engineering values by signal name) and checks each frame with the
+protocol codec, which a DBC cannot express: the CRC-8, the length, the opcode,
+the reserved bytes, the NACK reason and, given the calibration codec, the
+parameter index and the raw value against the declared bounds. A frame the
+bridge or the ECU would refuse is shown with the reason (``TraceRow.problem``),
+never as a plain value, and the decoding goes on to the next frame.
 """
 
 from __future__ import annotations
 
+import struct
 from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
@@ -17,7 +22,19 @@ import cantools
 from cantools.database import Database
 
 from bac_ecu_bridge.errors import FrameError
-from bac_ecu_bridge.protocol import CanIds, crc8
+from bac_ecu_bridge.protocol import (
+    FRAME_LENGTH,
+    CalibrationCodec,
+    CanIds,
+    Nack,
+    Reason,
+    Staged,
+    Value,
+    Write,
+    crc8,
+    decode_request,
+    decode_response,
+)
 
 
 @dataclass(frozen=True)
@@ -28,6 +45,7 @@ class TraceRow:
     signals: dict[str, Any]  # cantools' decoding (choices as their names)
     crc_ok: bool
     raw: bytes
+    problem: str = ""  # why the bridge or the ECU would refuse the frame ("" when it is a valid frame)
 
     @property
     def op(self) -> str:
@@ -36,7 +54,12 @@ class TraceRow:
     def text(self) -> str:
         fields = " ".join(f"{k}={_fmt(v)}" for k, v in self.signals.items() if k not in ("Crc8", "Op"))
         arrow = "->" if self.direction == "request" else "<-"
-        flag = "" if self.crc_ok else "  [CRC-8 MISMATCH: garbled frame]"
+        if len(self.raw) == FRAME_LENGTH and not self.crc_ok:
+            flag = "  [CRC-8 MISMATCH: garbled frame]"
+        elif self.problem:
+            flag = f"  [INVALID: {self.problem}]"
+        else:
+            flag = ""
         return f"{self.timestamp:17.6f} {self.can_id:03X} {arrow} {self.op:<9} {fields}{flag}"
 
 
@@ -60,14 +83,47 @@ def iter_trace(path: str | Path) -> Iterator[can.Message]:
     p = Path(path)
     if not p.is_file():
         raise FileNotFoundError(f"trace file not found: {p}")
-    yield from can.LogReader(str(p))
+    try:
+        yield from can.LogReader(str(p))
+    except (ValueError, UnicodeDecodeError, IndexError, struct.error) as exc:
+        # python-can's readers raise these on a line or block they cannot parse ("could not convert string to
+        # float: 'arbag'"), without the file
+        raise FrameError(f"{p}: not a readable {p.suffix or 'CAN'} trace: {exc}") from None
 
 
-def decode_trace(path: str | Path, db: Database, ids: CanIds | None = None) -> list[TraceRow]:
+def frame_problem(data: bytes, direction: str, codec: CalibrationCodec | None = None) -> str:
+    """Why the receiving side would refuse this frame ("" for a valid one): its length, CRC-8, opcode, reserved bytes,
+    a NACK's reason, and with ``codec`` a parameter index or raw value outside the definition's bounds."""
+    try:
+        pdu = decode_request(data) if direction == "request" else decode_response(data)
+    except FrameError as exc:
+        return str(exc)
+    if isinstance(pdu, Nack):
+        try:
+            Reason(pdu.reason)
+        except ValueError:
+            return f"NACK with an unknown reason 0x{pdu.reason:02X}"
+    if codec is not None and isinstance(pdu, Write | Staged | Value):
+        p = codec.by_index.get(pdu.index)
+        if p is None:
+            return f"index {pdu.index} is not a parameter of '{codec.definition.name}'"
+        if pdu.raw > p.max_raw:
+            value = p.lower + pdu.raw * p.resolution
+            return (
+                f"'{p.name}' raw value {pdu.raw} outside 0..{p.max_raw}: {value:.6g} outside the declared "
+                f"[{p.lower:g}, {p.upper:g}]"
+            )
+    return ""
+
+
+def decode_trace(
+    path: str | Path, db: Database, ids: CanIds | None = None, codec: CalibrationCodec | None = None
+) -> list[TraceRow]:
     """Decode every protocol frame of a trace; other CAN ids are skipped.
 
-    Raises :class:`FrameError` when the DBC cannot decode a protocol frame
-    whose CRC-8 is right (the DBC and the protocol disagree).
+    Every frame the protocol would refuse carries the reason (:func:`frame_problem`; with ``codec`` the definition's
+    indexes and bounds are checked too); so does a valid frame the DBC cannot decode (the DBC and the protocol
+    disagree: ``problem`` says so). Nothing stops the decoding; :class:`FrameError` only for an unreadable file.
     """
     ids = ids or CanIds()
     rows: list[TraceRow] = []
@@ -81,14 +137,15 @@ def decode_trace(path: str | Path, db: Database, ids: CanIds | None = None) -> l
         else:
             continue
         data = bytes(msg.data)
-        ok = len(data) == 8 and crc8(data[1:]) == data[0]
+        ok = len(data) == FRAME_LENGTH and crc8(data[1:]) == data[0]
+        problem = frame_problem(data, direction, codec)
         signals: dict[str, Any] = {}
         try:
             decoded = db.decode_message(msg.arbitration_id, data, decode_choices=True)
         except Exception as exc:  # cantools raises several types for undecodable frames
-            if ok:
-                raise FrameError(f"the DBC cannot decode a valid frame {data.hex(' ')}: {exc}") from exc
+            if not problem:
+                problem = f"the DBC cannot decode this valid frame ({exc}): the DBC and the protocol disagree"
         else:
             signals = {str(k): (v if isinstance(v, int | float) else str(v)) for k, v in dict(decoded).items()}
-        rows.append(TraceRow(float(msg.timestamp), msg.arbitration_id, direction, signals, ok, data))
+        rows.append(TraceRow(float(msg.timestamp), msg.arbitration_id, direction, signals, ok, data, problem))
     return rows
