@@ -299,7 +299,32 @@ def read_recording(
         if channels is not None and bag.is_file():
             raise RescoreError(f"{bag} is not an MDF file: --channel-map / --channel apply to MDF recordings only")
         parts.append(read_bag(bag, imu_topic, odom_topic))
+    if notes is not None:
+        for part in parts:
+            for imu in (part.imu_vehicle, part.imu_raw):
+                note = _steps_back_note(part.path, imu)
+                if note:
+                    notes.append(note)
     return merge_bags(parts)
+
+
+def _steps_back_note(path: Path, imu: ImuArrays | None) -> str:
+    """A recording whose IMU stamps step back (a clock jump, reordered samples): the offline reading merges every
+    stream in time order, where the live chain drops such samples; the note says so rather than hiding it
+    (outside review 2026-11-29: a clock jump back of 0.5 s left every figure of the rescoring at 0)."""
+    if imu is None or len(imu.stamp_ns) < 2:
+        return ""
+    step = np.diff(imu.stamp_ns)
+    back = imu.stamp_ns[1:] <= np.maximum.accumulate(imu.stamp_ns)[:-1]
+    if not back.any():
+        return ""
+    i = int(np.argmin(step))
+    return (
+        f"{path.name}: {int(back.sum())} IMU sample(s) ({imu.topic}) stamped at or before an earlier one, the "
+        f"largest step back {-step[i] / 1e9:.3f} s at {imu.stamp_ns[i + 1] / 1e9:.3f} s: merged in time order here "
+        "(equal stamps once), where the live chain drops them; a clock jump back interleaves two stretches of "
+        "signal: check the recording's time base (python -m bac_measure.imu_health shows it)"
+    )
 
 
 def _bag_order(bag: Path) -> tuple[int, int, str]:
@@ -488,7 +513,8 @@ def rescore(
         series.append(ImuSeries(out.stamp_ns, out.accel_z, out.pitch_rate))
         notes.append(
             f"ingestion: {health.samples_in} samples at {health.rate_hz:.1f} Hz, {health.samples_expected} "
-            f"expected, {health.lost_samples} lost, {health.gaps} gaps, {health.nonfinite} NaN/inf, "
+            f"expected, {health.lost_samples} lost, {health.gaps} gaps, {health.out_of_order} out of order, "
+            f"{health.duplicates} duplicates, {health.nonfinite} NaN/inf, "
             f"{health.saturated} saturated, {health.restarts} stream restarts, {health.clock_jumps} clock jumps; "
             f"mount roll {health.mount_rpy_deg[0]:.1f} pitch {health.mount_rpy_deg[1]:.1f} deg from "
             f"{health.mount_source}, bias from {health.bias_source}"

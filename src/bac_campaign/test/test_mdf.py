@@ -228,3 +228,18 @@ def test_replay_reads_an_mdf_file_as_the_messages_a_driver_sends(
     od = cdr.odometry([m.cdr for m in msgs if m.topic == "vehicle/odom"])
     assert od is not None and np.array_equal(od[0], odom.stamp_ns)
     np.testing.assert_allclose(od[2], odom.speed_mps, atol=0.01 / 3.6 / 2 + 1e-12)
+
+
+def test_a_clock_jump_back_in_a_recording_is_said_in_the_notes(
+    tmp_path: Path, run: tuple[ImuArrays, OdomArrays]
+) -> None:
+    # outside review 2026-11-29: time going back 0.5 s at sample 1500 left every figure of the rescoring's notes at 0
+    imu, odom = run
+    stamp = imu.stamp_ns.copy()
+    stamp[1500:] -= 500_000_000  # 0.5 s back: 200 samples at 400 Hz fall on stamps already recorded
+    jumped = ImuArrays(imu.topic, imu.frame_id, stamp, stamp, imu.accel, imu.gyro)
+    clean = rescore([write_canape_mf4(tmp_path / "clean.mf4", imu, odom)])
+    assert not any("stamped at or before an earlier one" in n for n in clean.notes)
+    notes = rescore([write_canape_mf4(tmp_path / "jump.mf4", jumped, odom)]).notes
+    (note,) = [n for n in notes if "stamped at or before an earlier one" in n]
+    assert note.startswith("jump.mf4: 200 IMU sample(s)") and "largest step back 0.497 s" in note
