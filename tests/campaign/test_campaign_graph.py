@@ -158,6 +158,7 @@ def test_the_report_is_made(campaign: Path) -> None:
     html = Path(result["html"]).read_text()
     assert html.count("<tr>") >= BUDGET + 1  # a row per trial
     assert math.isfinite(result["summary"]["gap"]) and result["summary"]["trials"] == BUDGET
+    assert result["notes"] == [] and "Not shown" not in html  # every run's bag read
 
 
 def test_rescoring_a_ros1_bag_of_a_real_robot() -> None:

@@ -200,18 +200,23 @@ class Signals:
     source: str  # "recorded" or "simulated offline"
 
 
-def recorded_segments(campaign: Campaign) -> dict[int, Any]:
-    """The valid RunSegment of each trial, from its bag (the last valid attempt)."""
+def recorded_segments(campaign: Campaign, notes: list[str] | None = None) -> dict[int, Any]:
+    """The valid RunSegment of each trial, from its bag (the last valid attempt); ``notes`` gets what could not be
+    read (no bags/, an unreadable bag)."""
     from bac_measure.bagio import BagError, read_messages
 
     out: dict[int, Any] = {}
     bags = campaign.path / "bags"
     if not bags.is_dir():
+        if notes is not None:
+            notes.append(f"no bags/ folder in {campaign.path}: no recorded signals to show")
         return out
     for bag in sorted(d for d in bags.iterdir() if d.is_dir()):
         try:
             msgs = read_messages(bag, "bac/run_segment")
-        except BagError:
+        except BagError as exc:
+            if notes is not None:
+                notes.append(f"bags/{bag.name} is unreadable, its runs' signals are not shown: {exc}")
             continue
         for _, m in msgs:
             if m.valid and len(m.accel_z):
@@ -255,8 +260,11 @@ def _simulated_extreme(campaign: Campaign, values: Mapping[str, float], label: s
     return Signals(label, sc.j, seg.sample_rate_hz, seg.accel_z, seg.pitch_rate, "simulated offline")
 
 
-def comparison_signals(campaign: Campaign) -> list[Signals]:
-    segs = recorded_segments(campaign)
+def comparison_signals(campaign: Campaign, notes: list[str] | None = None) -> list[Signals]:
+    """The best and worst runs' aligned signals (recorded) and the damping extremes (recorded, else simulated
+    offline); ``notes`` gets every run that should be shown and is not, and why."""
+    notes = [] if notes is None else notes
+    segs = recorded_segments(campaign, notes)
     scored = campaign.scored()
     out: list[Signals] = []
     if scored:
@@ -264,6 +272,11 @@ def comparison_signals(campaign: Campaign) -> list[Signals]:
         worst = max(scored, key=lambda t: t.j)
         for t, label in ((best, "best"), (worst, "worst")):
             m = segs.get(t.trial_id)
+            if m is None:
+                notes.append(
+                    f"the {label} run (trial {t.trial_id}) has no recorded segment in the bags: its signals are "
+                    "not in signals.png"
+                )
             if m is not None:
                 out.append(
                     Signals(
@@ -728,6 +741,7 @@ def write_html(
     figures: Sequence[Path],
     summ: dict[str, Any],
     base_summ: dict[str, Any] | None,
+    notes: Sequence[str] = (),
 ) -> Path:
     names = list(campaign.names)
     outcome_names = sorted({k for t in campaign.trials for k in t.outcomes})
@@ -842,6 +856,10 @@ def write_html(
         parts.append("<h2>Summary</h2>")
         parts.append(f"<p class='status'>{html.escape(summ.get('status', ''))}</p>")
         parts.append(_table(summary_rows(summ), ["", ""]))
+    if notes:
+        parts.append("<h2>Not shown</h2><ul class='notes'>")
+        parts += [f"<li>{html.escape(n)}</li>" for n in notes]
+        parts.append("</ul>")
     for f in figures:
         parts.append(f"<h3>{html.escape(f.stem.replace('_', ' '))}</h3><img src='{html.escape(f.name)}'>")
     parts.append("<h2>Trials</h2>")
@@ -878,12 +896,19 @@ def make_report(
     pp = plot_prior_posterior(campaign, out_dir)
     if pp is not None:
         figures.append(pp)
-    sig, spec = plot_signals(comparison_signals(campaign), out_dir)
+    notes: list[str] = []
+    sig, spec = plot_signals(comparison_signals(campaign, notes), out_dir)
     figures += [p for p in (sig, spec) if p is not None]
     summ = summary(campaign, truth)
     base_summ = summary(baseline, truth) if baseline is not None else None
-    page = write_html(campaign, out_dir, figures, summ, base_summ)
-    result = {"html": str(page), "figures": [str(f) for f in figures], "summary": summ, "baseline": base_summ}
+    page = write_html(campaign, out_dir, figures, summ, base_summ, notes)
+    result = {
+        "html": str(page),
+        "figures": [str(f) for f in figures],
+        "summary": summ,
+        "baseline": base_summ,
+        "notes": notes,
+    }
     (out_dir / "summary.json").write_text(json.dumps(result, indent=2, default=_json_default))
     return result
 
@@ -911,6 +936,8 @@ def main(argv: Sequence[str] | None = None) -> int:
         sys.stderr.write(f"bac report: {exc}\n")
         return 2
     s = result["summary"]
+    for note in result["notes"]:
+        say(f"note: {note}")
     say(f"report: {result['html']}")
     if "gap" in s:
         say(f"recommendation true J {s['true_j_of_recommendation']:.5f}, gap {100 * s['gap']:.2f} %")

@@ -463,6 +463,12 @@ def rescore(
     for p in ps:
         if not p.exists():
             raise RescoreError(f"no such campaign folder or bag: {p}")
+        if p.is_dir() and (p / JOURNAL_NAME).is_file() and not (p / "bags").is_dir():
+            raise RescoreError(
+                f"{p} is a campaign folder without bags/: nothing was recorded to rescore (the recorder "
+                "(campaign_recorder) writes bags/trial_NNNN; was it left out of the launch, or the folder copied "
+                "without it?)"
+            )
     campaign_dir = ps[0] if len(ps) == 1 and (ps[0] / "bags").is_dir() else None
     files = [Path(f) for f in files] if files else default_params_files(campaign_dir)
     ov = {k: dict(v) for k, v in (overrides or {}).items()}
