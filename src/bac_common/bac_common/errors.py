@@ -22,13 +22,16 @@ class OutOfBoundsError(BacError, ValueError):
     the declared bounds.
     """
 
-    def __init__(self, name: str, value: float, lower: float, upper: float) -> None:
+    def __init__(
+        self, name: str, value: float, lower: float, upper: float, consequence: str = "nothing was written"
+    ) -> None:
+        """``consequence``: what was not done, as the user reads it (the ECU path: nothing was written)."""
         self.name = name
         self.value = value
         self.lower = lower
         self.upper = upper
         super().__init__(
-            f"parameter '{name}' = {value!r} is outside its declared bounds [{lower:g}, {upper:g}]; nothing was written"
+            f"parameter '{name}' = {value!r} is outside its declared bounds [{lower:g}, {upper:g}]; {consequence}"
         )
 
 

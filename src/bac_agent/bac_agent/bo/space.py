@@ -182,7 +182,13 @@ class SearchSpace:
         x = np.array([float(params[n]) for n in self.names])
         for d, v in zip(self.dims, x, strict=True):
             if not (math.isfinite(v) and d.lower <= v <= d.upper):
-                raise OutOfBoundsError(d.name, float(v), d.lower, d.upper)
+                raise OutOfBoundsError(
+                    d.name,
+                    float(v),
+                    d.lower,
+                    d.upper,
+                    "the optimizer refuses it (a calibration outside the search space)",
+                )
         return x
 
     # --- (de)serialization -------------------------------------------------------------
