@@ -142,6 +142,10 @@ def test_bad_mdf_input_is_named(
         read_mdf(tmp_path / "five.mf4", ChannelMap.parse({k: v for k, v in CANAPE.items() if k != "gyro_z"}))
     with pytest.raises(MdfError, match="unknown role 'acc_z'"):
         ChannelMap.parse({"acc_z": "IMU_AccZ"})
+    for gain in ("nan", 0, "inf", "x"):  # outside review 2026-11-29: nan was accepted, then "0 samples"
+        with pytest.raises(MdfError, match=r"accel_x: gain .* must be a finite, non-zero number"):
+            ChannelMap.parse({**CANAPE, "accel_x": {"name": "IMU_AccX", "gain": gain}})
+    assert ChannelMap.parse({**CANAPE, "accel_x": {"name": "IMU_AccX", "gain": -1}}) is not None
     with pytest.raises(MdfError, match=r"unit 'V' is not a unit of speed"):
         read_mdf(mf4, ChannelMap.parse({**CANAPE, "speed": {"name": "ESP_v_Signal", "unit": "V"}}))
     truncated = tmp_path / "cut.mf4"

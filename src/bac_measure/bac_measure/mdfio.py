@@ -148,11 +148,20 @@ class ChannelMap:
                         + (f" (unknown key(s) {', '.join(sorted(map(str, bad)))})" if bad else "")
                     )
                 group = v.get("group")
+                try:
+                    gain = float(v.get("gain", 1.0))
+                except (TypeError, ValueError):
+                    gain = math.nan
+                if not (math.isfinite(gain) and gain != 0.0):
+                    raise MdfError(
+                        f"{where}: {role}: gain {v.get('gain')!r} must be a finite, non-zero number (e.g. -1 for an "
+                        "axis recorded with the other sign)"
+                    )
                 roles[role] = ChannelRef(
                     str(v["name"]),
                     None if group is None else int(group),
                     None if v.get("unit") is None else str(v["unit"]),
-                    float(v.get("gain", 1.0)),
+                    gain,
                 )
             else:
                 raise MdfError(f"{where}: {role}: expected a channel name or a mapping, got {v!r}")
