@@ -352,6 +352,15 @@ class StreamHealth:
         if self.mean_samples >= MOUNT_CHECK_S * out_rate and math.isfinite(mz) and abs(mz) > self.max_mean_accel_z:
             mx, my = self.mean_accel_mps2[0], self.mean_accel_mps2[1]
             g = np.array([mx, my, mz + self.gravity_mps2])
+            if float(np.linalg.norm(g)) < 0.3 * GRAVITY:
+                # no mount turns gravity away: the sensor does not measure it (outside review 2026-11-29: an all-zero
+                # IMU was called upside down)
+                return (
+                    f"mean a_z {mz:+.2f} m/s^2 after gravity removal (limit {self.max_mean_accel_z:g}) and the "
+                    f"accelerometer measures {float(np.linalg.norm(g)):.2f} m/s^2 of gravity in all (9.81 expected): "
+                    "a dead or unpowered sensor, a channel in the wrong unit or the wrong channels; check the IMU and "
+                    "its channels, not the mount"
+                )
             axis = ["x", "y", "z"][int(np.argmax(np.abs(g)))]
             sign = "+" if g["xyz".index(axis)] > 0 else "-"
             where = (

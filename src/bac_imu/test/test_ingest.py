@@ -357,3 +357,15 @@ def test_config_from_node_parameters() -> None:
     cfg = IngestConfig.from_params({"output_rate_hz": 250, "mount_source": "standstill", "qos_depth": 10})
     assert cfg.output_rate_hz == 250.0 and isinstance(cfg.output_rate_hz, float)
     assert cfg.mount_source == "standstill"
+
+
+def test_a_sensor_that_measures_no_gravity_is_called_dead_not_upside_down() -> None:
+    # outside review 2026-11-29: an all-zero IMU was diagnosed "the IMU is upside down ... roll 180"
+    fs, n = 100.0, 2000
+    t, acc, gyr = stream(n, fs)
+    dead = ingest_all(t, np.zeros_like(acc), np.zeros_like(gyr), IngestConfig(output_rate_hz=100.0))[1]
+    problem = dead.gravity_problem()
+    assert "measures 0.00 m/s^2 of gravity in all" in problem and "dead or unpowered" in problem
+    assert "upside down" not in problem
+    flipped = ingest_all(t, -acc, gyr, IngestConfig(output_rate_hz=100.0))[1]  # a sensor mounted upside down
+    assert "the IMU is upside down" in flipped.gravity_problem()
