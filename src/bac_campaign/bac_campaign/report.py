@@ -887,7 +887,13 @@ def make_report(
         from bac_sim.problems import get_problem
 
         truth = get_problem(truth_name)
+        _check_truth(campaign, truth_name, truth)
     baseline = load_campaign(baseline_dir) if baseline_dir else None
+    if baseline is not None and set(baseline.names) != set(campaign.names):
+        raise ReportError(
+            f"--baseline {baseline.path} tunes {', '.join(baseline.names)}; this campaign tunes "
+            f"{', '.join(campaign.names)}: a baseline must search the same parameters"
+        )
     figures: list[Path] = []
     c = plot_contour(campaign, out_dir, truth, baseline)
     if c is not None:
@@ -911,6 +917,35 @@ def make_report(
     }
     (out_dir / "summary.json").write_text(json.dumps(result, indent=2, default=_json_default))
     return result
+
+
+def _check_truth(campaign: Campaign, name: str, truth: Any) -> None:
+    """``--truth NAME`` must be the campaign's own problem: the same parameters and, for a simulated campaign, the
+    same scenario (outside review 2026-11-29: another definition's truth crashed with a KeyError, another scenario's
+    gave a gap of 182 %)."""
+    if set(truth.names) != set(campaign.names):
+        meta = {p.name for p in campaign.definition.parameters} == set(truth.names)
+        raise ReportError(
+            f"--truth {name} is a problem over {', '.join(truth.names)}; this campaign tunes "
+            f"{', '.join(campaign.names)}"
+            + (
+                ": meta-parameters of that problem's, judged by the reduced definition's truth (bac demo "
+                "--definition prints its gap)"
+                if meta
+                else ""
+            )
+        )
+    from bac_campaign.rescore import default_params_files
+    from bac_measure.measure_config import load_node_params
+
+    files = default_params_files(campaign.path)
+    drove = str(load_node_params(files, "vehicle_sim").get("scenario", "")) if files else ""
+    scenario = str(getattr(getattr(truth, "scenario", None), "name", ""))
+    if drove and scenario and drove != scenario:
+        raise ReportError(
+            f"--truth {name} is the {scenario} scenario; this campaign drove the {drove} (vehicle_sim.scenario in "
+            "its config/): its true J would be another problem's"
+        )
 
 
 def _json_default(v: Any) -> Any:

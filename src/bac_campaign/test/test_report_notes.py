@@ -52,3 +52,25 @@ def test_rescore_of_a_campaign_without_bags_says_so(tmp_path: Path) -> None:
     camp = campaign(tmp_path / "c")
     with pytest.raises(RescoreError, match=r"is a campaign folder without bags/: nothing was recorded to rescore"):
         rescore([camp])
+
+
+def test_a_truth_or_baseline_of_another_problem_is_refused_with_the_reason(tmp_path: Path) -> None:
+    # outside review 2026-11-29: --truth road_c2 on a Controller I campaign, a baseline of another definition: a
+    # traceback; --truth road_c1 on a bump campaign: a gap of 182 %
+    from bac_campaign.report import ReportError
+
+    camp = campaign(tmp_path / "c")
+    with pytest.raises(ReportError, match=r"--truth road_c2 is a problem over p01, .*; this campaign tunes damping_"):
+        make_report(camp, truth_name="road_c2")
+    (camp / "config").mkdir()
+    (camp / "config" / "sim.yaml").write_text("vehicle_sim:\n  ros__parameters:\n    scenario: bump\n")
+    (camp / "config" / "launch.json").write_text(json.dumps({"params_files": ["sim.yaml"]}))
+    with pytest.raises(ReportError, match="--truth road_c1 is the road scenario; this campaign drove the bump"):
+        make_report(camp, truth_name="road_c1")
+    assert Path(make_report(camp, truth_name="bump_c1")["html"]).is_file()  # its own problem: no objection
+    other = tmp_path / "other"
+    definition = CalibrationDefinition.load(resolve_definition("controller_ii"))
+    with Journal(other) as j:
+        j.append("campaign_started", campaign_id="o", definition=definition.to_dict(), strategy="grid", seed=0)
+    with pytest.raises(ReportError, match="a baseline must search the same parameters"):
+        make_report(camp, baseline_dir=other)
