@@ -104,6 +104,54 @@ def test_command_line_overrides_win_over_parameter_files(
 
 
 @pytest.mark.parametrize("mode", [[], ["--single-process"]], ids=["processes", "single-process"])
+def test_a_mistyped_or_wrongly_typed_override_stops_the_launch_with_the_reason(
+    ros_env: dict[str, str], tmp_path: Path, mode: list[str]
+) -> None:
+    # outside review 2026-11-29: -p bo_agent.budgt:=3 and -p bo_agent.budget:=abc both ran a campaign of 15 drives
+    params = tmp_path / "params.yaml"
+    params.write_text(yaml.safe_dump({"omega": {"ros__parameters": {"finish_after_s": 30.0}}}))
+    nodes = [reporter("alpha", tmp_path), {**reporter("omega", tmp_path), "ends_graph": True}]
+    prof = make_profile(tmp_path, nodes, params_files=[str(params)], use_sim_time=False)
+    for override, reason in (
+        ("alpha.tagg:=x", "-p alpha.tagg: alpha has no parameter 'tagg'; did you mean 'tag'?"),
+        (
+            "omega.finish_after_s:=soon",
+            '-p omega.finish_after_s:="soon": the node has 30.0 (float): a value of another type (str) does not',
+        ),
+    ):
+        p = launch(ros_env, str(prof), *mode, "-p", override)
+        out, _ = p.communicate(timeout=90)
+        text = out.decode(errors="replace")
+        assert p.returncode != 0 and reason in text, text
+    # the same graph with the overrides right runs (an integer for a float parameter reaches it)
+    p = launch(ros_env, str(prof), *mode, "-p", "alpha.tag:=x", "-p", "omega.finish_after_s:=1")
+    out, _ = p.communicate(timeout=90)
+    assert p.returncode == 0, out.decode(errors="replace")
+    a = report(tmp_path, "alpha")
+    assert a is not None and a["tag"] == "x"
+
+
+def test_a_missing_or_broken_params_file_is_refused_before_anything_is_made(
+    ros_env: dict[str, str], tmp_path: Path
+) -> None:
+    # outside review 2026-11-29: a FileNotFoundError traceback after the campaign folder's config/ was made; a file
+    # that is not YAML started the graph and killed a node
+    (tmp_path / "broken.yaml").write_text("x: [1\n")
+    (tmp_path / "flat.yaml").write_text("budget: 3\n")
+    for name, reason in (
+        ("nope.yaml", "no such file"),
+        ("broken.yaml", "not YAML"),
+        ("flat.yaml", "not a ROS parameter file"),
+    ):
+        camp = tmp_path / f"camp_{name}"
+        p = launch(ros_env, "sim", "--params-file", str(tmp_path / name), "--campaign-dir", str(camp))
+        out, _ = p.communicate(timeout=60)
+        text = out.decode(errors="replace")
+        assert p.returncode == 2 and f"--params-file {tmp_path / name}: {reason}" in text, text
+        assert not camp.exists()
+
+
+@pytest.mark.parametrize("mode", [[], ["--single-process"]], ids=["processes", "single-process"])
 def test_a_dying_node_fails_the_graph(ros_env: dict[str, str], tmp_path: Path, mode: list[str]) -> None:
     nodes = [reporter("steady", tmp_path), reporter("crasher", tmp_path, crash_after_s=1.0)]
     p = launch(ros_env, str(make_profile(tmp_path, nodes)), *mode)

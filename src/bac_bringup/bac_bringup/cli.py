@@ -89,6 +89,22 @@ def launch_main(argv: Sequence[str]) -> int:
     )
     args = ap.parse_args(list(argv))
     try:
+        for f in args.params_file:  # before anything is made (a campaign folder's config/, the nodes)
+            if not Path(f).is_file():
+                raise ProfileError(f"--params-file {f}: no such file")
+            try:
+                import yaml
+
+                data = yaml.safe_load(Path(f).read_text())
+            except (yaml.YAMLError, UnicodeDecodeError) as exc:
+                raise ProfileError(f"--params-file {f}: not YAML: {exc}") from None
+            nodes = {} if data is None else data  # (an empty file, comments only: nothing to set)
+            if not isinstance(nodes, dict) or not all(
+                isinstance(v, dict) and "ros__parameters" in v for v in nodes.values()
+            ):
+                raise ProfileError(
+                    f"--params-file {f}: not a ROS parameter file ({{node: {{ros__parameters: {{...}}}}}} per node)"
+                )
         profile = load_profile(args.profile)
         overrides: dict[str, dict[str, Any]] = {}
         for node, param, value in args.param:

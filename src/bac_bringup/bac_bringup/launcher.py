@@ -24,6 +24,7 @@ from __future__ import annotations
 
 import ctypes
 import functools
+import json
 import logging
 import os
 import signal
@@ -47,7 +48,7 @@ from bac_bringup.profile import (
     Profile,
     ProfileError,
 )
-from bac_common.contracts import ROS_ENV_DEFAULTS
+from bac_common.contracts import ROS_ENV_DEFAULTS, USER_PARAMS
 
 LOG = logging.getLogger("bac.launch")
 STOP_GRACE_S = 8.0  # SIGINT, then this long before SIGTERM, then as long before SIGKILL
@@ -111,6 +112,11 @@ def ros_args_for(profile: Profile, spec: NodeSpec) -> list[str]:
     for f in profile.params_files:
         args += ["--params-file", str(f)]
     params = profile.params_for(spec)
+    if spec.params:
+        # the node's own overrides (-p, the profile's): the node checks at start that it has each and that the value
+        # reached it (BacNode._check_user_params): rcl ignores a name a node does not declare, and keeps an earlier
+        # file's value when a later one gives another type
+        params[USER_PARAMS] = [f"{k}={json.dumps(v)}" for k, v in spec.params.items()]
     if params:
         args += ["--params-file", str(overrides_file(spec, params))]
     return args

@@ -24,6 +24,10 @@ SRV_READ_CALIBRATION = "ecu_bridge/read_calibration"  # bac_msgs/srv/ReadCalibra
 SRV_RESTORE_BASELINE = "ecu_bridge/restore_baseline"  # std_srvs/srv/Trigger
 
 # environment every ROS process of bac gets (README.md, "The network rule")
+# the parameter through which bac launch tells a node which parameters the user set (-p, the profile's node
+# parameters), "name=<JSON value>" each: the node checks them once made (bac_common.rosnode.BacNode)
+USER_PARAMS = "bac_user_params"
+
 ROS_ENV_DEFAULTS = {
     "ROS_AUTOMATIC_DISCOVERY_RANGE": "LOCALHOST",
     "RMW_IMPLEMENTATION": "rmw_fastrtps_cpp",
