@@ -290,6 +290,14 @@ def main(argv: list[str] | None = None) -> int:
         from bac_measure.mdfio import ChannelMap
         from bac_measure.sources import read_source
 
+        bag = Path(args.bag)
+        if bag.is_dir() and (bag / "journal.jsonl").is_file():
+            trials = sorted(p.name for p in (bag / "bags").glob("trial_*")) if (bag / "bags").is_dir() else []
+            raise ParamsFileError(
+                f"{bag} is a campaign folder: give one of its bags, e.g. {bag / 'bags' / trials[0]}"
+                if trials
+                else f"{bag} is a campaign folder without bags/: no IMU recording in it"
+            )
         src = read_source(args.bag, args.topic, channels=ChannelMap.load(args.channel_map, args.channel))
         r = analyse_report(src.imu, args.params, overrides, args.start, args.end)
         r.notes[:0] = src.notes

@@ -178,3 +178,12 @@ def test_mean_fallback_is_the_same_pushed_in_chunks() -> None:
     chunked = IngestOutput.concatenate([p for p in [*parts, ing.flush()] if len(p)])
     assert np.array_equal(chunked.accel, whole.accel) and np.array_equal(chunked.gyro, whole.gyro)
     assert h.bias_source == "long-run mean over 30.0 s (no standstill found)"
+
+
+def test_a_campaign_folder_is_named_with_the_bag_to_give(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    # outside review 2026-11-29: a campaign folder was called a truncated or corrupt bag (ros2 bag reindex advice)
+    camp = tmp_path / "camp"
+    (camp / "bags" / "trial_0001").mkdir(parents=True)
+    (camp / "journal.jsonl").write_text("")
+    assert main([str(camp)]) == 2
+    assert f"{camp} is a campaign folder: give one of its bags, e.g. {camp}/bags/trial_0001" in capsys.readouterr().err
