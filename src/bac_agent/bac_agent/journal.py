@@ -76,6 +76,13 @@ def _no_constant(name: str) -> Any:
     raise _NonFiniteError(name)
 
 
+def _finite_float(text: str) -> float:
+    v = float(text)
+    if math.isinf(v):  # 1e999: another way to write Infinity
+        raise _NonFiniteError(f"{text} (infinite)")
+    return v
+
+
 def read_journal(path: str | Path, check_seq: bool | None = None) -> JournalRead:
     """Read every complete event; a torn last line is returned apart, never guessed at.
 
@@ -100,7 +107,7 @@ def read_journal(path: str | Path, check_seq: bool | None = None) -> JournalRead
             # after the final newline: empty when the file ended cleanly, else a torn write
             return JournalRead(events, pos, raw)
         try:
-            obj = json.loads(raw, parse_constant=_no_constant)
+            obj = json.loads(raw, parse_constant=_no_constant, parse_float=_finite_float)
         except _NonFiniteError as exc:  # a whole line, parsed: not a torn write, an edit
             raise JournalCorruptError(
                 f"{p}: line {i + 1} holds {exc}, which bac never writes (a non-finite value is written as null): "
@@ -117,7 +124,7 @@ def read_journal(path: str | Path, check_seq: bool | None = None) -> JournalRead
                 "Keep a copy, then remove the damaged lines by hand or start a new campaign_dir."
             )
         seq = obj.get("seq")
-        if check_seq and seq is not None and (not isinstance(seq, int) or isinstance(seq, bool) or seq != i):
+        if check_seq and (not isinstance(seq, int) or isinstance(seq, bool) or seq != i):
             # bac numbers the events 0, 1, 2, ... as it writes them (Journal.append): a line with another number was
             # inserted, removed, duplicated or moved (outside review 2026-11-29: a second trial_scored for a trial,
             # its seq copied, was read as the trial's J and became the best J of the report)

@@ -92,6 +92,14 @@ def test_a_line_inserted_duplicated_or_removed_is_an_error_not_a_result(tmp_path
         with pytest.raises(JournalCorruptError):
             Journal(tmp_path)
         assert path.read_bytes() == damaged  # nothing repaired, nothing truncated
+    # a pasted line without its seq, and an infinity written as a number, are caught too (second outside review)
+    for damaged, match in (
+        (lines[0] + lines[1] + forged.replace(b'"seq":1,', b"") + lines[2], "line 3 has seq None"),
+        (lines[0] + lines[1].replace(b'"j":0.95', b'"j":1e999') + lines[2], r"line 2 holds 1e999 \(infinite\)"),
+    ):
+        path.write_bytes(damaged)
+        with pytest.raises(JournalCorruptError, match=match):
+            read_journal(path)
     path.write_bytes(good)
     assert [e.get("j") for e in read_journal(path).events] == [None, 0.95, 0.90]
 

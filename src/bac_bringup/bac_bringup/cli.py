@@ -14,6 +14,7 @@ import argparse
 import importlib
 import json
 import logging
+import re
 import sys
 import threading
 import time
@@ -50,7 +51,18 @@ def parse_assignment(text: str) -> tuple[str, str, Any]:
         raise argparse.ArgumentTypeError(f"expected node.param:=value, got {text!r}")
     key, raw = text.split(":=", 1)
     node, param = key.split(".", 1)
-    return node, param, yaml.safe_load(raw) if raw != "" else ""
+    value = yaml.safe_load(raw) if raw != "" else ""
+    if isinstance(value, str) and re.fullmatch(r"[-+]?(\d+\.?\d*|\.\d+)[eE][-+]?\d+", raw.strip()):
+        value = float(raw)  # 1e-05: a string to PyYAML (YAML 1.1), a number to rcl and to the user
+    return node, param, value
+
+
+def _ros_params_layout(data: Any) -> bool:
+    """A ROS parameter file: a mapping whose leaves are ``{ros__parameters: {...}}`` blocks, at any depth of
+    namespaces (``ns: {node: {ros__parameters: ...}}``, as rcl reads them)."""
+    if not isinstance(data, dict) or not data:
+        return False
+    return all(isinstance(v, dict) and ("ros__parameters" in v or _ros_params_layout(v)) for v in data.values())
 
 
 def launch_main(argv: Sequence[str]) -> int:
@@ -98,10 +110,7 @@ def launch_main(argv: Sequence[str]) -> int:
                 data = yaml.safe_load(Path(f).read_text())
             except (yaml.YAMLError, UnicodeDecodeError) as exc:
                 raise ProfileError(f"--params-file {f}: not YAML: {exc}") from None
-            nodes = {} if data is None else data  # (an empty file, comments only: nothing to set)
-            if not isinstance(nodes, dict) or not all(
-                isinstance(v, dict) and "ros__parameters" in v for v in nodes.values()
-            ):
+            if data is not None and not _ros_params_layout(data):
                 raise ProfileError(
                     f"--params-file {f}: not a ROS parameter file ({{node: {{ros__parameters: {{...}}}}}} per node)"
                 )

@@ -98,7 +98,14 @@ def run_nodes(
     from rclpy.signals import SignalHandlerOptions
     from rclpy.utilities import ok, try_shutdown
 
-    from bac_common.rosnode import STOP_NOTICE_S, BacNode, StopSignals, drain_executor, start_exit_watchdog
+    from bac_common.rosnode import (
+        STOP_NOTICE_S,
+        BacNode,
+        StopSignals,
+        UserParameterError,
+        drain_executor,
+        start_exit_watchdog,
+    )
 
     stop = threading.Event()
     # a process's main: after a stop signal, and for the interpreter's exit, a hard deadline (run_node's)
@@ -154,6 +161,9 @@ def run_nodes(
                 break
     except (KeyboardInterrupt, ExternalShutdownException):
         code = 0
+    except UserParameterError as exc:  # a node's -p overrides: a message to act on, as a process of its own says it
+        LOG.critical("not started: %s", exc)
+        code = 2
     except Exception:
         if ok():
             LOG.exception("a node crashed: shutting down the graph")

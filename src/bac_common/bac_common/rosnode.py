@@ -20,6 +20,7 @@ import collections
 import difflib
 import faulthandler
 import io
+import json
 import math
 import os
 import signal
@@ -31,7 +32,6 @@ from collections.abc import Callable, Sequence
 from typing import Any, ClassVar, TypeVar
 
 import rclpy
-import yaml
 from rcl_interfaces.msg import (
     FloatingPointRange,
     IntegerRange,
@@ -147,14 +147,14 @@ class BacNode(Node, metaclass=_CheckedAfterInit):
                 hint = f"did you mean '{close[0]}'?" if close else f"its parameters: {', '.join(declared)}"
                 problems.append(f"-p {self.get_name()}.{name}: {self.get_name()} has no parameter '{name}'; {hint}")
                 continue
-            want = yaml.safe_load(raw) if raw else ""
+            want = json.loads(raw) if raw else ""  # (the launcher writes JSON: 1e-05 would be a string in YAML 1.1)
             have = self.get_parameter(name).value
             if not isinstance(have, str | bytes) and hasattr(have, "__iter__"):
                 have = list(have)  # (an array parameter reads back as array.array)
             if have != want:  # (3 == 3.0: an integer given for a float parameter reaches it)
                 kind = type(have).__name__ if have is not None else "unset"
                 problems.append(
-                    f"-p {self.get_name()}.{name}:={raw}: the node has {have!r} ({kind}): a value of another type "
+                    f"-p {self.get_name()}.{name}:={want}: the node has {have!r} ({kind}): a value of another type "
                     f"({type(want).__name__}) does not reach it"
                 )
         if problems:
@@ -203,6 +203,9 @@ class BacNode(Node, metaclass=_CheckedAfterInit):
         given = self._parameter_overrides.get(name)
         if given is not None and given.type_ == Parameter.Type.INTEGER:
             self._parameter_overrides[name] = Parameter(name, Parameter.Type.DOUBLE, float(given.value))
+        elif given is not None and given.type_ == Parameter.Type.INTEGER_ARRAY:
+            values = [float(v) for v in given.value]
+            self._parameter_overrides[name] = Parameter(name, Parameter.Type.DOUBLE_ARRAY, values)
 
     def declare_int(
         self,
@@ -255,6 +258,7 @@ class BacNode(Node, metaclass=_CheckedAfterInit):
         desc = ParameterDescriptor(
             description=description, type=ParameterType.PARAMETER_DOUBLE_ARRAY, read_only=read_only
         )
+        self._integer_override_as_float(name)
         value = self.declare_parameter(name, [float(x) for x in default], desc).value
         return [float(x) for x in (value or [])]
 

@@ -33,9 +33,9 @@ from bac_measure.segmentation import RunId, Segment, from_params
 
 FloatArray = npt.NDArray[np.float64]
 KPIS = ("rms", "iso_wk_rms", "vdv")
-# the sample rates a vehicle IMU gives: below, the ISO 2631 Wk band (0.4-100 Hz, peak 4-8 Hz) is not sampled; above,
-# a time base in the wrong unit (an outside review's 1e15 Hz asked the spectrum for 256 PiB)
-MIN_SAMPLE_RATE_HZ = 20.0
+# the sample rates an IMU stream can have after ingestion (imu_ingest's output_rate_hz, 1 Hz up): outside them, a time
+# base in the wrong unit (an outside review's 1e15 Hz asked the spectrum for 256 PiB, 1e-9 Hz scored valid)
+MIN_SAMPLE_RATE_HZ = 1.0
 MAX_SAMPLE_RATE_HZ = 20_000.0
 
 
@@ -179,8 +179,8 @@ def score_signals(
         return invalid(f"bad sample rate {sample_rate_hz}")
     if not MIN_SAMPLE_RATE_HZ <= sample_rate_hz <= MAX_SAMPLE_RATE_HZ:
         return invalid(
-            f"sample rate {sample_rate_hz:g} Hz outside the {MIN_SAMPLE_RATE_HZ:g}-{MAX_SAMPLE_RATE_HZ:g} Hz of a "
-            "vehicle IMU: check the recording's time base (its unit) or resample"
+            f"sample rate {sample_rate_hz:g} Hz outside the {MIN_SAMPLE_RATE_HZ:g}-{MAX_SAMPLE_RATE_HZ:g} Hz of an "
+            "IMU stream: check the recording's time base (its unit) or resample"
         )
     bad = int(np.count_nonzero(~np.isfinite(az)) + np.count_nonzero(~np.isfinite(q)))
     if bad:
@@ -217,7 +217,7 @@ def score_signals(
     if c.max_rms_accel_z > 0 and rms_az > c.max_rms_accel_z:
         return invalid(
             f"RMS a_z {rms_az:.3g} m/s^2 is beyond a car body's (max_rms_accel_z {c.max_rms_accel_z:g}): is the "
-            "accelerometer in mm/s^2 or cm/s^2? Check the channel's unit (channel map) or the IMU driver"
+            "accelerometer in mm/s^2? Check the channel's unit (channel map) or the IMU driver"
         )
     f, p_az = welch_psd(az, sample_rate_hz, c.psd_segment_s, c.psd_max_hz)
     _, p_q = welch_psd(q, sample_rate_hz, c.psd_segment_s, c.psd_max_hz)
