@@ -38,6 +38,7 @@ from typing import Any
 
 from bac_bringup import netns
 from bac_bringup.profile import workspace_dir
+from bac_common.console import in_range
 
 SCENARIOS = {
     # scenario: (simulated problem for the truth, extra parameter file, grid size of the baseline)
@@ -232,10 +233,14 @@ def main(argv: Sequence[str] | None = None) -> int:
         prog="bac demo", description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
     )
     ap.add_argument("--scenario", choices=sorted(SCENARIOS), default="bump", help="speed bump (default) or test road")
-    ap.add_argument("--budget", type=int, default=15, help="trials of the BO campaign")
-    ap.add_argument("--seed", type=int, default=0, help="seed of the agent and of the simulated runs")
+    ap.add_argument("--budget", type=in_range(int, 1, 10_000), default=15, help="trials of the BO campaign")
+    ap.add_argument(
+        "--seed", type=in_range(int, 0, 2**31 - 1), default=0, help="seed of the agent and of the simulated runs"
+    )
     ap.add_argument("--with-grid", action="store_true", help="also run the 8x8 grid-search baseline through the graph")
-    ap.add_argument("--grid-size", type=int, default=8, help="grid points per parameter of the baseline")
+    ap.add_argument(
+        "--grid-size", type=in_range(int, 1, 100), default=8, help="grid points per parameter of the baseline"
+    )
     ap.add_argument("--campaign-dir", type=Path, help="campaign folder (default: campaigns/demo-<scenario>-<time>)")
     ap.add_argument("--single-process", action="store_true", help="all nodes in one process (virtual CAN bus)")
     ap.add_argument("--timeout", type=float, default=900.0, help="give up after this many seconds")

@@ -12,6 +12,7 @@ from bac_bringup.launcher import run_graph
 from bac_bringup.profile import load_profile
 from bac_campaign import rescore
 from bac_campaign.bagplay import BagReadError, expand_bag_paths
+from bac_common.console import in_range
 
 
 def profile_params(name: str) -> list[Path]:
@@ -29,7 +30,9 @@ def replay_main(argv: Sequence[str]) -> int:
     ap.add_argument(
         "bags", nargs="+", help="campaign folders and/or bags (rosbag2 folder/mcap/db3, ROS 1 .bag) or MDF files"
     )
-    ap.add_argument("--rate", type=float, default=10.0, help="playback speed, multiple of real time")
+    ap.add_argument(
+        "--rate", type=in_range(float, 0.01, 1000.0), default=10.0, help="playback speed, multiple of real time"
+    )
     ap.add_argument(
         "--topic-map",
         action="append",
