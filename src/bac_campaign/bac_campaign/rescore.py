@@ -319,9 +319,15 @@ def _steps_back_note(path: Path, imu: ImuArrays | None) -> str:
     if not back.any():
         return ""
     i = int(np.argmin(step))
+    where = (
+        f"the largest step back {-step[i] / 1e9:.3f} s at {(imu.stamp_ns[i + 1] - imu.stamp_ns[0]) / 1e9:.3f} s into "
+        "the recording"
+        if step[i] < 0
+        else "equal stamps only"
+    )
     return (
-        f"{path.name}: {int(back.sum())} IMU sample(s) ({imu.topic}) stamped at or before an earlier one, the "
-        f"largest step back {-step[i] / 1e9:.3f} s at {imu.stamp_ns[i + 1] / 1e9:.3f} s: merged in time order here "
+        f"{path.name}: {int(back.sum())} IMU sample(s) ({imu.topic}) stamped at or before an earlier one, {where}: "
+        "merged in time order here "
         "(equal stamps once), where the live chain drops them; a clock jump back interleaves two stretches of "
         "signal: check the recording's time base (python -m bac_measure.imu_health shows it)"
     )

@@ -246,4 +246,4 @@ def test_a_clock_jump_back_in_a_recording_is_said_in_the_notes(
     assert not any("stamped at or before an earlier one" in n for n in clean.notes)
     notes = rescore([write_canape_mf4(tmp_path / "jump.mf4", jumped, odom)]).notes
     (note,) = [n for n in notes if "stamped at or before an earlier one" in n]
-    assert note.startswith("jump.mf4: 200 IMU sample(s)") and "largest step back 0.497 s" in note
+    assert note.startswith("jump.mf4: 200 IMU sample(s)") and "largest step back 0.497 s at 3.250 s into" in note
