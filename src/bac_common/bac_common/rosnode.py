@@ -39,6 +39,7 @@ from rcl_interfaces.msg import (
     ParameterType,
     SetParametersResult,
 )
+from rclpy.exceptions import ParameterUninitializedException
 from rclpy.executors import ExternalShutdownException, MultiThreadedExecutor
 from rclpy.node import Node
 from rclpy.parameter import Parameter
@@ -148,7 +149,12 @@ class BacNode(Node, metaclass=_CheckedAfterInit):
                 problems.append(f"-p {self.get_name()}.{name}: {self.get_name()} has no parameter '{name}'; {hint}")
                 continue
             want = json.loads(raw) if raw else ""  # (the launcher writes JSON: 1e-05 would be a string in YAML 1.1)
-            have = self.get_parameter(name).value
+            try:
+                have = self.get_parameter(name).value
+            except ParameterUninitializedException:  # declared with no value (an empty list): nothing reached it
+                have = None
+            if have is None and want in ([], "", None):
+                continue
             if not isinstance(have, str | bytes) and hasattr(have, "__iter__"):
                 have = list(have)  # (an array parameter reads back as array.array)
             if have != want:  # (3 == 3.0: an integer given for a float parameter reaches it)
