@@ -33,6 +33,11 @@ from bac_measure.recording import OLD_MESSAGE_PAD
 from bac_msgs.msg import RunScore, Trial
 
 PLAY_TOPICS = ("imu/data_raw", "vehicle/odom", "bac/trial")
+# while the player holds the current run's own end state (SCORED, REJECTED, ...) for the replayed score, it plays the
+# sensor streams recorded after it up to this far (sim time) and never past another trial message: the live agent's
+# clock can lag /clock, so the state may be stamped before the last samples the run needs (CI 2026-11-29: a run
+# cancelled, "the trial entered state 4 before the run was complete", after the hold timed out)
+LOOK_AHEAD_NS = 5_000_000_000
 RunKey = tuple[str, int, int]
 
 
@@ -141,6 +146,9 @@ class BagPlayerNode(BacNode):
         self._current_run: RunKey | None = None
         self._hold_since: float | None = None
         self._end_wall: float | None = None
+        self._played_ahead: set[int] = set()  # queue indices played ahead of a held end state
+        self._ahead_next = 0  # the next index the look-ahead may play
+        self._clock_hw = 0  # the latest /clock published: it never goes back
         self._bag_t0 = self.queue[0].time_ns if self.queue else 0
         self.timer = self.create_timer(0.002, self._tick, clock=self._wall)
 
@@ -187,8 +195,9 @@ class BagPlayerNode(BacNode):
 
     # --- playing --------------------------------------------------------------------------
     def _publish_clock(self, t_ns: int) -> None:
+        self._clock_hw = max(self._clock_hw, int(t_ns))
         msg = self._clock_cls()
-        msg.clock.sec, msg.clock.nanosec = divmod(int(t_ns), 1_000_000_000)
+        msg.clock.sec, msg.clock.nanosec = divmod(self._clock_hw, 1_000_000_000)
         self.clock_pub.publish(msg)
 
     def _tick(self) -> None:
@@ -210,12 +219,18 @@ class BagPlayerNode(BacNode):
         wall = time.monotonic()
         now_bag = self._bag_t0 + int((wall - self._t_start_wall) * self.rate * 1e9)
         while self._i < len(self.queue) and self.queue[self._i].time_ns <= now_bag:
+            if self._i in self._played_ahead:
+                self._played_ahead.discard(self._i)
+                self._i += 1
+                continue
             m = self.queue[self._i]
             if m.topic == TOPIC_TRIAL and self._holds(m, wall):
                 # the live agent started this run only after the previous one was scored: so does the replay
                 # (the sim clock stands still meanwhile)
                 self._t_start_wall += wall - self._last_tick
                 now_bag = m.time_ns
+                if self._current_run is not None and self._trial_key(m) == self._current_run:
+                    self._play_ahead(m.time_ns + LOOK_AHEAD_NS)
                 break
             self._publish_clock(m.time_ns)
             self.pubs[m.topic].publish(m.cdr)
@@ -231,6 +246,23 @@ class BagPlayerNode(BacNode):
         if not missing or time.monotonic() - self._end_wall > self.score_timeout_s:
             self._report(missing)
             self.finish(0)
+
+    @staticmethod
+    def _trial_key(m: BagMessage) -> RunKey:
+        t = deserialize_message(m.cdr, Trial)
+        return (t.campaign_id, t.trial_id, t.attempt)
+
+    def _play_ahead(self, limit_ns: int) -> None:
+        """Play the sensor messages after the held one up to ``limit_ns``, never past another trial message (see
+        LOOK_AHEAD_NS); the queue skips them when it gets there."""
+        j = max(self._ahead_next, self._i + 1)
+        while j < len(self.queue) and self.queue[j].time_ns <= limit_ns and self.queue[j].topic != TOPIC_TRIAL:
+            q = self.queue[j]
+            self._publish_clock(q.time_ns)
+            self.pubs[q.topic].publish(q.cdr)
+            self._played_ahead.add(j)
+            j += 1
+        self._ahead_next = j
 
     def _holds(self, m: BagMessage, wall: float) -> bool:
         """True while a trial message must wait for the current run's score.
