@@ -150,10 +150,10 @@ def test_a_missing_or_broken_params_file_is_refused_before_anything_is_made(
     (tmp_path / "flat.yaml").write_text("budget: 3\n")
     # a namespaced file, as rcl reads it, is a parameter file (it gets past the check to the graph)
     (tmp_path / "ns.yaml").write_text(yaml.safe_dump({"ns": {"alpha": {"ros__parameters": {"tag": "x"}}}}))
-    from bac_bringup.cli import _ros_params_layout
+    from bac_bringup.cliargs import ros_params_layout
 
-    assert _ros_params_layout(yaml.safe_load((tmp_path / "ns.yaml").read_text()))
-    assert not _ros_params_layout({"budget": 3}) and not _ros_params_layout({"ns": {"alpha": {"tag": "x"}}})
+    assert ros_params_layout(yaml.safe_load((tmp_path / "ns.yaml").read_text()))
+    assert not ros_params_layout({"budget": 3}) and not ros_params_layout({"ns": {"alpha": {"tag": "x"}}})
     for name, reason in (
         ("nope.yaml", "no such file"),
         ("broken.yaml", "not YAML"),

@@ -99,6 +99,62 @@ def test_replay_into_the_live_chain_gives_the_same_j(campaign: Path, ros_env: di
         assert abs(r["replayed_j"] - r["recorded_j"]) <= 1e-9, r
 
 
+def _stamp_scored_mid_run(bag: Path) -> float:
+    """Rewrite ``bag`` with its run's SCORED trial message stamped (and logged) in the middle of the run's cut
+    window, before the last samples the run needs: what a live agent whose clock lags the simulation records.
+    Returns how far (s) the message moved back."""
+    import shutil
+
+    from rosbags.rosbag2 import Reader, StoragePlugin, Writer
+
+    store = bac_typestore()
+    with Reader(bag) as reader:
+        msgs = [(c, t, raw) for c, t, raw in reader.messages()]
+        conns = list(reader.connections)
+    seg = next(store.deserialize_cdr(raw, c.msgtype) for c, _, raw in msgs if c.topic == "/bac/run_segment")
+    mid_ns = int((seg.window_start_s + seg.window_length_s / 2) * 1e9)
+    out = bag.with_name(bag.name + ".raced")
+    moved = 0.0
+    with Writer(out, version=9, storage_plugin=StoragePlugin.MCAP) as writer:
+        new = {c.id: writer.add_connection(c.topic, c.msgtype, typestore=store) for c in conns}
+        for c, t, raw in msgs:
+            m = store.deserialize_cdr(raw, c.msgtype) if c.topic == "/bac/trial" else None
+            if m is not None and m.state == 4:  # SCORED
+                moved = t / 1e9 - mid_ns / 1e9
+                m.stamp.sec, m.stamp.nanosec = divmod(mid_ns, 1_000_000_000)
+                writer.write(new[c.id], mid_ns, bytes(store.serialize_cdr(m, c.msgtype)))
+            else:
+                writer.write(new[c.id], t, raw)
+    shutil.rmtree(bag)
+    out.rename(bag)
+    return moved
+
+
+def test_replay_plays_on_past_a_score_stamped_before_the_runs_last_samples(
+    campaign: Path, ros_env: dict[str, str], tmp_path: Path
+) -> None:
+    """A loaded machine records a run's SCORED before the run's last samples (CI 2026-11-29): the player holds that
+    state until the replayed run is scored, and plays the samples recorded after it meanwhile, so every run is
+    scored whole and gives its J again (before the fix: the hold timed out and the run was cancelled)."""
+    import shutil
+
+    camp = tmp_path / "c"
+    shutil.copytree(campaign, camp, ignore=shutil.ignore_patterns("logs", "export", "report*"))
+    moved = [_stamp_scored_mid_run(b) for b in sorted((camp / "bags").iterdir())]
+    assert all(m > 1.0 for m in moved), moved  # each SCORED now sits seconds before its run's last samples
+    out = tmp_path / "replay.json"
+    cmd = [sys.executable, "-m", "bac_bringup.cli", "replay", str(camp), "--rate", "10", "--output", str(out),
+           "-p", "bag_player.hold_for_score_s:=15"]  # fmt: skip
+    proc = subprocess.run(cmd, env=ros_env, capture_output=True, text=True, timeout=300, check=False)
+    assert proc.returncode == 0, proc.stdout[-4000:] + proc.stderr[-4000:]
+    runs = [r for r in json.loads(out.read_text())["runs"] if r["recorded_j"] is not None]
+    assert len(runs) == BUDGET
+    for r in runs:
+        assert r["valid"], f"{r['reason']!r} in {r}\n{proc.stderr[-6000:]}"
+        assert abs(r["replayed_j"] - r["recorded_j"]) <= 1e-9, r
+    assert "playing on" not in proc.stdout + proc.stderr  # no hold timed out
+
+
 def test_the_recommendation_is_the_optimum_and_no_worse_than_the_best_initial_trial(campaign: Path) -> None:
     """Found (true gap <= 0.05) after 8 runs, and not worse than the best run of the initial design by more than
     1 % of the J range (when that run is itself next to the optimum, the two differ by less than the noise)."""

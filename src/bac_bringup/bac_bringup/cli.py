@@ -14,7 +14,6 @@ import argparse
 import importlib
 import json
 import logging
-import re
 import sys
 import threading
 import time
@@ -23,6 +22,7 @@ from pathlib import Path
 from typing import Any
 
 from bac_bringup import launcher, netns
+from bac_bringup.cliargs import add_param_arguments, check_params_files, overrides_of
 from bac_bringup.profile import ProfileError, load_profile
 from bac_common.errors import BacError
 
@@ -43,28 +43,6 @@ SUBCOMMANDS: dict[str, tuple[str, str, str]] = {
 }
 
 
-def parse_assignment(text: str) -> tuple[str, str, Any]:
-    """``node.param:=value`` -> (node, param, value parsed as YAML)."""
-    import yaml
-
-    if ":=" not in text or "." not in text.split(":=", 1)[0]:
-        raise argparse.ArgumentTypeError(f"expected node.param:=value, got {text!r}")
-    key, raw = text.split(":=", 1)
-    node, param = key.split(".", 1)
-    value = yaml.safe_load(raw) if raw != "" else ""
-    if isinstance(value, str) and re.fullmatch(r"[-+]?(\d+\.?\d*|\.\d+)[eE][-+]?\d+", raw.strip()):
-        value = float(raw)  # 1e-05: a string to PyYAML (YAML 1.1), a number to rcl and to the user
-    return node, param, value
-
-
-def _ros_params_layout(data: Any) -> bool:
-    """A ROS parameter file: a mapping whose leaves are ``{ros__parameters: {...}}`` blocks, at any depth of
-    namespaces (``ns: {node: {ros__parameters: ...}}``, as rcl reads them)."""
-    if not isinstance(data, dict) or not data:
-        return False
-    return all(isinstance(v, dict) and ("ros__parameters" in v or _ros_params_layout(v)) for v in data.values())
-
-
 def launch_main(argv: Sequence[str]) -> int:
     ap = argparse.ArgumentParser(prog="bac launch", description="Run a node graph profile from ros_ws/profiles.")
     ap.add_argument("profile", help="profile name (sim, car, replay, ...) or path to a profile YAML")
@@ -73,16 +51,7 @@ def launch_main(argv: Sequence[str]) -> int:
         action="store_true",
         help="all nodes in one process on a multi-threaded executor (CAN on the virtual bus)",
     )
-    ap.add_argument(
-        "-p",
-        "--param",
-        action="append",
-        default=[],
-        type=parse_assignment,
-        metavar="NODE.PARAM:=VALUE",
-        help="override one node parameter (repeatable)",
-    )
-    ap.add_argument("--params-file", action="append", default=[], help="extra ROS parameter YAML (repeatable)")
+    add_param_arguments(ap)
     ap.add_argument(
         "--process-per-node",
         action="store_true",
@@ -101,23 +70,9 @@ def launch_main(argv: Sequence[str]) -> int:
     )
     args = ap.parse_args(list(argv))
     try:
-        for f in args.params_file:  # before anything is made (a campaign folder's config/, the nodes)
-            if not Path(f).is_file():
-                raise ProfileError(f"--params-file {f}: no such file")
-            try:
-                import yaml
-
-                data = yaml.safe_load(Path(f).read_text())
-            except (yaml.YAMLError, UnicodeDecodeError) as exc:
-                raise ProfileError(f"--params-file {f}: not YAML: {exc}") from None
-            if data is not None and not _ros_params_layout(data):
-                raise ProfileError(
-                    f"--params-file {f}: not a ROS parameter file ({{node: {{ros__parameters: {{...}}}}}} per node)"
-                )
+        check_params_files(args.params_file)  # before anything is made (a campaign folder's config/, the nodes)
         profile = load_profile(args.profile)
-        overrides: dict[str, dict[str, Any]] = {}
-        for node, param, value in args.param:
-            overrides.setdefault(node, {})[param] = value
+        overrides = overrides_of(args.param)
         profile = profile.with_overrides(
             params=overrides,
             extra_params_files=args.params_file,

@@ -198,7 +198,7 @@ def run_campaign(
 def publish_cockpit(params_files: list[Path], overrides: list[str]) -> tuple[list[str], Any]:
     """Start the relay of the sim profile's cockpit (its host and port from the profile's parameter files, the
     demo's and ``cockpit.*`` overrides); returns the launch's extra ``-p`` arguments and the relay."""
-    from bac_bringup.cli import parse_assignment
+    from bac_bringup.cliargs import parse_assignment
     from bac_bringup.profile import load_profile
     from bac_cockpit.relay import publish_cockpit as publish
 

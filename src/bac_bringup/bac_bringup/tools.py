@@ -8,8 +8,9 @@ import sys
 from collections.abc import Sequence
 from pathlib import Path
 
+from bac_bringup.cliargs import add_param_arguments, check_params_files, overrides_of
 from bac_bringup.launcher import run_graph
-from bac_bringup.profile import load_profile
+from bac_bringup.profile import ProfileError, load_profile
 from bac_campaign import rescore
 from bac_campaign.bagplay import BagReadError, expand_bag_paths
 from bac_common.console import in_range
@@ -46,11 +47,12 @@ def replay_main(argv: Sequence[str]) -> int:
         "--channel", action="append", default=[], metavar="ROLE=NAME", help="MDF files: map one role (repeatable)"
     )
     ap.add_argument("--single-process", action="store_true", help="run the replay graph in one process")
-    ap.add_argument("--params-file", action="append", default=[], help="extra ROS parameter YAML (repeatable)")
+    add_param_arguments(ap)
     args = ap.parse_args(list(argv))
     try:
         paths = expand_bag_paths(args.bags)
-    except BagReadError as exc:
+        check_params_files(args.params_file)
+    except (BagReadError, ProfileError) as exc:
         sys.stderr.write(f"bac replay: {exc}\n")
         return 2
     player = {
@@ -63,5 +65,11 @@ def replay_main(argv: Sequence[str]) -> int:
         player["channel_map"] = str(args.channel_map.resolve())
     if args.channel:
         player["channels"] = list(args.channel)
-    profile = load_profile("replay").with_overrides(params={"bag_player": player}, extra_params_files=args.params_file)
+    overrides = overrides_of(args.param)
+    overrides["bag_player"] = {**player, **overrides.get("bag_player", {})}  # a -p wins over the options
+    try:
+        profile = load_profile("replay").with_overrides(params=overrides, extra_params_files=args.params_file)
+    except ProfileError as exc:
+        sys.stderr.write(f"bac replay: {exc}\n")
+        return 2
     return run_graph(profile, single_process=args.single_process)
