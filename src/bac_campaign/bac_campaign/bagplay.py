@@ -16,6 +16,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, cast
 
+import numpy as np
 from rosbags.highlevel import AnyReader
 from rosbags.typesys.store import Typestore
 
@@ -189,6 +190,50 @@ def in_event_order(messages: Sequence[BagMessage]) -> list[BagMessage]:
     ]
 
 
+def bag_topics(bag: str | Path) -> list[tuple[str, str]]:
+    """(topic, type) of every connection of a bag (empty for an MDF file or a bag that does not open)."""
+    path = Path(bag)
+    if is_mdf(path):
+        return []
+    try:
+        with AnyReader([path], default_typestore=bac_typestore()) as reader:
+            return sorted({(c.topic, c.msgtype) for c in reader.connections})
+    except Exception:  # rosbags raises several types for a bad bag; iter_bag_messages names it
+        return []
+
+
+# what a foreign bag's topics of these types most likely are, for a --topic-map hint
+PLAY_TYPES = {"sensor_msgs/msg/Imu": "imu/data_raw", "nav_msgs/msg/Odometry": "vehicle/odom"}
+
+
+def nothing_to_play(bag: str | Path, topics: Sequence[str]) -> str:
+    """Why ``bag`` gives none of ``topics``, with the remappings that would make it play."""
+    found = bag_topics(bag)
+    shown = ", ".join(f"{t} ({m})" for t, m in found) or "none"
+    hint = " ".join(f"--topic-map {t}:={PLAY_TYPES[m]}" for t, m in found if m in PLAY_TYPES and _norm(t) not in topics)
+    return f"{bag} has none of the topics to play ({', '.join(topics)}); its topics: {shown}" + (
+        f"; map them, e.g. {hint}" if hint else ""
+    )
+
+
+def foreign_imu_rate_hz(
+    paths: Sequence[Path], topic_map: Mapping[str, str] | None = None, channels: ChannelMap | None = None
+) -> float | None:
+    """The IMU rate (1 / median stamp step of ``imu/data_raw``, after ``topic_map``) of recordings that are not a
+    bac campaign's (none holds ``bac/trial``): a foreign bag or an MDF file, whose rate the replay profile's
+    ingestion (made for the simulator's IMU) does not know. None for bac's own bags, or without IMU samples."""
+    stamps: list[int] = []
+    for path in paths:
+        for m in iter_bag_messages(path, ["imu/data_raw", "bac/trial"], topic_map, channels):
+            if m.topic == "bac/trial":
+                return None
+            t = cdr_stamp_ns(m.cdr)
+            stamps.append(t if t else m.time_ns)
+    steps = np.diff(np.sort(np.asarray(stamps, dtype=np.int64)))
+    steps = steps[steps > 0]
+    return 1e9 / float(np.median(steps)) if steps.size else None
+
+
 def iter_bag_messages(
     bag: str | Path,
     topics: Sequence[str],
@@ -211,6 +256,8 @@ def iter_bag_messages(
         raise BagReadError(f"cannot open bag {path}: {exc}") from exc
     try:
         conns = [c for c in reader.connections if mapping.get(_norm(c.topic), _norm(c.topic)) in wanted]
+        if not conns:  # rosbags reads every message when given no connections
+            return
         ros1 = reader.is2 is False
         for conn, t_ns, raw in reader.messages(connections=conns):
             topic = mapping.get(_norm(conn.topic), _norm(conn.topic))

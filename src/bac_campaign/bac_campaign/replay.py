@@ -26,7 +26,15 @@ from rclpy.clock_type import ClockType
 from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy
 from rclpy.serialization import deserialize_message
 
-from bac_campaign.bagplay import BagMessage, expand_bag_paths, iter_bag_messages, parse_topic_map, play_timeline
+from bac_campaign.bagplay import (
+    BagMessage,
+    BagReadError,
+    expand_bag_paths,
+    iter_bag_messages,
+    nothing_to_play,
+    parse_topic_map,
+    play_timeline,
+)
 from bac_common.contracts import TOPIC_CLOCK, TOPIC_RUN_SCORE, TOPIC_TRIAL
 from bac_common.rosnode import QOS_EVENTS, QOS_LATCHED, BacNode, run_node
 from bac_measure.recording import OLD_MESSAGE_PAD
@@ -157,6 +165,7 @@ class BagPlayerNode(BacNode):
         recorded: dict[RunKey, float] = {}
         self.expected: set[RunKey] = set()
         plays: list[list[BagMessage]] = []
+        silent: list[str] = []  # bags with nothing to play, and why
         for k, path in enumerate(self.paths, start=1):
             msgs = list(iter_bag_messages(path, [*PLAY_TOPICS, TOPIC_RUN_SCORE], self.topic_map, self.channels))
             play = [m for m in msgs if m.topic in PLAY_TOPICS]
@@ -186,7 +195,13 @@ class BagPlayerNode(BacNode):
 
                 play.insert(0, BagMessage(TOPIC_TRIAL, "bac_msgs/msg/Trial", t0, serialize_message(trial)))
                 self.expected.add((self.campaign_id, k, 1))
+            if not play:
+                silent.append(nothing_to_play(path, PLAY_TOPICS))
             plays.append(play)
+        if silent and len(silent) == len(self.paths):
+            raise BagReadError("nothing to play: " + "; ".join(silent))
+        for why in silent:
+            self.get_logger().warning(why)
         notes: list[str] = []
         queue = play_timeline(self.paths, plays, notes)  # a launch's bags as one timeline, in event order
         for note in notes:
@@ -201,6 +216,8 @@ class BagPlayerNode(BacNode):
         self.clock_pub.publish(msg)
 
     def _tick(self) -> None:
+        if self.exit_code is not None:  # finished: the executor may still run a tick or two before it stops
+            return
         if self._t_start_wall is None:
             # discovery between processes takes seconds: play once the chain listens to every played topic
             counts = {t: p.get_subscription_count() for t, p in self.pubs.items()}

@@ -4,6 +4,8 @@ from __future__ import annotations
 
 from pathlib import Path
 
+import numpy as np
+import pytest
 from rosbags.rosbag2 import StoragePlugin, Writer
 
 from bac_campaign.bagplay import BagMessage, iter_bag_messages
@@ -151,3 +153,50 @@ def test_a_runs_late_samples_in_the_next_trials_bag_play_before_that_trial(tmp_p
     got = play_timeline([tmp_path / "a.mcap", tmp_path / "b.mcap"], [bag1, bag2], notes)
     assert got == bag1 + bag2
     assert notes == [f"{tmp_path / 'b.mcap'} starts before the previous bag ends: the clock will jump back"]
+
+
+def _foreign_bag(path: Path, rate_hz: float, n: int, with_trial: bool = False) -> None:
+    """A rosbag2 of another recorder: sensor_msgs/Imu on /imu/data at ``rate_hz`` (stamps), nothing of bac's."""
+    store = bac_typestore()
+    types = store.types
+    with Writer(path, version=9, storage_plugin=StoragePlugin.MCAP) as w:
+        conn = w.add_connection("/imu/data", "sensor_msgs/msg/Imu", typestore=store)
+        for i in range(n):
+            t = 5_000_000_000 + round(i * 1e9 / rate_hz)
+            stamp = types["builtin_interfaces/msg/Time"](sec=t // 1_000_000_000, nanosec=t % 1_000_000_000)
+            v = types["geometry_msgs/msg/Vector3"](x=0.0, y=0.0, z=9.81)
+            q = types["geometry_msgs/msg/Quaternion"](x=0.0, y=0.0, z=0.0, w=1.0)
+            cov = np.zeros(9)
+            msg = types["sensor_msgs/msg/Imu"](
+                header=types["std_msgs/msg/Header"](stamp=stamp, frame_id="imu"),
+                orientation=q, orientation_covariance=cov, angular_velocity=v, angular_velocity_covariance=cov,
+                linear_acceleration=v, linear_acceleration_covariance=cov,
+            )  # fmt: skip
+            w.write(conn, t + 3_000_000, bytes(store.serialize_cdr(msg, "sensor_msgs/msg/Imu")))
+        if with_trial:
+            tc = w.add_connection("/bac/trial", "bac_msgs/msg/Trial", typestore=store)
+            w.write(tc, 5_000_000_000, trial_cdr(1))
+
+
+def test_a_topic_the_bag_does_not_hold_gives_nothing(tmp_path: Path) -> None:
+    """rosbags reads every message when asked for no connection: a bag without the wanted topics gave all of its
+    own (a foreign bag's /imu/data came out under its own name, and the player then played nothing, silently)."""
+    from bac_campaign.bagplay import nothing_to_play
+
+    _foreign_bag(tmp_path / "b", 50.0, 20)
+    assert list(iter_bag_messages(tmp_path / "b", ["imu/data_raw", "vehicle/odom", "bac/trial"])) == []
+    got = list(iter_bag_messages(tmp_path / "b", ["imu/data_raw"], {"/imu/data": "imu/data_raw"}))
+    assert len(got) == 20 and {m.topic for m in got} == {"imu/data_raw"}
+    why = nothing_to_play(tmp_path / "b", ("imu/data_raw", "vehicle/odom", "bac/trial"))
+    assert "its topics: /imu/data (sensor_msgs/msg/Imu)" in why and "--topic-map /imu/data:=imu/data_raw" in why
+
+
+def test_the_imu_rate_of_a_foreign_recording_is_measured_from_its_stamps(tmp_path: Path) -> None:
+    from bac_campaign.bagplay import foreign_imu_rate_hz
+
+    _foreign_bag(tmp_path / "b50", 50.0, 200)
+    _foreign_bag(tmp_path / "bac", 400.0, 50, with_trial=True)
+    remap = {"/imu/data": "imu/data_raw"}
+    assert foreign_imu_rate_hz([tmp_path / "b50"], remap) == pytest.approx(50.0, rel=1e-6)
+    assert foreign_imu_rate_hz([tmp_path / "b50"]) is None  # no IMU under the name to play
+    assert foreign_imu_rate_hz([tmp_path / "bac"], remap) is None  # bac's own: the profile knows its IMU

@@ -195,6 +195,8 @@ def _messages(bag: Path) -> Iterator[tuple[str, Any]]:
     try:
         with AnyReader([bag], default_typestore=bac_typestore()) as reader:
             conns = [c for c in reader.connections if c.topic in CAMPAIGN_TOPICS]
+            if not conns:  # rosbags reads every message when given no connections
+                return
             for c, _, raw in reader.messages(connections=conns):
                 yield c.topic, reader.deserialize(raw, c.msgtype)
     except Exception:  # rosbags raises many kinds on a damaged bag: the bag is passed over

@@ -54,6 +54,7 @@ from rclpy.utilities import ok as rclpy_ok
 from rclpy.utilities import try_shutdown
 
 from bac_common.contracts import USER_PARAMS
+from bac_common.errors import BacError
 
 # sensor streams: best effort, keep last 5 (what IMU drivers publish with)
 QOS_SENSOR = qos_profile_sensor_data
@@ -575,6 +576,9 @@ def run_node(
         elif node is not None:
             node.get_logger().fatal(f"node crashed:\n{msg}")
             code = 1
+        elif isinstance(sys.exc_info()[1], BacError):  # bac's own errors say what to do: no traceback
+            rclpy.logging.get_logger(log_name).fatal(f"not started: {sys.exc_info()[1]}")
+            code = 2
         else:
             rclpy.logging.get_logger(log_name).fatal(f"node failed to start:\n{msg}")
             code = 1

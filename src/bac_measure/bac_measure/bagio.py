@@ -242,6 +242,8 @@ class _Bag:
 
     def raw(self, topic: str) -> Iterator[tuple[Any, int, bytes]]:
         conns = [c for c in self.reader.connections if c.topic == topic]
+        if not conns:  # rosbags reads every message when given no connections
+            return
         try:
             yield from self.reader.messages(connections=conns)
         except Exception as exc:
@@ -367,6 +369,8 @@ def _collect(bag: _Bag, topics: list[str]) -> dict[str, tuple[list[Any], list[in
     """Every message of ``topics`` in one pass over the bag: (connections, bag times, bytes) per topic."""
     out: dict[str, tuple[list[Any], list[int], list[bytes]]] = {t: ([], [], []) for t in topics}
     conns = [c for c in bag.reader.connections if c.topic in out]
+    if not conns:  # rosbags reads every message when given no connections
+        return out
     try:
         for c, ts, raw in bag.reader.messages(connections=conns):
             cs, rs, bs = out[c.topic]
