@@ -46,6 +46,9 @@ ACCEL = "m/s^2"
 RATE = "rad/s"
 
 
+MDF_SUFFIX = ".mf4"  # asammdf names every MDF 4 file it writes so (out.mdf became out.mf4)
+
+
 class ExportError(BacError, ValueError):
     """The campaign folder cannot be exported."""
 
@@ -89,6 +92,11 @@ def export_mf4(campaign_dir: str | Path, out: str | Path | None = None, raw: boo
     MDF, Signal = mod.MDF, mod.Signal
 
     camp = Path(campaign_dir)
+    if out is not None and Path(out).suffix != MDF_SUFFIX:
+        raise ExportError(
+            f"--out {out}: bac export writes ASAM MDF 4 only; name the file .mf4 (CSV, MATLAB and more: open the "
+            "MDF4 in asammdf's GUI or with asammdf's MDF.export)"
+        )
     if not (camp / "bags").is_dir():
         raise ExportError(f"{camp} is not a campaign folder (no bags/): give the folder bac launch / bac demo made")
     bags = sorted(d for d in (camp / "bags").iterdir() if d.is_dir())

@@ -175,3 +175,13 @@ def test_export_of_no_campaign_is_refused(tmp_path: Path, capsys: pytest.Capture
         assert math.isfinite(float(m.get("campaign.J").samples[0]))
     finally:
         m.close()
+
+
+def test_an_out_file_not_named_as_mdf_is_refused(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """--out x.csv wrote an MDF4 file named .csv (outside review 2026-11-29): refused, nothing written."""
+    camp = make_campaign(tmp_path / "x")
+    for name in ("c.csv", "c.mat", "c", "c.mdf", "c.MF4"):  # asammdf would write c.mf4 for the last two
+        assert main([str(camp), "--out", str(tmp_path / name)]) == 2
+        assert f"--out {tmp_path / name}: bac export writes ASAM MDF 4 only" in capsys.readouterr().err
+        assert not (tmp_path / name).exists()
+    assert main([str(camp), "--out", str(tmp_path / "c.mf4"), "--no-raw"]) == 0 and (tmp_path / "c.mf4").is_file()
