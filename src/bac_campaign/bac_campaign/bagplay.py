@@ -11,7 +11,8 @@ ROS 1 messages are converted to their ROS 2 Jazzy form (a Header loses its
 from __future__ import annotations
 
 import dataclasses
-from collections.abc import Iterator, Mapping, Sequence
+import itertools
+from collections.abc import Generator, Iterator, Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, cast
@@ -217,18 +218,27 @@ def nothing_to_play(bag: str | Path, topics: Sequence[str]) -> str:
 
 
 def foreign_imu_rate_hz(
-    paths: Sequence[Path], topic_map: Mapping[str, str] | None = None, channels: ChannelMap | None = None
+    paths: Sequence[Path],
+    topic_map: Mapping[str, str] | None = None,
+    channels: ChannelMap | None = None,
+    max_samples: int = 5000,
 ) -> float | None:
-    """The IMU rate (1 / median stamp step of ``imu/data_raw``, after ``topic_map``) of recordings that are not a
-    bac campaign's (none holds ``bac/trial``): a foreign bag or an MDF file, whose rate the replay profile's
-    ingestion (made for the simulator's IMU) does not know. None for bac's own bags, or without IMU samples."""
+    """The IMU rate (1 / median stamp step of the first ``max_samples`` of ``imu/data_raw``, after ``topic_map``)
+    of recordings that are not a bac campaign's (no bag has ``bac/trial``): a foreign bag or an MDF file, whose
+    rate the replay profile's ingestion (made for the simulator's IMU) does not know. None for bac's own bags, or
+    without IMU samples."""
+    mapping = {_norm(k): _norm(v) for k, v in (topic_map or {}).items()}
+    for path in paths:
+        if any(mapping.get(_norm(t), _norm(t)) == _norm(TOPIC_TRIAL) for t, _ in bag_topics(path)):
+            return None
     stamps: list[int] = []
     for path in paths:
-        for m in iter_bag_messages(path, ["imu/data_raw", "bac/trial"], topic_map, channels):
-            if m.topic == "bac/trial":
-                return None
-            t = cdr_stamp_ns(m.cdr)
-            stamps.append(t if t else m.time_ns)
+        msgs = iter_bag_messages(path, ["imu/data_raw"], topic_map, channels)
+        for m in itertools.islice(msgs, max_samples - len(stamps)):
+            stamps.append(cdr_stamp_ns(m.cdr) or m.time_ns)
+        msgs.close()
+        if len(stamps) >= max_samples:
+            break
     steps = np.diff(np.sort(np.asarray(stamps, dtype=np.int64)))
     steps = steps[steps > 0]
     return 1e9 / float(np.median(steps)) if steps.size else None
@@ -239,7 +249,7 @@ def iter_bag_messages(
     topics: Sequence[str],
     topic_map: Mapping[str, str] | None = None,
     channels: ChannelMap | None = None,
-) -> Iterator[BagMessage]:
+) -> Generator[BagMessage, None, None]:
     """Messages of ``topics`` (names after remapping, without leading '/') in time order. An MDF file gives its
     IMU and odometry channels (``channels``: the channel map; None: found by units and names)."""
     path = Path(bag)
