@@ -141,6 +141,19 @@ def test_a_mistyped_or_wrongly_typed_override_stops_the_launch_with_the_reason(
     assert a is not None and a["tag"] == "x"
 
 
+@pytest.mark.parametrize("mode", [[], ["--single-process"]], ids=["processes", "single-process"])
+def test_a_node_that_refuses_to_start_says_why_without_a_traceback(
+    ros_env: dict[str, str], tmp_path: Path, mode: list[str]
+) -> None:
+    """bac's own errors (BacError) raised while a node starts are a message to act on: 'not started: ...', exit 2,
+    the graph stopped (a foreign bag with nothing to play was a FATAL traceback, exit 1)."""
+    nodes = [reporter("alpha", tmp_path, refuse_start="bag x has nothing to play"), reporter("omega", tmp_path)]
+    p = launch(ros_env, str(make_profile(tmp_path, nodes, use_sim_time=False)), *mode)
+    out, _ = p.communicate(timeout=90)
+    text = out.decode(errors="replace")
+    assert p.returncode == 2 and "not started: bag x has nothing to play" in text and "Traceback" not in text, text
+
+
 def test_a_missing_or_broken_params_file_is_refused_before_anything_is_made(
     ros_env: dict[str, str], tmp_path: Path
 ) -> None:

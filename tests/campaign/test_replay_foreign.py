@@ -28,17 +28,20 @@ def test_a_foreign_bag_without_a_topic_map_is_refused_with_the_map_to_give(ros_e
     p = replay(ros_env)
     text = p.stdout + p.stderr
     assert p.returncode == 2, text
-    assert "not started: nothing to play:" in text and "its topics: /imu/data (sensor_msgs/msg/Imu)" in text, text
+    assert "bac replay: nothing to play:" in text and "its topics: /imu/data (sensor_msgs/msg/Imu)" in text, text
     assert "--topic-map /imu/data:=imu/data_raw --topic-map /jackal_velocity_controller/odom:=vehicle/odom" in text
-    assert "Traceback" not in text
+    assert "Traceback" not in text and "starting" not in text  # refused before any node started
 
 
-def test_a_mapped_foreign_bag_is_ingested_at_its_own_rate(ros_env: dict[str, str], tmp_path: Path) -> None:
+@pytest.mark.parametrize("mode", [[], ["--single-process"]], ids=["processes", "single-process"])
+def test_a_mapped_foreign_bag_is_ingested_at_its_own_rate(
+    ros_env: dict[str, str], tmp_path: Path, mode: list[str]
+) -> None:
     out = tmp_path / "replay.json"
-    p = replay(ros_env, *MAP, "--rate", "20", "--output", str(out))
+    p = replay(ros_env, *MAP, "--rate", "20", "--output", str(out), *mode)
     text = p.stdout + p.stderr
     assert p.returncode == 0, text[-6000:]
-    assert "the IMU is 50.0 Hz; imu_ingest measures its input rate and outputs 50 Hz" in text, text[-6000:]
+    assert "the IMU is 50.0 Hz; imu_ingest measures its input rate and outputs 50.0 Hz" in text, text[-6000:]
     assert "ingesting imu/data_raw -> imu/vehicle at 50 Hz" in text
     assert " gap" not in text, text[-6000:]  # imu_ingest warned of hundreds of gaps at the profile's 400 Hz
     (run,) = json.loads(out.read_text())["runs"]

@@ -35,6 +35,11 @@ class Reporter(BacNode):
             "stop_exit_code", 0, "destroy_node ends the process with this code (a hard deadline's 1), 0 = no"
         )
         self._callback_done = False
+        refuse = self.declare_str("refuse_start", "", "raise a BacError with this message in the constructor")
+        if refuse:
+            from bac_common.errors import BacError
+
+            raise BacError(refuse)
         report = {
             "name": self.get_name(),
             "pid": os.getpid(),

@@ -98,6 +98,7 @@ def run_nodes(
     from rclpy.signals import SignalHandlerOptions
     from rclpy.utilities import ok, try_shutdown
 
+    from bac_common.errors import BacError
     from bac_common.rosnode import (
         STOP_NOTICE_S,
         BacNode,
@@ -164,6 +165,13 @@ def run_nodes(
     except UserParameterError as exc:  # a node's -p overrides: a message to act on, as a process of its own says it
         LOG.critical("not started: %s", exc)
         code = 2
+    except BacError as exc:
+        if executor is None and ok():  # bac's own error from a constructor says what to do, as run_node says it
+            LOG.critical("not started: %s", exc)
+            code = 2
+        elif ok():
+            LOG.exception("a node crashed: shutting down the graph")
+            code = 1
     except Exception:
         if ok():
             LOG.exception("a node crashed: shutting down the graph")

@@ -28,6 +28,8 @@ from bac_common.errors import BacError
 from bac_measure.mdfio import ChannelMap, is_mdf
 from bac_measure.recording import bac_typestore, cdr_stamp_ns
 
+PLAY_TOPICS = ("imu/data_raw", "vehicle/odom", "bac/trial")  # what bac replay plays (after a topic map)
+
 
 class BagReadError(BacError, OSError):
     """A bag is missing, truncated or not a bag."""
@@ -217,31 +219,96 @@ def nothing_to_play(bag: str | Path, topics: Sequence[str]) -> str:
     )
 
 
-def foreign_imu_rate_hz(
-    paths: Sequence[Path],
+def holds_topics(bag: str | Path, topics: Sequence[str], topic_map: Mapping[str, str] | None = None) -> bool:
+    """Whether a bag has a connection on one of ``topics`` (names after ``topic_map``); an MDF file: True (its
+    channels become imu/data_raw and vehicle/odom, or its reader says which are missing)."""
+    if is_mdf(Path(bag)):
+        return True
+    mapping = {_norm(k): _norm(v) for k, v in (topic_map or {}).items()}
+    wanted = {_norm(t) for t in topics}
+    return any(mapping.get(_norm(t), _norm(t)) in wanted for t, _ in bag_topics(bag))
+
+
+def is_bac_recording(bag: str | Path, topic_map: Mapping[str, str] | None = None) -> bool:
+    """A bag bac recorded (it has ``bac/trial``): its IMU is what the profiles are made for. MDF files: False."""
+    return not is_mdf(Path(bag)) and holds_topics(bag, [TOPIC_TRIAL], topic_map)
+
+
+def imu_rate_hz(
+    bag: str | Path,
     topic_map: Mapping[str, str] | None = None,
     channels: ChannelMap | None = None,
     max_samples: int = 5000,
 ) -> float | None:
-    """The IMU rate (1 / median stamp step of the first ``max_samples`` of ``imu/data_raw``, after ``topic_map``)
-    of recordings that are not a bac campaign's (no bag has ``bac/trial``): a foreign bag or an MDF file, whose
-    rate the replay profile's ingestion (made for the simulator's IMU) does not know. None for bac's own bags, or
-    without IMU samples."""
-    mapping = {_norm(k): _norm(v) for k, v in (topic_map or {}).items()}
-    for path in paths:
-        if any(mapping.get(_norm(t), _norm(t)) == _norm(TOPIC_TRIAL) for t, _ in bag_topics(path)):
-            return None
-    stamps: list[int] = []
-    for path in paths:
-        msgs = iter_bag_messages(path, ["imu/data_raw"], topic_map, channels)
-        for m in itertools.islice(msgs, max_samples - len(stamps)):
-            stamps.append(cdr_stamp_ns(m.cdr) or m.time_ns)
+    """1 / median step of the header stamps of the first ``max_samples`` ``imu/data_raw`` messages (after
+    ``topic_map``); None without two distinct stamps (what imu_ingest measures its input rate from)."""
+    msgs = iter_bag_messages(bag, ["imu/data_raw"], topic_map, channels)
+    try:
+        stamps = [cdr_stamp_ns(m.cdr) or 0 for m in itertools.islice(msgs, max_samples)]
+    finally:
         msgs.close()
-        if len(stamps) >= max_samples:
-            break
     steps = np.diff(np.sort(np.asarray(stamps, dtype=np.int64)))
     steps = steps[steps > 0]
     return 1e9 / float(np.median(steps)) if steps.size else None
+
+
+def _as_list(value: Any) -> list[str]:
+    return [str(value)] if isinstance(value, (str, Path)) else [str(v) for v in (value or [])]
+
+
+def fit_replay_rates(
+    overrides: dict[str, dict[str, Any]], profile_files: Sequence[str | Path], user_files: Sequence[str | Path]
+) -> str:
+    """``bac replay``'s node overrides for what it plays (``overrides["bag_player"]``: bags, topic_map, channels).
+
+    Recordings that are not a bac campaign's (a foreign bag, an MDF file): imu_ingest measures their IMU's rate
+    and keeps its output at or below it, the segmenter at the same rate, as ``bac rescore`` does (the replay
+    profile is made for the simulator's 400 Hz IMU: a 50 Hz stream was all gaps). What the user set (``-p``,
+    ``--params-file``) is kept. Refuses (:class:`BagReadError`) bags with nothing to play, bac's bags mixed with
+    other recordings, and recordings of different IMU rates. Returns a note for the user ("" for bac's bags)."""
+    from bac_measure.measure_config import load_node_params
+
+    player = overrides["bag_player"]  # the options and any -p bag_player.*
+    paths = expand_bag_paths(_as_list(player.get("bags")))
+    topic_map = parse_topic_map(_as_list(player.get("topic_map")))
+    silent = [p for p in paths if not holds_topics(p, PLAY_TOPICS, topic_map)]
+    if len(silent) == len(paths):
+        raise BagReadError("nothing to play: " + "; ".join(nothing_to_play(p, PLAY_TOPICS) for p in silent))
+    paths = [p for p in paths if p not in silent]  # bag_player names the others when it starts
+    bac = [is_bac_recording(p, topic_map) for p in paths]
+    if all(bac):
+        return ""
+    if any(bac):
+        ours = next(p for p, b in zip(paths, bac, strict=True) if b)
+        other = next(p for p, b in zip(paths, bac, strict=True) if not b)
+        raise BagReadError(
+            f"bac's campaign bags ({ours}) and other recordings ({other}) in one replay: their IMUs differ (the "
+            "profile's ingestion is made for bac's), so replay them separately"
+        )
+    channels = ChannelMap.load(str(player.get("channel_map") or "") or None, _as_list(player.get("channels")))
+    rates = {p: r for p in paths if (r := imu_rate_hz(p, topic_map, channels)) is not None}
+    if not rates:
+        return "not a bac campaign (no bac/trial), and its IMU stamps give no rate: imu_ingest gets the profile's"
+    if max(rates.values()) > 1.05 * min(rates.values()):
+        shown = ", ".join(f"{p.name} {r:.1f} Hz" for p, r in rates.items())
+        raise BagReadError(f"recordings of different IMU rates ({shown}): replay them one rate at a time")
+    rate = float(np.median(list(rates.values())))
+    ing, seg = overrides.setdefault("imu_ingest", {}), overrides.setdefault("run_segmenter", {})
+    user_ing = set(load_node_params(user_files, "imu_ingest")) | set(ing)
+    user_seg = set(load_node_params(user_files, "run_segmenter")) | set(seg)
+    merged = load_node_params([*profile_files, *user_files], "imu_ingest", ing)
+    out = merged.get("output_rate_hz", 200.0)
+    if "output_rate_hz" not in user_ing and float(out) > 1.01 * rate:
+        ing["output_rate_hz"] = out = round(rate, 6)
+    if "input_rate_hz" not in user_ing:
+        ing["input_rate_hz"] = 0.0
+    if "imu_rate_hz" not in user_seg:
+        seg["imu_rate_hz"] = out
+    return (
+        f"not a bac campaign (no bac/trial): the IMU is {rate:.1f} Hz; imu_ingest measures its input rate and "
+        f"outputs {out} Hz; mount from {merged.get('mount_source')}, bias from {merged.get('bias_source')} "
+        "(set them with -p imu_ingest.* or a --params-file; bac rescore finds them from a standstill)"
+    )
 
 
 def iter_bag_messages(

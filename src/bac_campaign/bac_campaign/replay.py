@@ -27,6 +27,7 @@ from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy
 from rclpy.serialization import deserialize_message
 
 from bac_campaign.bagplay import (
+    PLAY_TOPICS,
     BagMessage,
     BagReadError,
     expand_bag_paths,
@@ -40,7 +41,6 @@ from bac_common.rosnode import QOS_EVENTS, QOS_LATCHED, BacNode, run_node
 from bac_measure.recording import OLD_MESSAGE_PAD
 from bac_msgs.msg import RunScore, Trial
 
-PLAY_TOPICS = ("imu/data_raw", "vehicle/odom", "bac/trial")
 # while the player holds the current run's own end state (SCORED, REJECTED, ...) for the replayed score, it plays the
 # sensor streams recorded after it up to this far (sim time) and never past another trial message: the live agent's
 # clock can lag /clock, so the state may be stamped before the last samples the run needs (CI 2026-11-29: a run

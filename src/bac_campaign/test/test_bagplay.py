@@ -192,11 +192,12 @@ def test_a_topic_the_bag_does_not_hold_gives_nothing(tmp_path: Path) -> None:
 
 
 def test_the_imu_rate_of_a_foreign_recording_is_measured_from_its_stamps(tmp_path: Path) -> None:
-    from bac_campaign.bagplay import foreign_imu_rate_hz
+    from bac_campaign.bagplay import imu_rate_hz, is_bac_recording
 
     _foreign_bag(tmp_path / "b50", 50.0, 200)
     _foreign_bag(tmp_path / "bac", 400.0, 50, with_trial=True)
     remap = {"/imu/data": "imu/data_raw"}
-    assert foreign_imu_rate_hz([tmp_path / "b50"], remap) == pytest.approx(50.0, rel=1e-6)
-    assert foreign_imu_rate_hz([tmp_path / "b50"]) is None  # no IMU under the name to play
-    assert foreign_imu_rate_hz([tmp_path / "bac"], remap) is None  # bac's own: the profile knows its IMU
+    assert imu_rate_hz(tmp_path / "b50", remap) == pytest.approx(50.0, rel=1e-6)
+    assert imu_rate_hz(tmp_path / "b50", remap, max_samples=2) == pytest.approx(50.0, rel=1e-6)
+    assert imu_rate_hz(tmp_path / "b50") is None  # no IMU under the name to play
+    assert not is_bac_recording(tmp_path / "b50", remap) and is_bac_recording(tmp_path / "bac")

@@ -180,3 +180,19 @@ def test_a_campaign_paused_for_a_lost_ecu_link_reads_as_paused_until_resumed(tmp
     facts = read_folder(folder)
     assert facts is not None and facts.ended == ""
     assert not load_campaign(folder).paused
+
+
+def test_a_bag_without_the_cockpits_topics_gives_nothing(tmp_path: Path) -> None:
+    """rosbags reads every message when given no connection: a bag of other topics gave all of them (2026-11-29)."""
+    from rosbags.rosbag2 import StoragePlugin, Writer
+
+    from bac_cockpit.folder import _messages
+    from bac_measure.recording import bac_typestore
+
+    store = bac_typestore()
+    with Writer(tmp_path / "b", version=9, storage_plugin=StoragePlugin.MCAP) as w:
+        conn = w.add_connection("/chatter", "std_msgs/msg/String", typestore=store)
+        w.write(
+            conn, 1, bytes(store.serialize_cdr(store.types["std_msgs/msg/String"](data="hi"), "std_msgs/msg/String"))
+        )
+    assert list(_messages(tmp_path / "b")) == []

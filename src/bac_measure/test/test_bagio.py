@@ -251,3 +251,15 @@ def test_each_kind_of_bad_input_gets_its_own_message(tmp_path: Path) -> None:
         "record the IMU driver's sensor_msgs/Imu topic",
     ):
         read_imu(no_imu)
+
+
+def test_a_topic_the_bag_lacks_reads_nothing(tmp_path: Path) -> None:
+    """rosbags reads every message when given no connection: asked for a topic it does not have, a bag gave all of
+    its messages (2026-11-29)."""
+    from bac_measure.bagio import _Bag, _collect
+
+    imu, _ = arrays(40)
+    bag = write_bag(tmp_path / "run", imu)
+    with _Bag(bag) as b:
+        assert list(b.raw("/vehicle/odom")) == [] and len(list(b.raw("/imu/data_raw"))) == 40
+        assert _collect(b, ["/vehicle/odom"]) == {"/vehicle/odom": ([], [], [])}
