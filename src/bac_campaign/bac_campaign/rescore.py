@@ -476,6 +476,12 @@ def rescore(
                 "without it?)"
             )
     campaign_dir = ps[0] if len(ps) == 1 and (ps[0] / "bags").is_dir() else None
+    if window == "whole" and campaign_dir is not None:
+        raise RescoreError(
+            f"--window whole scores one recording as one run; {campaign_dir} is a campaign, whose runs are cut by "
+            f"its trials: rescore it without --window, or give one trial's bag ({campaign_dir / 'bags'}/trial_NNNN) "
+            "with --window whole"
+        )
     files = [Path(f) for f in files] if files else default_params_files(campaign_dir)
     ov = {k: dict(v) for k, v in (overrides or {}).items()}
     notes: list[str] = []

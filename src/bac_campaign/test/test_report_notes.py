@@ -52,6 +52,10 @@ def test_rescore_of_a_campaign_without_bags_says_so(tmp_path: Path) -> None:
     camp = campaign(tmp_path / "c")
     with pytest.raises(RescoreError, match=r"is a campaign folder without bags/: nothing was recorded to rescore"):
         rescore([camp])
+    # outside review 2026-11-29: --window whole on a campaign scored its first launch as one run "trial 1"
+    (camp / "bags" / "trial_0001").mkdir(parents=True)
+    with pytest.raises(RescoreError, match=r"--window whole scores one recording as one run; .* is a campaign"):
+        rescore([camp], window="whole")
 
 
 def test_a_truth_or_baseline_of_another_problem_is_refused_with_the_reason(tmp_path: Path) -> None:
