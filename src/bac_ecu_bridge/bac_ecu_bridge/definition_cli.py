@@ -86,10 +86,14 @@ def _from_a2l(args: argparse.Namespace) -> int:
     from bac_ecu_bridge.xcp.a2l import definition_from_a2l, read_a2l
 
     if not args.characteristic and not args.all:
-        names = sorted(read_a2l(args.a2l).characteristics)
+        module = read_a2l(args.a2l)
         say("name the characteristics to calibrate (--characteristic ...) or --all; VALUE characteristics:", err=True)
-        for n in names:
+        for n in sorted(module.characteristics):
             say(f"  {n}", err=True)
+        if module.problems:
+            say("not writable by bac:", err=True)
+            for n, why in sorted(module.problems.items()):
+                say(f"  {n}: {why}", err=True)
         return 2
     chars = args.characteristic or None
     given: dict[str, float] = {}
@@ -98,6 +102,7 @@ def _from_a2l(args: argparse.Namespace) -> int:
         if not eq:
             raise ValueError(f"--set {item!r}: expected NAME=VALUE")
         given[name.strip()] = float(value)
+    notes: list[str] = []
     definition = definition_from_a2l(
         args.a2l,
         chars,
@@ -105,7 +110,10 @@ def _from_a2l(args: argparse.Namespace) -> int:
         values=given,
         midpoint=args.midpoint or args.from_ecu,
         description=args.description,
+        notes=notes,
     )
+    for note in notes:
+        say(f"note: {note}", err=True)
     if args.from_ecu:
         definition = _read_from_ecu(definition, args)
     import yaml

@@ -50,8 +50,15 @@ def test_values_never_leave_the_bounds_and_the_grid_is_clamped_into_them() -> No
         with pytest.raises(OutOfBoundsError):
             p.encode(bad)
     # a data type too small for the range is refused at load time
-    with pytest.raises(ProtocolConfigError, match="no UBYTE value"):
+    with pytest.raises(ProtocolConfigError, match=r"need internal values -300..-290, beyond what a UBYTE holds"):
         XcpParam.of(param("b", 1, EcuAddress(0, "UBYTE", conversion="LINEAR", coeffs=(1.0, 300.0)), 0, 10))
+    # also when only part of the range is beyond it: a UBYTE with bounds 0..300 wrote 255 for 256..300 (review
+    # 2026-11-29); -10..100 wrote 0 below 0
+    for lo, hi in ((0, 300), (-10, 100)):
+        with pytest.raises(ProtocolConfigError, match=r"beyond what a UBYTE holds \(0..255\)"):
+            XcpParam.of(param("c", 2, EcuAddress(0, "UBYTE"), lo, hi))
+    with pytest.raises(ProtocolConfigError, match=r"beyond what a SBYTE holds \(-128..127\)"):
+        XcpParam.of(param("d", 3, EcuAddress(0, "SBYTE"), -200, 100))
 
 
 def test_float32_values_stay_inside_the_bounds() -> None:

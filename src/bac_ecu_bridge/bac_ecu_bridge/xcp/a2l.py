@@ -6,16 +6,23 @@ definition of the named CHARACTERISTICs (type VALUE):
 
 * the address, address extension, data type (RECORD_LAYOUT's FNC_VALUES) and
   byte order (the characteristic's BYTE_ORDER, else MOD_COMMON's);
-* LOWER_LIMIT / UPPER_LIMIT as the bounds;
+* LOWER_LIMIT / UPPER_LIMIT as the bounds, moved inward onto the values the data type holds through the
+  conversion (so the agent's grid is the ECU's); limits beyond the data type are refused;
 * the COMPU_METHOD: IDENTICAL, LINEAR (COEFFS_LINEAR) or RAT_FUNC in its linear
   form (COEFFS with a = d = e = 0); other forms are refused with a reason;
 * the resolution: one step of the internal value (|factor| of the conversion)
   for integer types, the FORMAT's decimals for floats;
 * the unit (the COMPU_METHOD's) and the long identifier;
-* the XCP-on-CAN settings of the module's IF_DATA XCP (CAN_ID_MASTER,
-  CAN_ID_SLAVE, MAX_DLC_REQUIRED, the byte order of PROTOCOL_LAYER) and the
-  calibration pages of its MEMORY_SEGMENT's IF_DATA XCP SEGMENT (two pages: a
-  reference page 0 and a working page 1).
+* the XCP-on-CAN ids of the module's IF_DATA XCP (CAN_ID_MASTER, CAN_ID_SLAVE,
+  MAX_DLC_REQUIRED; two different pairs are refused) and the calibration pages
+  of the MEMORY_SEGMENT holding the characteristics (its IF_DATA XCP SEGMENT:
+  two pages are a reference page 0 and a working page 1).
+
+A characteristic bac cannot write as one value at its address (BIT_MASK,
+pointer or offset record layouts, READ_ONLY, no CALIBRATION_ACCESS, virtual,
+defined twice, an ambiguous byte order, not a VALUE) is refused with the
+reason (:func:`_cannot_write`); the file and every file it ``/include``s must
+be whole (:func:`check_a2l_files`).
 
 Nominal and baseline values are not in an A2L: they are read from the ECU's
 reference page (the flashed data set) or given.
@@ -35,15 +42,15 @@ import math
 import re
 import sys
 import tempfile
-from collections.abc import Iterable, Mapping, Sequence
-from dataclasses import dataclass
+from collections.abc import Callable, Iterable, Mapping, Sequence
+from dataclasses import dataclass, field
 from importlib import resources
 from pathlib import Path
 from typing import Any
 
 from bac_common.errors import DefinitionError
 from bac_common.paramspace import CalibrationDefinition, EcuAddress, RawParameter
-from bac_ecu_bridge.xcp.layout import datatype_size
+from bac_ecu_bridge.xcp.layout import datatype_size, integer_range
 
 FLOAT_DEFAULT_DECIMALS = 6
 
@@ -71,10 +78,27 @@ class A2lCharacteristic:
 
 
 @dataclass(frozen=True)
+class MemorySegment:
+    """A MEMORY_SEGMENT and the XCP paging of its IF_DATA XCP SEGMENT (None: the A2L gives none)."""
+
+    name: str
+    address: int
+    size: int
+    segment: int | None  # XCP segment number
+    pages: int | None  # number of calibration pages
+
+    def holds(self, address: int, size: int) -> bool:
+        return self.address <= address and address + size <= self.address + self.size
+
+
+@dataclass(frozen=True)
 class A2lModule:
     name: str
     characteristics: dict[str, A2lCharacteristic]
     xcp: dict[str, Any]  # XCP-on-CAN settings found in IF_DATA
+    problems: dict[str, str] = field(default_factory=dict)  # characteristics bac cannot write, and why
+    segments: tuple[MemorySegment, ...] = ()
+    notes: tuple[str, ...] = ()  # what the user should know about the settings read
 
 
 def _load_pya2l() -> Any:
@@ -111,7 +135,7 @@ _A2L_NOISE = re.compile(r'/\*.*?\*/|//[^\n]*|"(?:\\.|[^"\\])*"', re.DOTALL)
 _A2L_BLOCK = re.compile(r"/(begin|end)\s+(\w+)")
 
 
-def check_a2l_structure(text: str, path: str | Path = "A2L") -> None:
+def check_a2l_structure(text: str, path: str | Path = "A2L", whole: bool = True) -> None:
     """Refuse a truncated or broken A2L before it is parsed: every ``/begin X`` needs its ``/end X``.
 
     pya2ldb reports a premature end of file on its log and goes on: a file cut within a CHARACTERISTIC's limits
@@ -146,8 +170,41 @@ def check_a2l_structure(text: str, path: str | Path = "A2L") -> None:
             f"{path}: the file ends inside /begin {name} (line {line}) and {len(stack) - 1} enclosing block(s): "
             "it is truncated (copy it again from the ECU supplier's release)"
         )
-    if not seen:
+    if not seen and whole:  # (an included file may hold no block)
         raise A2lError(f"{path}: no /begin ... /end block: not an A2L file")
+
+
+# an /include and its file name, or a comment or string to pass over (an /include in them is none)
+_A2L_INCLUDE = re.compile(r'/\*.*?\*/|//[^\n]*|/include\s+(?:"([^"]+)"|([^\s"]+))|"(?:\\.|[^"\\])*"', re.DOTALL)
+
+
+def a2l_encoding(data: bytes) -> str:
+    """UTF-8 when the bytes are UTF-8 (a BOM is skipped), else Latin-1 (every byte a character, ASAM's default)."""
+    try:
+        data.decode("utf-8")
+    except UnicodeDecodeError:
+        return "latin-1"
+    return "utf-8-sig" if data.startswith(b"\xef\xbb\xbf") else "utf-8"
+
+
+def check_a2l_files(path: Path, encoding: str, seen: set[Path] | None = None) -> None:
+    """:func:`check_a2l_structure` of an A2L and of every file it ``/include``s (a truncated included file was
+    read to a wrong limit, as the main file was before the check: outside review 2026-11-29)."""
+    seen = set() if seen is None else seen
+    real = path.resolve()
+    if real in seen:
+        raise A2lError(f"{path}: included again (an /include cycle)")
+    seen.add(real)
+    text = path.read_bytes().decode(encoding if encoding != "utf-8-sig" else "utf-8-sig", errors="replace")
+    check_a2l_structure(text, path, whole=not seen - {real})
+    for m in _A2L_INCLUDE.finditer(text):
+        if not (m.group(1) or m.group(2)):
+            continue  # a comment or a string
+        inc = Path(m.group(1) or m.group(2))
+        inc = inc if inc.is_absolute() else path.parent / inc
+        if not inc.is_file():
+            raise A2lError(f"{path}: /include {m.group(1) or m.group(2)}: no such file ({inc})")
+        check_a2l_files(inc, a2l_encoding(inc.read_bytes()), seen)
 
 
 def _short_reason(exc: Exception) -> str:
@@ -167,13 +224,14 @@ def read_a2l(path: str | Path) -> A2lModule:
     p = Path(path)
     if not p.is_file():
         raise A2lError(f"A2L file not found: {p}")
-    check_a2l_structure(p.read_bytes().decode("latin-1"), p)
+    encoding = a2l_encoding(p.read_bytes())
+    check_a2l_files(p, encoding)
     pya2l, model = _load_pya2l()
     with tempfile.TemporaryDirectory(prefix="bac-a2l-") as tmp:
         try:
             # in memory: pya2ldb writes no .a2ldb file (output_dir: in case a version ignores in_memory)
             session = pya2l.import_a2l(
-                str(p), in_memory=True, progress_bar=False, loglevel="ERROR", output_dir=tmp, encoding="latin-1"
+                str(p), in_memory=True, progress_bar=False, loglevel="ERROR", output_dir=tmp, encoding=encoding
             )
         except Exception as exc:  # pya2ldb raises many kinds on a malformed file
             raise A2lError(f"{p}: not a readable A2L file: {_short_reason(exc)}") from exc
@@ -197,12 +255,15 @@ def _module(session: Any, model: Any, path: Path) -> A2lModule:
     layouts = {rl.name: rl for rl in session.query(model.RecordLayout).all()}
     methods = {cm.name: cm for cm in session.query(model.CompuMethod).all()}
     chars: dict[str, A2lCharacteristic] = {}
+    problems: dict[str, str] = {}
+    addresses: dict[str, list[int]] = {}
     for c in session.query(model.Characteristic).all():
-        if c.type != "VALUE":
+        addresses.setdefault(str(c.name), []).append(int(c.address))
+        why = _cannot_write(c, layouts.get(c.deposit))
+        if why:
+            problems[str(c.name)] = why
             continue
-        rl = layouts.get(c.deposit)
-        if rl is None or rl.fnc_values is None:
-            continue
+        rl = layouts[c.deposit]
         cm = methods.get(c.conversion)
         kind, unit, cm_format = "IDENTICAL", "", None
         coeffs: tuple[float, ...] = ()
@@ -218,7 +279,12 @@ def _module(session: Any, model: Any, path: Path) -> A2lModule:
         elif c.conversion != "NO_COMPU_METHOD":
             raise A2lError(f"{path}: CHARACTERISTIC {c.name}: COMPU_METHOD {c.conversion} not found")
         order = str(c.byte_order.byteOrder) if c.byte_order is not None else default_order
-        order = {"BIG_ENDIAN": "MSB_FIRST", "LITTLE_ENDIAN": "MSB_LAST"}.get(order, order)
+        if order in _AMBIGUOUS_ORDERS:
+            problems[str(c.name)] = (
+                f"BYTE_ORDER {order} (deprecated; ASAP2 1.x read it as the opposite of its name, and tools still "
+                "differ): the A2L must say MSB_FIRST or MSB_LAST"
+            )
+            continue
         fmt = c.format.formatString if c.format is not None else cm_format
         chars[c.name] = A2lCharacteristic(
             name=str(c.name),
@@ -234,7 +300,60 @@ def _module(session: Any, model: Any, path: Path) -> A2lModule:
             unit=unit,
             decimals=_decimals(fmt),
         )
-    return A2lModule(str(module.name), chars, _xcp_settings(session, model, module))
+    for name, where in addresses.items():
+        if len(where) > 1:
+            chars.pop(name, None)
+            problems[name] = f"defined {len(where)} times (at {', '.join(hex(a) for a in where)}): which one is meant?"
+    xcp, segments, notes = _xcp_settings(session, model, module)
+    return A2lModule(str(module.name), chars, xcp, problems, segments, notes)
+
+
+_AMBIGUOUS_ORDERS = ("BIG_ENDIAN", "LITTLE_ENDIAN", "_BIG_ENDIAN", "_LITTLE_ENDIAN")
+_WRITABLE_ACCESS = ("CALIBRATION", "OFFLINE_CALIBRATION")
+
+
+def _cannot_write(c: Any, rl: Any) -> str:
+    """Why bac cannot write CHARACTERISTIC ``c`` as one value at its address ("" when it can)."""
+    if c.type != "VALUE":
+        return f"a {c.type}: bac tunes VALUE characteristics (one number each), not curves, maps or blocks"
+    if c.virtual_characteristic is not None:
+        return "a VIRTUAL_CHARACTERISTIC: computed from others, not held in memory"
+    if c.read_only:
+        return "READ_ONLY"
+    access = c.calibration_access.type if c.calibration_access is not None else "CALIBRATION"
+    if str(access) not in _WRITABLE_ACCESS:
+        return f"CALIBRATION_ACCESS {access}: the ECU supplier does not allow it to be calibrated"
+    if rl is None:
+        return f"its RECORD_LAYOUT {c.deposit} is not in the A2L"
+    fnc = rl.fnc_values
+    if fnc is None:
+        return f"RECORD_LAYOUT {c.deposit} has no FNC_VALUES"
+    if str(fnc.addresstype) != "DIRECT":
+        return (
+            f"RECORD_LAYOUT {c.deposit} reaches the value through a pointer (FNC_VALUES ... {fnc.addresstype}): bac "
+            "writes a value at the characteristic's address only"
+        )
+    before = [r for r in _as_list(rl.reserved) + _as_list(rl.identification) if int(r.position) < int(fnc.position)]
+    if before:
+        return (
+            f"RECORD_LAYOUT {c.deposit} puts {len(before)} element(s) (RESERVED, IDENTIFICATION) before FNC_VALUES: "
+            "bac writes the value at the characteristic's address itself"
+        )
+    if c.bit_mask is not None:
+        full = (1 << 8 * datatype_size(str(fnc.datatype))) - 1 if str(fnc.datatype) in _INTEGER_TYPES else None
+        if full is None or int(c.bit_mask.mask) & full != full:
+            return (
+                f"BIT_MASK {int(c.bit_mask.mask):#x}: the value is some bits of a {fnc.datatype}, and bac writes whole "
+                "values (the other bits would be overwritten)"
+            )
+    return ""
+
+
+_INTEGER_TYPES = ("UBYTE", "SBYTE", "UWORD", "SWORD", "ULONG", "SLONG", "A_UINT64", "A_INT64")
+
+
+def _as_list(v: Any) -> list[Any]:
+    return [] if v is None else list(v) if isinstance(v, list | tuple) else [v]
 
 
 def _walk(node: Any) -> Iterable[tuple[str, Any]]:
@@ -248,37 +367,83 @@ def _walk(node: Any) -> Iterable[tuple[str, Any]]:
             yield from _walk(v)
 
 
-def _xcp_settings(session: Any, model: Any, module: Any) -> dict[str, Any]:
+def _xcp_settings(
+    session: Any, model: Any, module: Any
+) -> tuple[dict[str, Any], tuple[MemorySegment, ...], tuple[str, ...]]:
+    """The module's XCP-on-CAN settings, its memory segments with their XCP paging, and notes for the user."""
     out: dict[str, Any] = {}
+    notes: list[str] = []
     try:
         parsed = session.parse_ifdata(module.if_data)
-    except Exception:  # an A2ML pya2ldb cannot use: the settings are then given by hand
+    except Exception as exc:  # an A2ML pya2ldb cannot use: the settings are then given by hand
         parsed = []
+        notes.append(f"the module's IF_DATA could not be read ({_short_reason(exc)})")
+    masters: set[int] = set()
+    slaves: set[int] = set()
     for key, value in _walk(parsed):
         if key == "CAN_ID_MASTER":
-            out["can_id_master"] = int(value) & 0x1FFF_FFFF
-            out["extended_id"] = bool(int(value) & 0x8000_0000) or int(value) > 0x7FF
+            masters.add(int(value))
         elif key == "CAN_ID_SLAVE":
-            out["can_id_slave"] = int(value) & 0x1FFF_FFFF
+            slaves.add(int(value))
         elif key == "MAX_DLC_REQUIRED":
             out["max_dlc_required"] = True
         elif key == "BAUDRATE":
             out["baudrate"] = int(value)
-    pages = None
+    if len(masters) > 1 or len(slaves) > 1:
+        raise A2lError(
+            f"module {module.name}: its IF_DATA XCP gives several CAN id pairs (CAN_ID_MASTER "
+            f"{', '.join(hex(v) for v in sorted(masters))}; CAN_ID_SLAVE {', '.join(hex(v) for v in sorted(slaves))}): "
+            "keep the one the ECU answers on, or write the definition's xcp.can_id_master / can_id_slave by hand"
+        )
+    if masters and slaves:
+        (master,), (slave,) = masters, slaves
+        out["can_id_master"] = master & 0x1FFF_FFFF
+        out["extended_id"] = bool(master & 0x8000_0000) or (master & 0x1FFF_FFFF) > 0x7FF
+        out["can_id_slave"] = slave & 0x1FFF_FFFF
+    else:
+        notes.append(
+            "no CAN_ID_MASTER / CAN_ID_SLAVE pair in the A2L's IF_DATA XCP_ON_CAN: set xcp.can_id_master and "
+            "xcp.can_id_slave in the definition before it meets an ECU"
+        )
+    segments: list[MemorySegment] = []
     for seg in session.query(model.MemorySegment).all():
+        number = pages = None
         try:
             seg_parsed = session.parse_ifdata(seg.if_data)
         except Exception:
-            continue
+            seg_parsed = []
         for key, value in _walk(seg_parsed):
             if key == "SEGMENT" and isinstance(value, list) and len(value) >= 2:
-                pages = (int(value[0]), int(value[1]))  # segment number, number of pages
-    if pages is not None:
-        out["segment"] = pages[0]
-        out["pages"] = pages[1] >= 2
-        if pages[1] >= 2:
-            out["reference_page"] = 0
-            out["working_page"] = 1
+                number, pages = int(value[0]), int(value[1])  # segment number, number of pages
+        segments.append(MemorySegment(str(seg.name), int(seg.address), int(seg.size), number, pages))
+    return out, tuple(segments), tuple(notes)
+
+
+def paging_of(segments: Sequence[MemorySegment], chars: Sequence[A2lCharacteristic]) -> dict[str, Any]:
+    """The XCP paging settings for ``chars``: those of the MEMORY_SEGMENT that holds them (bac switches the pages
+    of one segment). Refuses characteristics outside every segment, or spread over segments paged differently."""
+    if not segments or not chars:
+        return {}
+    held: dict[str, MemorySegment] = {}
+    for ch in chars:
+        seg = next((s for s in segments if s.holds(ch.address, datatype_size(ch.datatype))), None)
+        if seg is None:
+            raise A2lError(
+                f"CHARACTERISTIC {ch.name} at {ch.address:#x} lies in no MEMORY_SEGMENT of the A2L "
+                f"({', '.join(f'{s.name} {s.address:#x}+{s.size:#x}' for s in segments)}): which page holds it?"
+            )
+        held[ch.name] = seg
+    paged = {(s.segment, s.pages) for s in held.values()}
+    if len(paged) > 1:
+        shown = "; ".join(f"{n} in {s.name}" for n, s in held.items())
+        raise A2lError(f"the characteristics lie in memory segments paged differently ({shown}): choose one segment's")
+    ((number, pages),) = paged
+    if number is None or pages is None:
+        return {}
+    out: dict[str, Any] = {"segment": number, "pages": pages >= 2}
+    if pages >= 2:
+        out["reference_page"] = 0
+        out["working_page"] = 1
     return out
 
 
@@ -299,6 +464,41 @@ def resolution_of(ch: A2lCharacteristic) -> float:
     return 10.0**-decimals
 
 
+def on_ecu_grid(
+    name: str, where: EcuAddress, lower: float, upper: float
+) -> tuple[float, float, Callable[[float], float]]:
+    """LOWER_LIMIT / UPPER_LIMIT moved inward onto the values an integer type can hold (p = factor x + offset), so
+    that the agent's grid (lower + k resolution) is the ECU's; refused when they exceed the type's range (a UBYTE
+    with limits 0..300 was clamped to 255 without a word). Also the function that puts a value on that grid."""
+    if where.is_float:
+        return lower, upper, lambda v: v
+    factor, offset = where.linear
+    lo_x, hi_x = sorted(((lower - offset) / factor, (upper - offset) / factor))
+    x_lo, x_hi = math.ceil(lo_x - 1e-9), math.floor(hi_x + 1e-9)
+    t_lo, t_hi = integer_range(where.datatype)
+    if x_lo < t_lo or x_hi > t_hi:
+        raise A2lError(
+            f"CHARACTERISTIC {name}: its limits [{lower:g}, {upper:g}] need internal values {x_lo}..{x_hi}, beyond "
+            f"what a {where.datatype} holds ({t_lo}..{t_hi}, i.e. [{_phys(where, t_lo):g}, {_phys(where, t_hi):g}] "
+            "through its COMPU_METHOD): the A2L's limits or type are wrong"
+        )
+    if x_lo > x_hi:
+        raise A2lError(f"CHARACTERISTIC {name}: no {where.datatype} value lies within [{lower:g}, {upper:g}]")
+    a, b = sorted((_phys(where, x_lo), _phys(where, x_hi)))
+    a = lower if math.isclose(a, lower, rel_tol=1e-9, abs_tol=1e-12) else a  # on the grid already: the A2L's digits
+    b = upper if math.isclose(b, upper, rel_tol=1e-9, abs_tol=1e-12) else b
+
+    def grid(v: float) -> float:
+        return _phys(where, min(max(round((v - offset) / factor), x_lo), x_hi))
+
+    return a, b, grid
+
+
+def _phys(where: EcuAddress, x: int) -> float:
+    factor, offset = where.linear
+    return float(factor * x + offset)
+
+
 def definition_from_a2l(
     path: str | Path,
     characteristics: Sequence[str] | None = None,
@@ -307,6 +507,7 @@ def definition_from_a2l(
     values: Mapping[str, float] | None = None,
     midpoint: bool = False,
     description: str = "",
+    notes: list[str] | None = None,
 ) -> CalibrationDefinition:
     """The calibration definition of ``characteristics`` (A2L names, in index order; None = every VALUE).
 
@@ -315,7 +516,17 @@ def definition_from_a2l(
     either, a missing value is refused: the baseline is the calibration a car is left on.
     """
     module = read_a2l(path)
+    if notes is not None:
+        notes.extend(module.notes)
+        if not characteristics:
+            notes.extend(f"left out {n}: {why}" for n, why in sorted(module.problems.items()))
     wanted = list(characteristics) if characteristics else sorted(module.characteristics)
+    if not wanted:
+        why = "; ".join(f"{n}: {w}" for n, w in sorted(module.problems.items())) or "it has none"
+        raise A2lError(f"{path}: no characteristic bac can write ({why})")
+    refused = [f"{c}: {module.problems[c]}" for c in wanted if c in module.problems]
+    if refused:
+        raise A2lError(f"{path}: bac cannot write " + "; ".join(refused))
     missing = [c for c in wanted if c not in module.characteristics]
     if missing:
         known = ", ".join(sorted(module.characteristics)[:20])
@@ -340,18 +551,24 @@ def definition_from_a2l(
             raise A2lError(f"CHARACTERISTIC {a2l_name}: {exc}") from None
         if ch.lower >= ch.upper:
             raise A2lError(f"CHARACTERISTIC {a2l_name}: LOWER_LIMIT {ch.lower:g} >= UPPER_LIMIT {ch.upper:g}")
+        lower, upper, grid = on_ecu_grid(a2l_name, where, ch.lower, ch.upper)
         v = given.get(a2l_name, given.get(pname))
         if v is None:
             if not midpoint:
                 no_value.append(a2l_name)
                 continue
-            v = (ch.lower + ch.upper) / 2
+            v = grid((lower + upper) / 2)
+        elif abs(grid(float(v)) - float(v)) > 1e-9 * max(1.0, abs(float(v))):
+            raise A2lError(
+                f"CHARACTERISTIC {a2l_name}: the value {float(v):g} is not one the ECU can hold (the nearest is "
+                f"{grid(float(v)):g}; its steps are {resolution_of(ch):g} from {lower:g})"
+            )
         params.append(
             RawParameter(
                 name=pname,
                 index=index,
-                lower=ch.lower,
-                upper=ch.upper,
+                lower=lower,
+                upper=upper,
                 nominal=float(v),
                 resolution=resolution_of(ch),
                 unit=ch.unit,
@@ -366,6 +583,7 @@ def definition_from_a2l(
         )
     xcp = dict(module.xcp)
     xcp.pop("baudrate", None)  # the bus's bit rate is the adapter's setting (can.bitrate)
+    xcp.update(paging_of(module.segments, [module.characteristics[c] for c in wanted]))
     return CalibrationDefinition(
         name=name or identifier(module.name).lower(),
         parameters=tuple(params),

@@ -45,6 +45,14 @@ def datatype_size(datatype: str) -> int:
     return _TYPES[datatype][1]
 
 
+def integer_range(datatype: str) -> tuple[int, int]:
+    """The internal values an integer A2L data type holds (floats: refused with KeyError)."""
+    span = _TYPES[datatype][2]
+    if span is None:
+        raise KeyError(f"{datatype} is not an integer type")
+    return span
+
+
 @dataclass(frozen=True)
 class XcpParam:
     """One raw parameter as an XCP ECU holds it."""
@@ -74,8 +82,13 @@ class XcpParam:
             a = (p.lower - offset) / factor
             b = (p.upper - offset) / factor
             lo, hi = min(a, b), max(a, b)
-            x_min = max(math.ceil(lo - _EPS), span[0])
-            x_max = min(math.floor(hi + _EPS), span[1])
+            x_min = math.ceil(lo - _EPS)
+            x_max = math.floor(hi + _EPS)
+            if x_min < span[0] or x_max > span[1]:  # it was clamped to the type without a word
+                raise ProtocolConfigError(
+                    f"parameter '{p.name}': its bounds [{p.lower:g}, {p.upper:g}] need internal values "
+                    f"{x_min}..{x_max}, beyond what a {p.xcp.datatype} holds ({span[0]}..{span[1]})"
+                )
             if x_min > x_max:
                 raise ProtocolConfigError(
                     f"parameter '{p.name}': no {p.xcp.datatype} value of conversion p = {factor:g} x + {offset:g} "

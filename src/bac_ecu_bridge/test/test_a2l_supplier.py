@@ -1,0 +1,149 @@
+"""A2L features a supplier's file may hold that bac cannot write as one value: refused with the reason, never read
+to a wrong address, value or page (outside review 2026-11-29; each case was read silently before)."""
+
+from __future__ import annotations
+
+import struct
+from pathlib import Path
+
+import pytest
+from a2l_builder import MODPAR, a2l
+
+from bac_ecu_bridge.xcp.a2l import A2lError, definition_from_a2l, read_a2l
+from bac_ecu_bridge.xcp.layout import XcpParam
+
+
+def char(name: str = "C1", address: str = "0x40000000", layout: str = "RL_UBYTE", cm: str = "CM_ID",
+         lo: str = "0", hi: str = "15", extra: str = "", kind: str = "VALUE") -> str:  # fmt: skip
+    return f'/begin CHARACTERISTIC {name} "d" {kind} {address} {layout} 0 {cm} {lo} {hi} {extra} /end CHARACTERISTIC'
+
+
+def write(tmp_path: Path, body: str, name: str = "ecu.a2l", **kw: str) -> Path:
+    p = tmp_path / name
+    p.write_text(a2l(body, **kw))
+    return p
+
+
+@pytest.mark.parametrize(
+    ("body", "reason"),
+    [
+        (char(extra="BIT_MASK 0xF0"), "BIT_MASK 0xf0: the value is some bits of a UBYTE"),
+        (char(extra="READ_ONLY"), "READ_ONLY"),
+        (char(extra="CALIBRATION_ACCESS NO_CALIBRATION"), "CALIBRATION_ACCESS NO_CALIBRATION"),
+        (
+            char(layout="RL_PTR") + "\n/begin RECORD_LAYOUT RL_PTR FNC_VALUES 1 UWORD ROW_DIR PLONG /end RECORD_LAYOUT",
+            "through a pointer (FNC_VALUES ... PLONG)",
+        ),
+        (
+            char(layout="RL_OFF")
+            + "\n/begin RECORD_LAYOUT RL_OFF RESERVED 1 BYTE FNC_VALUES 2 UWORD ROW_DIR DIRECT /end RECORD_LAYOUT",
+            "puts 1 element(s) (RESERVED, IDENTIFICATION) before FNC_VALUES",
+        ),
+        (char(layout="RL_NONE"), "its RECORD_LAYOUT RL_NONE is not in the A2L"),
+        (char() + "\n" + char(address="0x40000100", hi="250"), "defined 2 times (at 0x40000000, 0x40000100)"),
+        (char(extra="BYTE_ORDER BIG_ENDIAN"), "BYTE_ORDER BIG_ENDIAN (deprecated"),
+    ],
+    ids=["bit_mask", "read_only", "no_calibration", "pointer", "reserved_first", "no_layout", "twice", "big_endian"],
+)
+def test_a_characteristic_bac_cannot_write_as_one_value_is_refused(tmp_path: Path, body: str, reason: str) -> None:
+    path = write(tmp_path, body)
+    with pytest.raises(A2lError, match="bac cannot write C1: ") as exc:
+        definition_from_a2l(path, ["C1"], midpoint=True)
+    assert reason in str(exc.value)
+    assert reason.split(" (", maxsplit=1)[0] in read_a2l(path).problems["C1"]
+    with pytest.raises(A2lError, match=r"no characteristic bac can write \(C1: "):  # --all, and nothing else
+        definition_from_a2l(path, None, midpoint=True)
+
+
+def test_a_curve_is_refused_by_what_it_is(tmp_path: Path) -> None:
+    path = write(tmp_path, char() + "\n" + char("Gain", "0x40000010", kind="CURVE"))
+    with pytest.raises(A2lError, match="bac cannot write Gain: a CURVE: bac tunes VALUE characteristics"):
+        definition_from_a2l(path, ["Gain"], midpoint=True)
+    notes: list[str] = []
+    d = definition_from_a2l(path, None, midpoint=True, notes=notes)  # --all: the curve is left out, and said so
+    assert [p.name for p in d.parameters] == ["C1"] and any(n.startswith("left out Gain: a CURVE") for n in notes)
+
+
+def test_the_page_segment_is_the_one_holding_the_characteristics(tmp_path: Path) -> None:
+    ram = MODPAR.replace(
+        "    /end MOD_PAR",
+        """      /begin MEMORY_SEGMENT RamData "ram" DATA RAM INTERN 0x70000000 0x100 -1 -1 -1 -1 -1
+        /begin IF_DATA XCP /begin SEGMENT 1 1 0 0 0 /end SEGMENT /end IF_DATA
+      /end MEMORY_SEGMENT
+    /end MOD_PAR""",
+    )
+    path = write(tmp_path, char() + "\n" + char("R1", "0x70000010"), modpar=ram)
+    xcp = definition_from_a2l(path, ["C1"], midpoint=True).xcp  # the last segment (RamData, one page) was taken
+    assert (xcp["segment"], xcp["pages"], xcp["working_page"]) == (0, True, 1)
+    xcp = definition_from_a2l(path, ["R1"], midpoint=True).xcp
+    assert (xcp["segment"], xcp["pages"]) == (1, False)
+    with pytest.raises(A2lError, match="lie in memory segments paged differently"):
+        definition_from_a2l(path, ["C1", "R1"], midpoint=True)
+    outside = write(tmp_path, char(address="0x50000000"), name="outside.a2l")
+    with pytest.raises(A2lError, match=r"C1 at 0x50000000 lies in no MEMORY_SEGMENT of the A2L \(CalData"):
+        definition_from_a2l(outside, ["C1"], midpoint=True)
+
+
+def test_a_truncated_included_file_is_refused(tmp_path: Path) -> None:
+    (tmp_path / "inc_ok.a2l").write_text(char("INC1", "0x40000010", hi="0.95", cm="CM_RAT", layout="RL_UWORD") + "\n")
+    (tmp_path / "inc_cut.a2l").write_text('/begin CHARACTERISTIC INC1 "d" VALUE 0x40000010 RL_UWORD 0 CM_RAT 0 0.9\n')
+    good = write(tmp_path, char() + '\n/include "inc_ok.a2l"', name="good.a2l")
+    assert definition_from_a2l(good, ["INC1"], midpoint=True).parameters[0].upper == 0.95
+    cut = write(tmp_path, char() + '\n/include "inc_cut.a2l"', name="cut.a2l")
+    with pytest.raises(A2lError, match=r"inc_cut.a2l: the file ends inside /begin CHARACTERISTIC"):
+        definition_from_a2l(cut, ["INC1"], midpoint=True)
+    missing = write(tmp_path, char() + '\n/include "nope.a2l" /* /include "x.a2l" */', name="missing.a2l")
+    with pytest.raises(A2lError, match=r"/include nope.a2l: no such file"):
+        read_a2l(missing)
+
+
+def test_limits_are_moved_onto_the_ecus_grid_so_what_is_told_is_what_the_ecu_holds(tmp_path: Path) -> None:
+    cm = '/begin COMPU_METHOD CM_Q "" LINEAR "%6.0" "-" COEFFS_LINEAR 4 0 /end COMPU_METHOD'
+    path = write(tmp_path, cm + "\n" + char("P_Gain", cm="CM_Q", lo="2", hi="62"))
+    (p,) = definition_from_a2l(path, ["P_Gain"], midpoint=True).parameters
+    assert (p.lower, p.upper, p.resolution, p.nominal) == (4.0, 60.0, 4.0, 32.0)
+    x = XcpParam.of(p)
+    for k in range(15):  # every value the agent can ask is one the ECU holds, and reads back
+        v = p.quantize(p.lower + k * p.resolution)
+        assert x.decode(x.encode(v)) == v
+    with pytest.raises(A2lError, match=r"the value 6 is not one the ECU can hold \(the nearest is 8"):
+        definition_from_a2l(path, ["P_Gain"], values={"P_Gain": 6})
+
+
+@pytest.mark.parametrize(("layout", "lo", "hi", "need"),
+                         [("RL_UBYTE", "0", "300", "0..300"), ("RL_UBYTE", "-10", "100", "-10..100"),
+                          ("RL_SBYTE", "-200", "100", "-200..100")])  # fmt: skip
+def test_limits_beyond_the_data_type_are_refused(tmp_path: Path, layout: str, lo: str, hi: str, need: str) -> None:
+    path = write(tmp_path, char(layout=layout, lo=lo, hi=hi))
+    with pytest.raises(A2lError, match=rf"need internal values {need}, beyond what a"):
+        definition_from_a2l(path, ["C1"], midpoint=True)
+
+
+def test_can_ids_missing_or_given_twice(tmp_path: Path) -> None:
+    notes: list[str] = []
+    d = definition_from_a2l(write(tmp_path, char(), ifdata=""), ["C1"], midpoint=True, notes=notes)
+    assert "can_id_master" not in d.xcp and any("no CAN_ID_MASTER / CAN_ID_SLAVE pair" in n for n in notes)
+    two = """    /begin IF_DATA XCP
+      /begin XCP_ON_CAN 0x0100 CAN_ID_MASTER 0x7E0 CAN_ID_SLAVE 0x7E1 /end XCP_ON_CAN
+      /begin XCP_ON_CAN 0x0100 CAN_ID_MASTER 0x6F0 CAN_ID_SLAVE 0x6F1 /end XCP_ON_CAN
+    /end IF_DATA"""
+    with pytest.raises(A2lError, match=r"several CAN id pairs \(CAN_ID_MASTER 0x6f0, 0x7e0"):
+        read_a2l(write(tmp_path, char(), name="two.a2l", ifdata=two))
+
+
+def test_a_utf8_file_keeps_its_umlauts(tmp_path: Path) -> None:
+    body = char().replace('"d"', '"Dämpfung µ"')
+    (tmp_path / "u.a2l").write_bytes(a2l(body).encode("utf-8"))
+    assert definition_from_a2l(tmp_path / "u.a2l", ["C1"], midpoint=True).parameters[0].description == "Dämpfung µ"
+    (tmp_path / "l.a2l").write_bytes(a2l(body).encode("latin-1"))
+    assert definition_from_a2l(tmp_path / "l.a2l", ["C1"], midpoint=True).parameters[0].description == "Dämpfung µ"
+
+
+def test_a_value_at_each_bound_round_trips_through_the_bytes(tmp_path: Path) -> None:
+    cm = '/begin COMPU_METHOD CM_L "" LINEAR "%8.2" "Nm" COEFFS_LINEAR 0.01 -10.0 /end COMPU_METHOD'
+    path = write(
+        tmp_path, cm + "\n" + char(layout="RL_SWORD", cm="CM_L", lo="-300", hi="300", extra="BYTE_ORDER MSB_FIRST")
+    )
+    (p,) = definition_from_a2l(path, ["C1"], midpoint=True).parameters
+    x = XcpParam.of(p)
+    assert x.encode(-300.0) == struct.pack(">h", -29000) and x.encode(300.0) == struct.pack(">h", 31000)
