@@ -30,6 +30,7 @@ def write(tmp_path: Path, body: str, name: str = "ecu.a2l", **kw: str) -> Path:
         (char(extra="BIT_MASK 0xF0"), "BIT_MASK 0xf0: the value is some bits of a UBYTE"),
         (char(extra="READ_ONLY"), "READ_ONLY"),
         (char(extra="CALIBRATION_ACCESS NO_CALIBRATION"), "CALIBRATION_ACCESS NO_CALIBRATION"),
+        (char(extra="CALIBRATION_ACCESS OFFLINE_CALIBRATION"), "CALIBRATION_ACCESS OFFLINE_CALIBRATION"),
         (
             char(layout="RL_PTR") + "\n/begin RECORD_LAYOUT RL_PTR FNC_VALUES 1 UWORD ROW_DIR PLONG /end RECORD_LAYOUT",
             "through a pointer (FNC_VALUES ... PLONG)",
@@ -43,7 +44,17 @@ def write(tmp_path: Path, body: str, name: str = "ecu.a2l", **kw: str) -> Path:
         (char() + "\n" + char(address="0x40000100", hi="250"), "defined 2 times (at 0x40000000, 0x40000100)"),
         (char(extra="BYTE_ORDER BIG_ENDIAN"), "BYTE_ORDER BIG_ENDIAN (deprecated"),
     ],
-    ids=["bit_mask", "read_only", "no_calibration", "pointer", "reserved_first", "no_layout", "twice", "big_endian"],
+    ids=[
+        "bit_mask",
+        "read_only",
+        "no_calibration",
+        "offline",
+        "pointer",
+        "reserved_first",
+        "no_layout",
+        "twice",
+        "big_endian",
+    ],
 )
 def test_a_characteristic_bac_cannot_write_as_one_value_is_refused(tmp_path: Path, body: str, reason: str) -> None:
     path = write(tmp_path, body)
@@ -80,7 +91,7 @@ def test_the_page_segment_is_the_one_holding_the_characteristics(tmp_path: Path)
     with pytest.raises(A2lError, match="lie in memory segments paged differently"):
         definition_from_a2l(path, ["C1", "R1"], midpoint=True)
     outside = write(tmp_path, char(address="0x50000000"), name="outside.a2l")
-    with pytest.raises(A2lError, match=r"C1 at 0x50000000 lies in no MEMORY_SEGMENT of the A2L \(CalData"):
+    with pytest.raises(A2lError, match=r"C1 at 0x50000000 \(1 bytes\) lies in no MEMORY_SEGMENT of the A2L \(CalData"):
         definition_from_a2l(outside, ["C1"], midpoint=True)
 
 
@@ -92,9 +103,12 @@ def test_a_truncated_included_file_is_refused(tmp_path: Path) -> None:
     cut = write(tmp_path, char() + '\n/include "inc_cut.a2l"', name="cut.a2l")
     with pytest.raises(A2lError, match=r"inc_cut.a2l: the file ends inside /begin CHARACTERISTIC"):
         definition_from_a2l(cut, ["INC1"], midpoint=True)
-    missing = write(tmp_path, char() + '\n/include "nope.a2l" /* /include "x.a2l" */', name="missing.a2l")
+    missing = write(tmp_path, char() + '\n/include "nope.a2l"', name="missing.a2l")
     with pytest.raises(A2lError, match=r"/include nope.a2l: no such file"):
         read_a2l(missing)
+    # an /include in a comment or a string is none
+    quiet = write(tmp_path, char(extra='/* /include "x.a2l" */') + '\n/* /include "y.a2l" */', name="quiet.a2l")
+    assert read_a2l(quiet).characteristics["C1"].upper == 15
 
 
 def test_limits_are_moved_onto_the_ecus_grid_so_what_is_told_is_what_the_ecu_holds(tmp_path: Path) -> None:
@@ -102,6 +116,11 @@ def test_limits_are_moved_onto_the_ecus_grid_so_what_is_told_is_what_the_ecu_hol
     path = write(tmp_path, cm + "\n" + char("P_Gain", cm="CM_Q", lo="2", hi="62"))
     (p,) = definition_from_a2l(path, ["P_Gain"], midpoint=True).parameters
     assert (p.lower, p.upper, p.resolution, p.nominal) == (4.0, 60.0, 4.0, 32.0)
+    # the midpoint stays inside limits kept at the A2L's digits (0.95 is 9500 x 0.0001 with float noise)
+    rat = char("R", "0x40000010", layout="RL_UWORD", cm="CM_RAT4", lo="0.9499", hi="0.95")
+    cm4 = '/begin COMPU_METHOD CM_RAT4 "" RAT_FUNC "%8.4" "-" COEFFS 0 10000 0 0 0 1 /end COMPU_METHOD'
+    (r,) = definition_from_a2l(write(tmp_path, cm4 + "\n" + rat, name="r.a2l"), ["R"], midpoint=True).parameters
+    assert r.lower <= r.nominal <= r.upper == 0.95
     x = XcpParam.of(p)
     for k in range(15):  # every value the agent can ask is one the ECU holds, and reads back
         v = p.quantize(p.lower + k * p.resolution)
@@ -114,9 +133,33 @@ def test_limits_are_moved_onto_the_ecus_grid_so_what_is_told_is_what_the_ecu_hol
                          [("RL_UBYTE", "0", "300", "0..300"), ("RL_UBYTE", "-10", "100", "-10..100"),
                           ("RL_SBYTE", "-200", "100", "-200..100")])  # fmt: skip
 def test_limits_beyond_the_data_type_are_refused(tmp_path: Path, layout: str, lo: str, hi: str, need: str) -> None:
-    path = write(tmp_path, char(layout=layout, lo=lo, hi=hi))
+    path = write(tmp_path, char(layout=layout, lo=lo, hi=hi) + "\n" + char("C2", "0x40000010"))
     with pytest.raises(A2lError, match=rf"need internal values {need}, beyond what a"):
         definition_from_a2l(path, ["C1"], midpoint=True)
+    notes: list[str] = []  # --all: left out and said, the others kept
+    assert [p.name for p in definition_from_a2l(path, None, midpoint=True, notes=notes).parameters] == ["C2"]
+    assert any(n.startswith("left out C1: its limits") for n in notes)
+
+
+def test_a_64_bit_types_own_range_as_limits_is_accepted(tmp_path: Path) -> None:
+    u64 = char(layout="RL_U64", lo="0", hi="18446744073709551615")
+    i64 = char("C2", "0x40000010", layout="RL_I64", lo="-9223372036854775808", hi="9223372036854775807")
+    rl = "/begin RECORD_LAYOUT RL_I64 FNC_VALUES 1 A_INT64 ROW_DIR DIRECT /end RECORD_LAYOUT"
+    d = definition_from_a2l(write(tmp_path, "\n".join((u64, i64, rl))), ["C1", "C2"], midpoint=True)
+    assert [(p.lower, p.upper) for p in d.parameters] == [(0.0, 2.0**64), (-(2.0**63), 2.0**63)]
+
+
+def test_nested_segments_page_by_the_one_that_says_its_paging(tmp_path: Path) -> None:
+    flash = MODPAR.replace(
+        '    /begin MOD_PAR ""',
+        """    /begin MOD_PAR ""
+      /begin MEMORY_SEGMENT Flash "code" CODE FLASH INTERN 0x40000000 0x100000 -1 -1 -1 -1 -1 /end MEMORY_SEGMENT""",
+    )
+    xcp = definition_from_a2l(write(tmp_path, char(), modpar=flash), ["C1"], midpoint=True).xcp
+    assert (xcp["segment"], xcp["pages"]) == (0, True)
+    cross = write(tmp_path, char(address="0x40000fff", layout="RL_UWORD", hi="100"), name="cross.a2l")
+    with pytest.raises(A2lError, match=r"C1 at 0x40000fff \(2 bytes\) crosses the end of MEMORY_SEGMENT CalData"):
+        definition_from_a2l(cross, ["C1"], midpoint=True)
 
 
 def test_can_ids_missing_or_given_twice(tmp_path: Path) -> None:

@@ -200,10 +200,12 @@ def check_a2l_files(path: Path, encoding: str, seen: set[Path] | None = None) ->
     for m in _A2L_INCLUDE.finditer(text):
         if not (m.group(1) or m.group(2)):
             continue  # a comment or a string
-        inc = Path(m.group(1) or m.group(2))
-        inc = inc if inc.is_absolute() else path.parent / inc
-        if not inc.is_file():
-            raise A2lError(f"{path}: /include {m.group(1) or m.group(2)}: no such file ({inc})")
+        name = Path(m.group(1) or m.group(2))
+        # where pya2ldb looks (its preprocessor's locate_file): as given (the working folder), then beside the file
+        places = [name] if name.is_absolute() else [name, path.parent / name]
+        inc = next((c for c in places if c.is_file()), None)
+        if inc is None:
+            raise A2lError(f"{path}: /include {name}: no such file ({' or '.join(str(c) for c in places)})")
         check_a2l_files(inc, a2l_encoding(inc.read_bytes()), seen)
 
 
@@ -309,7 +311,7 @@ def _module(session: Any, model: Any, path: Path) -> A2lModule:
 
 
 _AMBIGUOUS_ORDERS = ("BIG_ENDIAN", "LITTLE_ENDIAN", "_BIG_ENDIAN", "_LITTLE_ENDIAN")
-_WRITABLE_ACCESS = ("CALIBRATION", "OFFLINE_CALIBRATION")
+_WRITABLE_ACCESS = ("CALIBRATION",)  # OFFLINE_CALIBRATION: only in the data set, not in the running ECU
 
 
 def _cannot_write(c: Any, rl: Any) -> str:
@@ -426,13 +428,23 @@ def paging_of(segments: Sequence[MemorySegment], chars: Sequence[A2lCharacterist
         return {}
     held: dict[str, MemorySegment] = {}
     for ch in chars:
-        seg = next((s for s in segments if s.holds(ch.address, datatype_size(ch.datatype))), None)
-        if seg is None:
+        size = datatype_size(ch.datatype)
+        holders = [s for s in segments if s.holds(ch.address, size)]
+        if not holders:
+            crossed = [s.name for s in segments if s.address <= ch.address < s.address + s.size]
             raise A2lError(
-                f"CHARACTERISTIC {ch.name} at {ch.address:#x} lies in no MEMORY_SEGMENT of the A2L "
-                f"({', '.join(f'{s.name} {s.address:#x}+{s.size:#x}' for s in segments)}): which page holds it?"
+                f"CHARACTERISTIC {ch.name} at {ch.address:#x} ({size} bytes) "
+                + (f"crosses the end of MEMORY_SEGMENT {crossed[0]}" if crossed else "lies in no MEMORY_SEGMENT")
+                + f" of the A2L ({', '.join(f'{s.name} {s.address:#x}+{s.size:#x}' for s in segments)})"
             )
-        held[ch.name] = seg
+        # segments may nest (a flash segment around its calibration segment): the ones that say their XCP paging
+        paged_holders = [s for s in holders if s.segment is not None] or holders
+        if len({(s.segment, s.pages) for s in paged_holders}) > 1:
+            raise A2lError(
+                f"CHARACTERISTIC {ch.name} lies in overlapping memory segments paged differently "
+                f"({', '.join(s.name for s in paged_holders)}): which one's pages hold it?"
+            )
+        held[ch.name] = paged_holders[0]
     paged = {(s.segment, s.pages) for s in held.values()}
     if len(paged) > 1:
         shown = "; ".join(f"{n} in {s.name}" for n, s in held.items())
@@ -476,6 +488,9 @@ def on_ecu_grid(
     lo_x, hi_x = sorted(((lower - offset) / factor, (upper - offset) / factor))
     x_lo, x_hi = math.ceil(lo_x - 1e-9), math.floor(hi_x + 1e-9)
     t_lo, t_hi = integer_range(where.datatype)
+    # a 64-bit type's own range as limits (2**64 - 1 is the float 2**64): within the float's rounding, clamped
+    x_lo = t_lo if t_lo - math.ulp(float(t_lo)) <= x_lo < t_lo else x_lo
+    x_hi = t_hi if t_hi < x_hi <= t_hi + math.ulp(float(t_hi)) else x_hi
     if x_lo < t_lo or x_hi > t_hi:
         raise A2lError(
             f"CHARACTERISTIC {name}: its limits [{lower:g}, {upper:g}] need internal values {x_lo}..{x_hi}, beyond "
@@ -489,7 +504,7 @@ def on_ecu_grid(
     b = upper if math.isclose(b, upper, rel_tol=1e-9, abs_tol=1e-12) else b
 
     def grid(v: float) -> float:
-        return _phys(where, min(max(round((v - offset) / factor), x_lo), x_hi))
+        return min(max(_phys(where, min(max(round((v - offset) / factor), x_lo), x_hi)), a), b)
 
     return a, b, grid
 
@@ -532,9 +547,10 @@ def definition_from_a2l(
         known = ", ".join(sorted(module.characteristics)[:20])
         raise A2lError(f"{path}: no VALUE characteristic {missing} (known: {known})")
     given = dict(values or {})
-    params = []
+    params: list[RawParameter] = []
     no_value = []
-    for index, a2l_name in enumerate(wanted):
+    included: list[str] = []
+    for a2l_name in wanted:
         ch = module.characteristics[a2l_name]
         pname = identifier(a2l_name)
         try:
@@ -551,7 +567,14 @@ def definition_from_a2l(
             raise A2lError(f"CHARACTERISTIC {a2l_name}: {exc}") from None
         if ch.lower >= ch.upper:
             raise A2lError(f"CHARACTERISTIC {a2l_name}: LOWER_LIMIT {ch.lower:g} >= UPPER_LIMIT {ch.upper:g}")
-        lower, upper, grid = on_ecu_grid(a2l_name, where, ch.lower, ch.upper)
+        try:
+            lower, upper, grid = on_ecu_grid(a2l_name, where, ch.lower, ch.upper)
+        except A2lError as exc:
+            if characteristics:  # named: refused
+                raise
+            if notes is not None:  # --all: left out, and said, as the characteristics bac cannot write
+                notes.append(f"left out {a2l_name}: {str(exc).removeprefix(f'CHARACTERISTIC {a2l_name}: ')}")
+            continue
         v = given.get(a2l_name, given.get(pname))
         if v is None:
             if not midpoint:
@@ -566,7 +589,7 @@ def definition_from_a2l(
         params.append(
             RawParameter(
                 name=pname,
-                index=index,
+                index=len(params),
                 lower=lower,
                 upper=upper,
                 nominal=float(v),
@@ -576,6 +599,7 @@ def definition_from_a2l(
                 xcp=where,
             )
         )
+        included.append(a2l_name)
     if no_value:
         raise A2lError(
             f"no nominal / baseline value for {no_value}: read them from the ECU's reference page (--from-ecu), "
@@ -583,7 +607,9 @@ def definition_from_a2l(
         )
     xcp = dict(module.xcp)
     xcp.pop("baudrate", None)  # the bus's bit rate is the adapter's setting (can.bitrate)
-    xcp.update(paging_of(module.segments, [module.characteristics[c] for c in wanted]))
+    if not params and not no_value:
+        raise A2lError(f"{path}: no characteristic bac can write (" + "; ".join(notes or []) + ")")
+    xcp.update(paging_of(module.segments, [module.characteristics[c] for c in included]))
     return CalibrationDefinition(
         name=name or identifier(module.name).lower(),
         parameters=tuple(params),
