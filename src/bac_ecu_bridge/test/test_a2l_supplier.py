@@ -190,3 +190,14 @@ def test_a_value_at_each_bound_round_trips_through_the_bytes(tmp_path: Path) -> 
     (p,) = definition_from_a2l(path, ["C1"], midpoint=True).parameters
     x = XcpParam.of(p)
     assert x.encode(-300.0) == struct.pack(">h", -29000) and x.encode(300.0) == struct.pack(">h", 31000)
+
+
+def test_phys_unit_and_a_floats_step_size(tmp_path: Path) -> None:
+    cm = '/begin COMPU_METHOD CM_L "" LINEAR "%8.2" "Nm" COEFFS_LINEAR 0.01 -10.0 /end COMPU_METHOD'
+    c1 = char(layout="RL_SWORD", cm="CM_L", lo="-100", hi="100", extra='PHYS_UNIT "km/h"')
+    f1 = char("F1", "0x40000010", layout="RL_F32", lo="0", hi="2", extra='FORMAT "%5.0" STEP_SIZE 0.05')
+    f2 = char("F2", "0x40000020", layout="RL_F32", lo="0", hi="2", extra='FORMAT "%5.0"')
+    d = definition_from_a2l(write(tmp_path, "\n".join((cm, c1, f1, f2))), ["C1", "F1", "F2"], midpoint=True)
+    (c, f, g) = d.parameters
+    assert c.unit == "km/h" and c.resolution == pytest.approx(0.01)
+    assert f.resolution == 0.05 and g.resolution == 1.0  # without a STEP_SIZE: the FORMAT's decimals

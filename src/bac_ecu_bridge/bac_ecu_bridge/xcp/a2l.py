@@ -11,8 +11,8 @@ definition of the named CHARACTERISTICs (type VALUE):
 * the COMPU_METHOD: IDENTICAL, LINEAR (COEFFS_LINEAR) or RAT_FUNC in its linear
   form (COEFFS with a = d = e = 0); other forms are refused with a reason;
 * the resolution: one step of the internal value (|factor| of the conversion)
-  for integer types, the FORMAT's decimals for floats;
-* the unit (the COMPU_METHOD's) and the long identifier;
+  for integer types; for floats the STEP_SIZE, else the FORMAT's decimals;
+* the unit (PHYS_UNIT, else the COMPU_METHOD's) and the long identifier;
 * the XCP-on-CAN ids of the module's IF_DATA XCP (CAN_ID_MASTER, CAN_ID_SLAVE,
   MAX_DLC_REQUIRED; two different pairs are refused) and the calibration pages
   of the MEMORY_SEGMENT holding the characteristics (its IF_DATA XCP SEGMENT:
@@ -75,6 +75,7 @@ class A2lCharacteristic:
     upper: float
     unit: str
     decimals: int | None  # from the FORMAT (characteristic's, else the COMPU_METHOD's)
+    step_size: float | None = None  # the characteristic's STEP_SIZE (a calibration tool's increment)
 
 
 @dataclass(frozen=True)
@@ -299,8 +300,9 @@ def _module(session: Any, model: Any, path: Path) -> A2lModule:
             coeffs=coeffs,
             lower=float(c.lowerLimit),
             upper=float(c.upperLimit),
-            unit=unit,
+            unit=str(c.phys_unit.unit) if c.phys_unit is not None else unit,  # PHYS_UNIT wins (ASAP2 1.6)
             decimals=_decimals(fmt),
+            step_size=float(c.step_size.stepSize) if c.step_size is not None else None,
         )
     for name, where in addresses.items():
         if len(where) > 1:
@@ -468,10 +470,12 @@ def identifier(a2l_name: str) -> str:
 
 
 def resolution_of(ch: A2lCharacteristic) -> float:
-    """One step of the internal value in physical units (floats: the FORMAT's decimals)."""
+    """One step of the internal value in physical units (floats: the STEP_SIZE, else the FORMAT's decimals)."""
     where = EcuAddress(ch.address, ch.datatype, ch.byte_order, ch.extension, ch.conversion, ch.coeffs)
     if not where.is_float:
         return abs(where.linear[0])
+    if ch.step_size is not None and math.isfinite(ch.step_size) and ch.step_size > 0:
+        return ch.step_size
     decimals = ch.decimals if ch.decimals is not None else FLOAT_DEFAULT_DECIMALS
     return 10.0**-decimals
 
