@@ -259,7 +259,11 @@ class EcuBridgeNode(BacNode):
             if self.protocol == "xcp":
                 from bac_ecu_bridge.xcp.layout import XcpLayout
 
-                XcpLayout(self.definition)  # every parameter has its XCP address, none overlap
+                layout = XcpLayout(self.definition)  # every parameter has its XCP address, none overlap
+                for q in layout.params:
+                    why = q.off_grid(self.definition.parameter(q.name).resolution)
+                    if why:
+                        self.get_logger().warning(why)
                 pages = xcp_overrides.pop("pages")
                 given = {k: v for k, v in xcp_overrides.items() if v not in (-1, "")}
                 if pages != "auto":

@@ -109,3 +109,16 @@ def test_ecu_address_validation_and_yaml_round_trip(tmp_path: object) -> None:
     d = CalibrationDefinition("z", (param("g", 0, where, -10, 10),), xcp={"can_id_master": 0x7E0})
     again = CalibrationDefinition.from_dict(d.to_dict())
     assert again.parameters[0].xcp == where and again.xcp == {"can_id_master": 0x7E0}
+
+
+def test_a_definition_off_the_ecus_grid_is_named() -> None:
+    """The bridge warns of a hand-written definition whose agent grid (lower + k x resolution) is not the ECU's: the
+    value told would not be the value held (outside review 2026-11-29: asks of 6 and 10 both wrote 8)."""
+    on = XcpParam.of(RawParameter("g", 0, 4.0, 60.0, 32.0, 4.0, xcp=EcuAddress(0, "UBYTE", conversion="LINEAR",
+                                                                            coeffs=(4.0, 0.0))))  # fmt: skip
+    assert on.off_grid(4.0) == "" and on.off_grid(8.0) == ""
+    assert "lower 2, upper 62 not on it" in XcpParam.of(
+        RawParameter("g", 0, 2.0, 62.0, 30.0, 4.0, xcp=on.where)
+    ).off_grid(4.0)
+    assert "resolution 0.0001 no multiple of 4" in on.off_grid(0.0001)
+    assert XcpParam.of(param("f", 1, EcuAddress(0, "FLOAT32_IEEE"), 0.1, 0.3)).off_grid(0.0001) == ""

@@ -96,6 +96,23 @@ class XcpParam:
                 )
         return cls(p.name, p.index, p.lower, p.upper, p.xcp, factor, offset, size, x_min, x_max)
 
+    def off_grid(self, resolution: float) -> str:
+        """Why the agent's values (lower + k x ``resolution``, :meth:`RawParameter.quantize`) are not all values the
+        ECU holds ("" when they are): the value told to the optimizer would then differ from the value held by up
+        to half a step (bac definition from-a2l writes definitions on the ECU's grid)."""
+        if self.where.is_float:
+            return ""
+        off = [f"{n} {v:g}" for n, v in (("lower", self.lower), ("upper", self.upper))
+               if abs((v - self.offset) / self.factor - round((v - self.offset) / self.factor)) > 1e-6]  # fmt: skip
+        steps = resolution / abs(self.factor)
+        if not off and abs(steps - round(steps)) <= 1e-6 and round(steps) >= 1:
+            return ""
+        why = f"{', '.join(off)} not on it" if off else f"resolution {resolution:g} no multiple of {abs(self.factor):g}"
+        return (
+            f"parameter '{self.name}': the agent's grid is not the ECU's (p = {self.factor:g} x + {self.offset:g}; "
+            f"{why}): a value told to the optimizer may differ from the value the ECU holds by up to half a step"
+        )
+
     @property
     def address(self) -> int:
         return self.where.address
