@@ -570,9 +570,9 @@ def run_node(
         elif node is not None and executor is not None and (not rclpy_ok() or stop.requested()):
             # a running node that failed after the stop was asked for (often the context shut down under a
             # callback): not an interrupted start; logged as what it is, the stop still clean unless it set a code
-            exc = sys.exc_info()[1]
-            if "context is not valid" in str(exc):  # rclpy shut its context down under a callback: the stop itself
-                first = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
+            err = sys.exc_info()[1]
+            if "context is not valid" in str(err):  # rclpy shut its context down under a callback: the stop itself
+                first = str(err).strip().splitlines()[0] if str(err).strip() else type(err).__name__
                 node.get_logger().info(f"the context was shut down under a callback while stopping ({first})")
             else:
                 node.get_logger().error(f"an error after the stop was asked for:\n{msg}")
