@@ -87,9 +87,9 @@ def test_rescoring_reproduces_every_live_j(campaign: Path) -> None:
         assert b.j == pytest.approx(a.score.rms_accel_z, rel=1e-12) and b.j < a.j
 
 
-def test_replay_into_the_live_chain_gives_the_same_j(campaign: Path, ros_env: dict[str, str], tmp_path: Path) -> None:
-    out = tmp_path / "replay.json"
-    cmd = [sys.executable, "-m", "bac_bringup.cli", "replay", str(campaign), "--rate", "10", "--output", str(out)]
+def replays_to_the_recorded_j(camp: Path, ros_env: dict[str, str], out: Path, *extra: str) -> str:
+    """``bac replay`` of ``camp`` at 10x: every run valid with its recorded J to 1e-9. Returns the replay's output."""
+    cmd = [sys.executable, "-m", "bac_bringup.cli", "replay", str(camp), "--rate", "10", "--output", str(out), *extra]
     proc = subprocess.run(cmd, env=ros_env, capture_output=True, text=True, timeout=300, check=False)
     assert proc.returncode == 0, proc.stdout[-4000:] + proc.stderr[-4000:]
     runs = [r for r in json.loads(out.read_text())["runs"] if r["recorded_j"] is not None]
@@ -97,6 +97,11 @@ def test_replay_into_the_live_chain_gives_the_same_j(campaign: Path, ros_env: di
     for r in runs:
         assert r["valid"], f"{r['reason']!r} in {r}\n{proc.stderr[-6000:]}"
         assert abs(r["replayed_j"] - r["recorded_j"]) <= 1e-9, r
+    return proc.stdout + proc.stderr
+
+
+def test_replay_into_the_live_chain_gives_the_same_j(campaign: Path, ros_env: dict[str, str], tmp_path: Path) -> None:
+    replays_to_the_recorded_j(campaign, ros_env, tmp_path / "replay.json")
 
 
 def _stamp_scored_mid_run(bag: Path) -> float:
@@ -142,17 +147,8 @@ def test_replay_plays_on_past_a_score_stamped_before_the_runs_last_samples(
     shutil.copytree(campaign, camp, ignore=shutil.ignore_patterns("logs", "export", "report*"))
     moved = [_stamp_scored_mid_run(b) for b in sorted((camp / "bags").iterdir())]
     assert all(m > 1.0 for m in moved), moved  # each SCORED now sits seconds before its run's last samples
-    out = tmp_path / "replay.json"
-    cmd = [sys.executable, "-m", "bac_bringup.cli", "replay", str(camp), "--rate", "10", "--output", str(out),
-           "-p", "bag_player.hold_for_score_s:=15"]  # fmt: skip
-    proc = subprocess.run(cmd, env=ros_env, capture_output=True, text=True, timeout=300, check=False)
-    assert proc.returncode == 0, proc.stdout[-4000:] + proc.stderr[-4000:]
-    runs = [r for r in json.loads(out.read_text())["runs"] if r["recorded_j"] is not None]
-    assert len(runs) == BUDGET
-    for r in runs:
-        assert r["valid"], f"{r['reason']!r} in {r}\n{proc.stderr[-6000:]}"
-        assert abs(r["replayed_j"] - r["recorded_j"]) <= 1e-9, r
-    assert "playing on" not in proc.stdout + proc.stderr  # no hold timed out
+    text = replays_to_the_recorded_j(camp, ros_env, tmp_path / "replay.json", "-p", "bag_player.hold_for_score_s:=15")
+    assert "playing on" not in text  # no hold timed out
 
 
 def test_the_recommendation_is_the_optimum_and_no_worse_than_the_best_initial_trial(campaign: Path) -> None:
