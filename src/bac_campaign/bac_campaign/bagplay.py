@@ -25,6 +25,8 @@ from bac_agent.journal import JournalError
 from bac_campaign.launches import LAUNCH_INDEX_NAME, launch_of_bags
 from bac_common.contracts import TOPIC_TRIAL
 from bac_common.errors import BacError
+from bac_measure import bagio
+from bac_measure.bagio import BagError
 from bac_measure.mdfio import ChannelMap, is_mdf
 from bac_measure.recording import bac_typestore, cdr_stamp_ns
 
@@ -199,9 +201,8 @@ def bag_topics(bag: str | Path) -> list[tuple[str, str]]:
     if is_mdf(path):
         return []
     try:
-        with AnyReader([path], default_typestore=bac_typestore()) as reader:
-            return sorted({(c.topic, c.msgtype) for c in reader.connections})
-    except Exception:  # rosbags raises several types for a bad bag; iter_bag_messages names it
+        return sorted((topic, typ) for topic, (typ, _) in bagio.bag_topics(path).items())
+    except BagError:  # iter_bag_messages names it
         return []
 
 
