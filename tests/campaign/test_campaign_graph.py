@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import json
 import math
+import shutil
 import subprocess
 import sys
 from pathlib import Path
@@ -168,7 +169,7 @@ def test_the_recommendation_is_the_optimum_and_no_worse_than_the_best_initial_tr
     assert g_rec <= 0.05 and g_rec <= g_init + 0.01, (rec, best_initial["params"], g_rec, g_init)
 
 
-def test_the_campaign_exports_to_mdf4(campaign: Path) -> None:
+def test_the_campaign_exports_to_mdf4(campaign: Path, tmp_path: Path) -> None:
     """bac export --mf4 of the campaign: asammdf reopens every trial's raw, ingested and aligned signals with their
     units, and J and the calibration of every run as they are in the journal."""
     from asammdf import MDF
@@ -199,6 +200,16 @@ def test_the_campaign_exports_to_mdf4(campaign: Path) -> None:
             assert aligned and all(units[n] == "m/s^2" for n in aligned)
     finally:
         mdf.close()
+    # the one file rescores as the folder: every live J from the recorded imu/vehicle, and re-ingested from the raw
+    # IMU the same J as the folder's re-ingestion (the launch's data, its runs' starts, the campaign's config)
+    folder = {r.key: r for r in rescore([campaign], reingest=True).runs}
+    exported = {r.key: r for r in rescore([out], reingest=True).runs}
+    assert set(exported) == set(folder) and len(folder) >= BUDGET
+    assert all(exported[k].j == folder[k].j and exported[k].live_j == folder[k].live_j for k in folder)
+    alone = tmp_path / "c.mf4"  # mailed on, without its folder
+    shutil.copy(out, alone)
+    valid = [r for r in rescore([alone]).runs if r.live_j is not None and not math.isnan(r.live_j)]
+    assert len(valid) == BUDGET and all(abs(r.j - r.live_j) <= 1e-9 for r in valid)
 
 
 def test_the_report_is_made(campaign: Path) -> None:

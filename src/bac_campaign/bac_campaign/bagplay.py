@@ -22,6 +22,7 @@ from rosbags.highlevel import AnyReader
 from rosbags.typesys.store import Typestore
 
 from bac_agent.journal import JournalError
+from bac_campaign.exportio import is_bac_export
 from bac_campaign.launches import LAUNCH_INDEX_NAME, launch_of_bags
 from bac_common.contracts import TOPIC_TRIAL
 from bac_common.errors import BacError
@@ -57,6 +58,11 @@ def expand_bag_paths(paths: Sequence[str | Path]) -> list[Path]:
             if not trials:
                 raise BagReadError(f"campaign folder {p} holds no trial bags")
             out.extend(trials)
+        elif is_bac_export(p):
+            raise BagReadError(
+                f"{p} is a bac export (bac export's MDF4 of a whole campaign): bac replay plays recordings, not "
+                f"exports; `bac rescore {p}` scores it as its campaign folder, and the folder's bags replay"
+            )
         else:
             out.append(p)
     return out

@@ -16,7 +16,11 @@ from it, so a CANape recording of the same day lines up):
 * ``campaign.*`` (group "runs"): one sample per run at its window's start: trial, attempt, J and its parts,
   validity, and each calibration parameter of the trial (with its unit from the definition): the campaign's
   calibration history as signals;
-* the file comment (HD block): campaign id, definition, strategy, recommendation and confirmation.
+* the file comment (HD block): campaign id, definition, strategy, recommendation and confirmation;
+* what rescoring needs (:mod:`bac_campaign.exportio`): ``trial_NNNN.trial.*`` (the agent's ``bac/trial``
+  announcements: where each run starts), the raw IMU's receive times, and the campaign's files as embedded
+  attachments (journal, launch index, config/, the alignment reference): ``bac rescore CAMPAIGN.mf4`` scores
+  the file as it scores the folder, without it.
 
 Units and comments are on every channel. asammdf is imported only when exporting.
 
@@ -37,9 +41,10 @@ from xml.sax.saxutils import escape
 
 import numpy as np
 
+from bac_campaign.exportio import attach_campaign_files, trial_signals
 from bac_common.console import say
 from bac_common.errors import BacError
-from bac_measure.bagio import BagError, ImuArrays, bag_topics, read_imu, read_messages, read_odom
+from bac_measure.bagio import BagError, ImuArrays, bag_topics, read_imu, read_messages, read_odom, read_trials
 
 NS = 1_000_000_000
 ACCEL = "m/s^2"
@@ -69,6 +74,7 @@ class ExportResult:
     groups: int
     runs: int
     notes: list[str] = field(default_factory=list)
+    files: int = 0  # the campaign's files attached (journal, config, ...)
 
 
 def _num(x: Any) -> float:
@@ -126,6 +132,8 @@ def export_mf4(campaign_dir: str | Path, out: str | Path | None = None, raw: boo
             got["vehicle"] = read_imu(bag, "imu/vehicle")
         if "/vehicle/odom" in topics:
             got["odom"] = read_odom(bag, "vehicle/odom")
+        if "/bac/trial" in topics:
+            got["trials"] = read_trials(bag)
         runs: dict[tuple[int, int], _Run] = {}
         for topic, key in (("bac/run_segment", "segment"), ("bac/run_score", "score")):
             if "/" + topic not in topics:
@@ -140,6 +148,8 @@ def export_mf4(campaign_dir: str | Path, out: str | Path | None = None, raw: boo
                 t_min = int(v.stamp_ns[0]) if t_min is None else min(t_min, int(v.stamp_ns[0]))
         for r in runs.values():
             t_min = r.window_start_ns if t_min is None else min(t_min, r.window_start_ns)
+        for e in got.get("trials", []):
+            t_min = e.stamp_ns if t_min is None else min(t_min, e.stamp_ns)
         per_bag.append((bag, got))
     if t_min is None:
         raise ExportError(f"{camp}: the trial bags hold no IMU, odometry or run to export")
@@ -196,6 +206,16 @@ def export_mf4(campaign_dir: str | Path, out: str | Path | None = None, raw: boo
                 )
                 for i, a in enumerate("xyz")
             ]
+            if im.has_recv:
+                sigs.append(
+                    Signal(
+                        im.recv_ns.astype(np.int64),
+                        t,
+                        name=f"{tid_name}.raw.recv_ns",
+                        unit="ns",
+                        comment="imu/data_raw: bag (receive) time of each sample, ns since the epoch",
+                    )
+                )
             mdf.append(sigs, comment=f"{tid_name}: raw IMU (imu/data_raw)")
             groups += 1
         veh: ImuArrays | None = got.get("vehicle")
@@ -229,8 +249,16 @@ def export_mf4(campaign_dir: str | Path, out: str | Path | None = None, raw: boo
                     Signal(od.distance_m, t, name=f"{tid_name}.odom.distance", unit="m", comment="vehicle/odom pose.x"),
                     Signal(od.speed_mps, t, name=f"{tid_name}.odom.speed", unit="m/s", comment="vehicle/odom twist.x"),
                     Signal(od.speed_mps * 3.6, t, name=f"{tid_name}.odom.speed_kmh", unit="km/h", comment="speed"),
+                    Signal(od.series().position_y_m, t, name=f"{tid_name}.odom.position_y", unit="m", comment="pose.y"),
+                    Signal(od.series().position_z_m, t, name=f"{tid_name}.odom.position_z", unit="m", comment="pose.z"),
                 ],
                 comment=f"{tid_name}: odometry (vehicle/odom)",
+            )
+            groups += 1
+        if got.get("trials"):
+            mdf.append(
+                trial_signals(tid_name, got["trials"], t0),
+                comment=f"{tid_name}: the agent's announcements (bac/trial): where each run starts",
             )
             groups += 1
         for (tid, att), r in sorted(got["runs"].items()):
@@ -345,12 +373,13 @@ def export_mf4(campaign_dir: str | Path, out: str | Path | None = None, raw: boo
         mdf.append(sigs, comment="runs: J and the calibration of every run, at its window's start")
         groups += 1
 
+    attached = attach_campaign_files(mdf, camp)
     path = Path(out) if out is not None else camp / "export" / f"{camp.name}.mf4"
     path.parent.mkdir(parents=True, exist_ok=True)
     mdf.save(path, overwrite=True)
     channels = sum(len(g.channels) - 1 for g in mdf.groups)
     mdf.close()
-    return ExportResult(path, channels, groups, len(summary), notes)
+    return ExportResult(path, channels, groups, len(summary), notes, attached)
 
 
 def main(argv: Sequence[str] | None = None) -> int:
@@ -369,7 +398,10 @@ def main(argv: Sequence[str] | None = None) -> int:
         return 2
     for n in res.notes:
         say(f"note: {n}")
-    say(f"{res.path}: {res.groups} channel groups, {res.channels} channels, {res.runs} runs")
+    say(
+        f"{res.path}: {res.groups} channel groups, {res.channels} channels, {res.runs} runs, {res.files} campaign "
+        f"files attached (bac rescore {res.path} scores it as the folder)"
+    )
     return 0
 
 

@@ -23,6 +23,8 @@ runs go through the same pure cores as the live nodes (ingestion,
   names it), rebuilt from its data under the configuration in use; without
   that file, or when that run is invalid now, the first valid run in the live
   order.
+* A **bac export** (``bac export CAMPAIGN``'s MDF4, which carries the campaign's trial announcements and files:
+  :mod:`bac_campaign.exportio`): scored as the campaign folder it came from, to the same J.
 * **Any bag** with sensor_msgs/Imu (rosbag2 mcap/sqlite3, ROS 1) or **MDF file**
   (MDF4 ``.mf4``, MDF 3 ``.mdf``/``.dat`` from INCA, CANape, a data logger; the
   channels by ``--channel-map``/``--channel``, else guessed from units and names,
@@ -39,6 +41,7 @@ the new recommendation.
     bac rescore CAMPAIGN_DIR [--params-file F ...] [-p node.param=value ...] [--reingest] [--refit] [--json out.json]
     bac rescore any.bag --window whole [--imu-topic /imu/data] [-p imu_ingest.output_rate_hz=50]
     bac rescore drive.mf4 [--channel-map imu_channels.yaml] [--channel speed=VehSpd] [--window whole]
+    bac rescore CAMPAIGN.mf4 [--params-file F ...] [-p ...] [--reingest] [--refit]   # a bac export, as its folder
 """
 
 from __future__ import annotations
@@ -58,6 +61,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from bac_agent.journal import JOURNAL_NAME, journaled_engine_options, read_journal
+from bac_campaign.exportio import ExportedBag, is_bac_export, unpacked_export
 from bac_campaign.launches import launch_of_bags
 from bac_common.errors import BacError
 from bac_imu.ingest import IngestConfig, ingest_all
@@ -381,19 +385,29 @@ def _journal_launches(campaign_dir: Path | None) -> tuple[dict[RunKey, tuple[int
 
 
 def campaign_launches(
-    campaign_dir: Path, imu_topic: str | None, odom_topic: str | None, notes: list[str]
+    campaign_dir: Path,
+    imu_topic: str | None,
+    odom_topic: str | None,
+    notes: list[str],
+    exported: Sequence[ExportedBag] | None = None,
 ) -> list[_Recording]:
     """The campaign's bags grouped by the launch of the graph that recorded them, each launch merged into one
     recording. A resumed campaign holds several launches whose sim times overlap: a run is cut from its own
     launch's data only. The launch of a bag is the recorder's (``launches.jsonl``); for bags recorded
-    before that index existed, the launch of the agent that announced its runs (the journal)."""
-    bags = sorted(campaign_bags(campaign_dir), key=_bag_order)
+    before that index existed, the launch of the agent that announced its runs (the journal). ``exported``: the
+    bags as read back from a bac export (``campaign_dir`` is then the export's unpacked files)."""
+    if exported is not None:
+        datas = [_BagData(Path(b.name), b.imu_vehicle, b.imu_raw, b.odom, b.trials, {}) for b in exported]
+        if not datas:
+            raise RescoreError("the export holds no trial bags (trial_NNNN.* channels)")
+    else:
+        datas = [read_bag(bag, imu_topic, odom_topic) for bag in campaign_bags(campaign_dir)]
     index = launch_of_bags(campaign_dir)
     runs, trial_launches = _journal_launches(campaign_dir)
     groups: dict[tuple[str, str], list[_BagData]] = {}
     from_journal: list[str] = []
-    for bag in bags:
-        data = read_bag(bag, imu_topic, odom_topic)
+    for data in sorted(datas, key=lambda d: _bag_order(d.path)):
+        bag = data.path
         if bag.name in index:
             key = ("recorder", index[bag.name][1])
         else:
@@ -466,6 +480,42 @@ def rescore(
     if window not in ("run", "whole"):
         raise RescoreError(f"window must be 'run' or 'whole', got {window!r}")
     ps = [Path(p) for p in paths]
+    export = exported_campaign(ps)
+    if export is None:
+        return _rescore(ps, None, files, overrides, reingest, window, imu_topic, odom_topic, channels)
+    if channels is not None or imu_topic is not None or odom_topic is not None:
+        raise RescoreError(
+            f"{export} is a bac export: its channels are known, --channel-map / --channel / --imu-topic / "
+            "--odom-topic do not apply"
+        )
+    with unpacked_export(export) as (folder, bags):
+        result = _rescore(ps, (folder, bags), files, overrides, reingest, window, None, None, None)
+        result.files = [
+            Path(f"{export}:{f.relative_to(folder)}") if f.is_relative_to(folder) else f for f in result.files
+        ]
+    return result
+
+
+def exported_campaign(paths: Sequence[Path]) -> Path | None:
+    """The one file given when it is a bac export (``bac export``'s MDF4), scored as its campaign folder."""
+    if len(paths) == 1 and paths[0].is_file() and is_bac_export(paths[0]):
+        return paths[0]
+    if len(paths) > 1 and any(p.is_file() and is_bac_export(p) for p in paths):
+        raise RescoreError("a bac export is a whole campaign: rescore it alone (one file), not with other recordings")
+    return None
+
+
+def _rescore(
+    ps: list[Path],
+    exported: tuple[Path, list[ExportedBag]] | None,
+    files: Sequence[str | Path] | None,
+    overrides: Mapping[str, Mapping[str, Any]] | None,
+    reingest: bool,
+    window: str,
+    imu_topic: str | None,
+    odom_topic: str | None,
+    channels: ChannelMap | None,
+) -> RescoreResult:
     for p in ps:
         if not p.exists():
             raise RescoreError(f"no such campaign folder or bag: {p}")
@@ -476,11 +526,16 @@ def rescore(
                 "without it?)"
             )
     campaign_dir = ps[0] if len(ps) == 1 and (ps[0] / "bags").is_dir() else None
+    if exported is not None:
+        campaign_dir = exported[0]
     if window == "whole" and campaign_dir is not None:
         raise RescoreError(
-            f"--window whole scores one recording as one run; {campaign_dir} is a campaign, whose runs are cut by "
-            f"its trials: rescore it without --window, or give one trial's bag ({campaign_dir / 'bags'}/trial_NNNN) "
+            f"--window whole scores one recording as one run; {ps[0]} is a campaign, whose runs are cut by "
+            f"its trials: rescore it without --window, or give one trial's bag ({ps[0] / 'bags'}/trial_NNNN) "
             "with --window whole"
+            if exported is None
+            else f"--window whole scores one recording as one run; {ps[0]} is a bac export of a whole campaign, "
+            "whose runs are cut by its trials: rescore it without --window"
         )
     files = [Path(f) for f in files] if files else default_params_files(campaign_dir)
     ov = {k: dict(v) for k, v in (overrides or {}).items()}
@@ -498,7 +553,7 @@ def rescore(
     seg_cfg = segment_config(files, ov.get(NODE_RUN_SEGMENTER))
     kpi_cfg = kpi_config(files, ov.get(NODE_KPI_SCORER))
     if campaign_dir is not None:
-        recs = campaign_launches(campaign_dir, imu_topic, odom_topic, notes)
+        recs = campaign_launches(campaign_dir, imu_topic, odom_topic, notes, exported[1] if exported else None)
     else:
         recs = [read_recording(ps, imu_topic, odom_topic, channels, notes)]
     if not any(r.imu_vehicle is not None or r.imu_raw is not None for r in recs):
@@ -860,12 +915,17 @@ def main(argv: Sequence[str] | None = None, profile_params: Callable[[str], list
             return 2
         overrides.setdefault(node, {})[param] = value
     files = list(args.params_file)
-    if not files and profile_params is not None:
-        first = Path(args.paths[0])
-        is_campaign = len(args.paths) == 1 and (first / "bags").is_dir()
-        if not (is_campaign and default_params_files(first)):
-            files = profile_params("sim" if is_campaign else "car")
     try:
+        export = exported_campaign([Path(p) for p in args.paths])
+        if not files and profile_params is not None:
+            first = Path(args.paths[0])
+            is_campaign = len(args.paths) == 1 and (first / "bags").is_dir()
+            if export is not None:
+                with unpacked_export(export) as (folder, _):
+                    if not default_params_files(folder):
+                        files = profile_params("sim")
+            elif not (is_campaign and default_params_files(first)):
+                files = profile_params("sim" if is_campaign else "car")
         result = rescore(
             args.paths,
             files=files or None,
@@ -876,9 +936,11 @@ def main(argv: Sequence[str] | None = None, profile_params: Callable[[str], list
             odom_topic=args.odom_topic,
             channels=ChannelMap.load(args.channel_map, args.channel),
         )
-        if args.refit:
-            campaign = Path(args.paths[0])
-            result.recommendation = refit(campaign, result.runs)
+        if args.refit and export is not None:
+            with unpacked_export(export) as (folder, _):
+                result.recommendation = refit(folder, result.runs)
+        elif args.refit:
+            result.recommendation = refit(Path(args.paths[0]), result.runs)
     except BacError as exc:
         sys.stderr.write(f"bac rescore: {exc}\n")
         return 2

@@ -236,7 +236,7 @@ def asammdf() -> Any:
     return module
 
 
-def _open(path: Path) -> Any:
+def open_mdf(path: Path) -> Any:
     MDF = asammdf().MDF
 
     if not path.exists():
@@ -293,7 +293,8 @@ def _drop_half_built(exc: BaseException) -> None:
             sys.unraisablehook = previous
 
 
-def _start_ns(mdf: Any) -> int:
+def mdf_start_ns(mdf: Any) -> int:
+    """An open MDF file's start time (its header's, UTC when it names no zone) in ns since the epoch."""
     st: datetime = mdf.header.start_time
     if st.tzinfo is None:
         st = st.replace(tzinfo=UTC)
@@ -435,7 +436,7 @@ def read_mdf(
 ) -> MdfRecording:
     """The IMU (and the odometry, when a speed or distance channel is mapped or found) of an MDF file."""
     p = Path(path)
-    mdf = _open(p)
+    mdf = open_mdf(p)
     try:
         channels = list_channels(mdf)
         notes: list[str] = []
@@ -466,7 +467,7 @@ def read_mdf(
                 f"the channel map lacks {', '.join(missing)}: bac needs the three accelerometer and the three gyro "
                 f"axes; {p} has:\n{_channel_table(channels)}"
             )
-        start = _start_ns(mdf)
+        start = mdf_start_ns(mdf)
         sigs = {r: _get(mdf, r, ref, channels, p) for r, ref in mapping.roles.items()}
         base_sig = sigs["accel_z"][0]
         t_base = np.asarray(base_sig.timestamps, dtype=np.float64)

@@ -1,0 +1,270 @@
+"""The layout of ``bac export``'s MDF4 file, and reading one back: ``bac rescore CAMPAIGN.mf4`` scores an exported
+campaign as it scores the campaign folder.
+
+An export holds, besides the channels a calibration engineer looks at (:mod:`bac_campaign.export`), what rescoring
+needs, so the one file can travel (mailed to a colleague, archived beside the CANape measurements) and be rescored
+without the folder it came from:
+
+* per trial bag (``trial_0003``, ``trial_0003.r1`` for a resumed trial): ``<bag>.raw.*`` (the IMU as sent, with its
+  receive times ``recv_ns``), ``<bag>.vehicle.*`` (what the live ingestion made of it), ``<bag>.odom.*`` (distance,
+  speed, the pose's y and z) and ``<bag>.trial.*``: the agent's ``bac/trial`` announcements recorded in the bag
+  (state, trial, attempt, campaign id, reason, receive time) at their stamps, which say where each run starts;
+* the campaign's small files as embedded attachments (``journal.jsonl``, ``launches.jsonl``, ``config/*``,
+  ``reference.npz``, ``recommendation.json``), each named in its comment (``bac campaign file: config/01_sim.yaml``).
+
+Times are seconds from the file's start time (the campaign's first stamp, whole microseconds), stored as float64:
+a stamp of a day-long campaign comes back to the nanosecond.
+
+No rclpy; asammdf is imported only when a file is read or written.
+"""
+
+from __future__ import annotations
+
+import re
+from collections.abc import Iterator
+from contextlib import contextmanager
+from dataclasses import dataclass, field
+from pathlib import Path
+from tempfile import TemporaryDirectory
+from typing import Any
+
+import numpy as np
+
+from bac_common.errors import BacError
+from bac_measure.bagio import ImuArrays, OdomArrays, TrialEvent
+from bac_measure.mdfio import asammdf, is_mdf, mdf_start_ns, open_mdf
+
+ATTACHMENT_MARK = "bac campaign file: "  # an attachment's comment: the mark, then its path in the campaign folder
+CAMPAIGN_FILES = ("journal.jsonl", "launches.jsonl", "recommendation.json", "reference.npz")  # and config/*
+_FILE_NAME = re.compile(r"(?:config/)?[A-Za-z0-9_][A-Za-z0-9_.-]*")  # what an attachment may unpack to
+_CHANNEL = re.compile(r"(trial_\d+(?:\.r\d+)?)\.(raw|vehicle|odom|trial)\.(\w+)")
+IMU_AXES = ("accel_x", "accel_y", "accel_z", "gyro_x", "gyro_y", "gyro_z")
+TRIAL_CHANNELS = ("state", "trial_id", "attempt", "recv_ns", "campaign_id", "reason")
+
+
+class ExportReadError(BacError, ValueError):
+    """A file that claims to be a bac export but cannot be read as one."""
+
+
+@dataclass
+class ExportedBag:
+    """What one trial bag of the campaign held, as read back from the export."""
+
+    name: str  # the bag's folder name: trial_0003, trial_0003.r1
+    imu_vehicle: ImuArrays | None = None
+    imu_raw: ImuArrays | None = None
+    odom: OdomArrays | None = None
+    trials: list[TrialEvent] = field(default_factory=list)
+
+
+def campaign_files(campaign_dir: Path) -> list[tuple[str, bytes]]:
+    """The campaign's small files an export carries: (path in the folder, content)."""
+    out = [(name, (campaign_dir / name).read_bytes()) for name in CAMPAIGN_FILES if (campaign_dir / name).is_file()]
+    config = campaign_dir / "config"
+    if config.is_dir():
+        out += [(f"config/{p.name}", p.read_bytes()) for p in sorted(config.iterdir()) if p.is_file()]
+    return [(name, data) for name, data in out if _FILE_NAME.fullmatch(name)]
+
+
+def attach_campaign_files(mdf: Any, campaign_dir: Path) -> int:
+    """Embed the campaign's files in an MDF4 being written; the number attached."""
+    files = campaign_files(campaign_dir)
+    for name, data in files:
+        mdf.attach(data, file_name=name.replace("/", "__"), comment=ATTACHMENT_MARK + name)
+    return len(files)
+
+
+def _attachment_name(att: Any) -> str | None:
+    comment = str(getattr(att, "comment", "") or "")
+    return comment[len(ATTACHMENT_MARK) :].strip() if comment.startswith(ATTACHMENT_MARK) else None
+
+
+def _bag_channels(mdf: Any) -> dict[str, dict[str, dict[str, tuple[int, int]]]]:
+    """bag -> stream (raw, vehicle, odom, trial) -> channel -> (group, index) of the export's per-bag channels."""
+    out: dict[str, dict[str, dict[str, tuple[int, int]]]] = {}
+    for gi, grp in enumerate(mdf.groups):
+        for ci, ch in enumerate(grp.channels):
+            m = _CHANNEL.fullmatch(str(ch.name))
+            if m:
+                out.setdefault(m.group(1), {}).setdefault(m.group(2), {})[m.group(3)] = (gi, ci)
+    return out
+
+
+def is_bac_export(path: str | Path) -> bool:
+    """True for an MDF file ``bac export`` wrote (its channels ``trial_NNNN.raw.*`` ... or its attachments)."""
+    p = Path(path)
+    if not p.is_file() or not is_mdf(p):
+        return False
+    try:
+        mdf = _open(p)
+    except BacError:
+        return False  # unreadable: the MDF reader says why
+    try:
+        return any(_attachment_name(a) for a in mdf.attachments) or bool(_bag_channels(mdf))
+    finally:
+        mdf.close()
+
+
+def _open(p: Path) -> Any:
+    return open_mdf(p)  # a file asammdf refuses: MdfError with what to do
+
+
+def _samples(mdf: Any, where: tuple[int, int]) -> tuple[np.ndarray, np.ndarray]:
+    gi, ci = where
+    sig = mdf.get(group=gi, index=ci, raw=False)
+    return np.asarray(sig.samples), np.asarray(sig.timestamps, dtype=np.float64)
+
+
+def read_export(path: str | Path, folder: str | Path) -> list[ExportedBag]:
+    """Unpack a bac export: its campaign files into ``folder`` (a campaign folder without ``bags/``), its trial bags
+    returned in memory, in the order of their names."""
+    p, dest = Path(path), Path(folder)
+    mdf = _open(p)
+    try:
+        names = [(i, _attachment_name(a)) for i, a in enumerate(mdf.attachments)]
+        files = [(i, n) for i, n in names if n]
+        bags = _bag_channels(mdf)
+        if not any(n == "journal.jsonl" for _, n in files):
+            raise ExportReadError(
+                f"{p} is a bac export without the campaign's journal (written before 2026-11-29, when exports began "
+                "to carry the campaign's files): rescore the campaign folder it came from, or export it again"
+            )
+        for i, name in files:  # every name checked before anything is written
+            if not (name in CAMPAIGN_FILES or (name.startswith("config/") and _FILE_NAME.fullmatch(name))):
+                raise ExportReadError(f"{p}: attachment {i} names {name!r}, not a campaign file: refused")
+        for i, name in files:
+            data, _ = mdf.extract_attachment(i)[:2]
+            target = dest / name
+            target.parent.mkdir(parents=True, exist_ok=True)
+            target.write_bytes(bytes(data))
+        start = mdf_start_ns(mdf)
+        out = []
+        for bag in sorted(bags, key=_bag_key):
+            streams = bags[bag]
+            try:
+                out.append(_read_bag(mdf, bag, streams, start))
+            except (KeyError, ValueError) as exc:
+                raise ExportReadError(f"{p}: the channels of {bag} are not an export's ({exc})") from exc
+        return out
+    finally:
+        mdf.close()
+
+
+def _bag_key(name: str) -> tuple[int, int]:
+    m = re.fullmatch(r"trial_(\d+)(?:\.r(\d+))?", name)
+    return (int(m.group(1)), int(m.group(2) or 0)) if m else (1 << 62, 0)
+
+
+def _stamps(start: int, t: np.ndarray) -> np.ndarray:
+    return start + np.round(t * 1e9).astype(np.int64)
+
+
+def _read_bag(mdf: Any, bag: str, streams: dict[str, dict[str, tuple[int, int]]], start: int) -> ExportedBag:
+    out = ExportedBag(bag)
+    if "raw" in streams:
+        ch = streams["raw"]
+        cols, t = zip(*(_samples(mdf, ch[a]) for a in IMU_AXES), strict=True)
+        stamp = _stamps(start, t[0])
+        recv = _samples(mdf, ch["recv_ns"])[0].astype(np.int64) if "recv_ns" in ch else stamp.copy()
+        data = np.column_stack([np.asarray(c, dtype=np.float64) for c in cols])
+        out.imu_raw = ImuArrays(
+            "imu/data_raw", "", stamp, recv, data[:, :3].copy(), data[:, 3:].copy(), has_recv="recv_ns" in ch
+        )
+    if "vehicle" in streams:
+        az, t = _samples(mdf, streams["vehicle"]["accel_z"])
+        q, _ = _samples(mdf, streams["vehicle"]["pitch_rate"])
+        accel = np.zeros((az.size, 3))
+        gyro = np.zeros((az.size, 3))
+        accel[:, 2] = az
+        gyro[:, 1] = q
+        stamp = _stamps(start, t)
+        out.imu_vehicle = ImuArrays("imu/vehicle", "", stamp, stamp.copy(), accel, gyro, has_recv=False)
+    if "odom" in streams:
+        ch = streams["odom"]
+        dist, t = _samples(mdf, ch["distance"])
+        speed, _ = _samples(mdf, ch["speed"])
+        y = _samples(mdf, ch["position_y"])[0] if "position_y" in ch else None
+        z = _samples(mdf, ch["position_z"])[0] if "position_z" in ch else None
+        stamp = _stamps(start, t)
+        out.odom = OdomArrays(
+            "vehicle/odom",
+            "",
+            stamp,
+            stamp.copy(),
+            np.asarray(dist, dtype=np.float64),
+            np.asarray(speed, dtype=np.float64),
+            None if y is None else np.asarray(y, dtype=np.float64),
+            None if z is None else np.asarray(z, dtype=np.float64),
+        )
+    if "trial" in streams:
+        ch = streams["trial"]
+        state, t = _samples(mdf, ch["state"])
+        cols = {k: _samples(mdf, ch[k])[0] for k in TRIAL_CHANNELS if k != "state"}
+        stamp = _stamps(start, t)
+        out.trials = [
+            TrialEvent(
+                recv_ns=int(cols["recv_ns"][i]),
+                stamp_ns=int(stamp[i]),
+                campaign_id=_text(cols["campaign_id"][i]),
+                trial_id=int(cols["trial_id"][i]),
+                attempt=int(cols["attempt"][i]),
+                state=int(state[i]),
+                reason=_text(cols["reason"][i]),
+            )
+            for i in range(stamp.size)
+        ]
+    return out
+
+
+def _text(v: Any) -> str:
+    return v.decode("utf-8", "replace").rstrip("\x00") if isinstance(v, bytes | bytearray) else str(v)
+
+
+@contextmanager
+def unpacked_export(path: str | Path) -> Iterator[tuple[Path, list[ExportedBag]]]:
+    """A bac export unpacked into a temporary campaign folder (removed on exit), with its trial bags."""
+    with TemporaryDirectory(prefix="bac-export-") as tmp:
+        yield Path(tmp), read_export(path, tmp)
+
+
+def trial_signals(bag: str, events: list[TrialEvent], t0: int) -> list[Any]:
+    """The ``<bag>.trial.*`` channels of an export (asammdf Signals): the bag's bac/trial announcements."""
+    Signal = asammdf().Signal
+    t = (np.array([e.stamp_ns for e in events], dtype=np.int64) - t0) / 1e9
+
+    def text(values: list[str]) -> np.ndarray:
+        raw = [v.encode("utf-8") for v in values]
+        return np.array(raw, dtype=f"S{max(1, *(len(r) for r in raw))}")
+
+    return [
+        Signal(
+            np.array([e.state for e in events], dtype=np.uint8),
+            t,
+            name=f"{bag}.trial.state",
+            comment="bac/trial state (3: READY_TO_DRIVE, the run's start)",
+        ),
+        Signal(np.array([e.trial_id for e in events], dtype=np.uint32), t, name=f"{bag}.trial.trial_id"),
+        Signal(np.array([e.attempt for e in events], dtype=np.uint32), t, name=f"{bag}.trial.attempt"),
+        Signal(
+            np.array([e.recv_ns for e in events], dtype=np.int64),
+            t,
+            name=f"{bag}.trial.recv_ns",
+            unit="ns",
+            comment="bag (receive) time, ns since the epoch",
+        ),
+        Signal(text([e.campaign_id for e in events]), t, name=f"{bag}.trial.campaign_id", encoding="utf-8"),
+        Signal(text([e.reason for e in events]), t, name=f"{bag}.trial.reason", encoding="utf-8"),
+    ]
+
+
+__all__ = [
+    "ATTACHMENT_MARK",
+    "ExportReadError",
+    "ExportedBag",
+    "attach_campaign_files",
+    "campaign_files",
+    "is_bac_export",
+    "read_export",
+    "trial_signals",
+    "unpacked_export",
+]
