@@ -210,6 +210,17 @@ def test_the_campaign_exports_to_mdf4(campaign: Path, tmp_path: Path) -> None:
     shutil.copy(out, alone)
     valid = [r for r in rescore([alone]).runs if r.live_j is not None and not math.isnan(r.live_j)]
     assert len(valid) == BUDGET and all(abs(r.j - r.live_j) <= 1e-9 for r in valid)
+    # and its report is the folder's: the same summary, the same recorded signals of the best and worst runs
+    from bac_campaign.report import make_report
+
+    mine = make_report(alone, truth_name="bump_c1")
+    theirs = make_report(campaign, out=tmp_path / "folder_report", truth_name="bump_c1")
+    assert Path(mine["html"]).parent == tmp_path / "c.report" and mine["notes"] == [] == theirs["notes"]
+    assert mine["summary"] == theirs["summary"]
+    assert (tmp_path / "c.report" / "signals.png").read_bytes() == (
+        tmp_path / "folder_report" / "signals.png"
+    ).read_bytes()
+    assert str(alone) in Path(mine["html"]).read_text()
 
 
 def test_the_report_is_made(campaign: Path) -> None:

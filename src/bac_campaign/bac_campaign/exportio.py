@@ -115,9 +115,9 @@ def _samples(mdf: Any, where: tuple[int, int]) -> tuple[np.ndarray, np.ndarray]:
     return np.asarray(sig.samples), np.asarray(sig.timestamps, dtype=np.float64)
 
 
-def read_export(path: str | Path, folder: str | Path) -> list[ExportedBag]:
+def read_export(path: str | Path, folder: str | Path, bags_too: bool = True) -> list[ExportedBag]:
     """Unpack a bac export: its campaign files into ``folder`` (a campaign folder without ``bags/``), its trial bags
-    returned in memory, in the order of their names."""
+    returned in memory, in the order of their names (none with ``bags_too`` false)."""
     p, dest = Path(path), Path(folder)
     mdf = _open(p)
     try:
@@ -138,8 +138,8 @@ def read_export(path: str | Path, folder: str | Path) -> list[ExportedBag]:
             target.parent.mkdir(parents=True, exist_ok=True)
             target.write_bytes(bytes(data))
         start = mdf_start_ns(mdf)
-        out = []
-        for bag in sorted(bags, key=_bag_key):
+        out: list[ExportedBag] = []
+        for bag in sorted(bags, key=_bag_key) if bags_too else []:
             streams = bags[bag]
             try:
                 out.append(_read_bag(mdf, bag, streams, start))
@@ -221,10 +221,50 @@ def _text(v: Any) -> str:
 
 
 @contextmanager
-def unpacked_export(path: str | Path) -> Iterator[tuple[Path, list[ExportedBag]]]:
+def unpacked_export(path: str | Path, bags_too: bool = True) -> Iterator[tuple[Path, list[ExportedBag]]]:
     """A bac export unpacked into a temporary campaign folder (removed on exit), with its trial bags."""
     with TemporaryDirectory(prefix="bac-export-") as tmp:
-        yield Path(tmp), read_export(path, tmp)
+        yield Path(tmp), read_export(path, tmp, bags_too)
+
+
+@dataclass
+class ExportedSegment:
+    """A run's aligned window as the export holds it (``trial_NNNN.aN.*``): what ``bac report`` plots."""
+
+    trial_id: int
+    attempt: int
+    valid: bool
+    sample_rate_hz: float
+    accel_z: np.ndarray
+    pitch_rate: np.ndarray
+
+
+def read_segments(path: str | Path) -> dict[int, ExportedSegment]:
+    """The last valid aligned window of each trial in a bac export (by ``campaign.valid``), as the report takes
+    them from the bags."""
+    p = Path(path)
+    mdf = _open(p)
+    try:
+        names = {str(ch.name): (gi, ci) for gi, g in enumerate(mdf.groups) for ci, ch in enumerate(g.channels)}
+        if "campaign.trial_id" not in names:
+            return {}
+        trial = _samples(mdf, names["campaign.trial_id"])[0].astype(int)
+        attempt = _samples(mdf, names["campaign.attempt"])[0].astype(int)
+        valid = _samples(mdf, names["campaign.valid"])[0].astype(bool)
+        out: dict[int, ExportedSegment] = {}
+        for tid, att, ok in zip(trial, attempt, valid, strict=True):
+            pre = f"trial_{int(tid):04d}.a{int(att)}"
+            if not ok or f"{pre}.accel_z_aligned" not in names:
+                continue
+            az, t = _samples(mdf, names[f"{pre}.accel_z_aligned"])
+            q, _ = _samples(mdf, names[f"{pre}.pitch_rate_aligned"])
+            if t.size < 2 or not t[-1] > t[0]:
+                continue
+            rate = (t.size - 1) / float(t[-1] - t[0])
+            out[int(tid)] = ExportedSegment(int(tid), int(att), True, rate, az.astype(float), q.astype(float))
+        return out
+    finally:
+        mdf.close()
 
 
 def trial_signals(bag: str, events: list[TrialEvent], t0: int) -> list[Any]:
@@ -261,10 +301,12 @@ __all__ = [
     "ATTACHMENT_MARK",
     "ExportReadError",
     "ExportedBag",
+    "ExportedSegment",
     "attach_campaign_files",
     "campaign_files",
     "is_bac_export",
     "read_export",
+    "read_segments",
     "trial_signals",
     "unpacked_export",
 ]

@@ -36,6 +36,7 @@ import json
 import math
 import sys
 from collections.abc import Mapping, Sequence
+from contextlib import ExitStack
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -43,6 +44,7 @@ from typing import Any
 import numpy as np
 
 from bac_agent.journal import JOURNAL_NAME, journaled_engine_options, read_journal
+from bac_campaign.exportio import is_bac_export, read_segments, unpacked_export
 from bac_common.console import say
 from bac_common.errors import BacError
 from bac_common.paramspace import CalibrationDefinition
@@ -88,6 +90,14 @@ class Campaign:
     engine_options: dict[str, Any] = field(default_factory=lambda: journaled_engine_options({}))
     # the campaign stopped resumable because the ECU link stayed down (campaign_paused, no resume since): why
     paused: str = ""
+    # read from a bac export (its files unpacked into ``path``): the file, and its runs' aligned windows
+    export: Path | None = None
+    segments: dict[int, Any] | None = None
+
+    @property
+    def shown(self) -> Path:
+        """Where the campaign is, as the user gave it (the export, not the folder it was unpacked into)."""
+        return self.export if self.export is not None else self.path
 
     @property
     def names(self) -> tuple[str, ...]:
@@ -205,6 +215,8 @@ def recorded_segments(campaign: Campaign, notes: list[str] | None = None) -> dic
     read (no bags/, an unreadable bag)."""
     from bac_measure.bagio import BagError, read_messages
 
+    if campaign.segments is not None:  # a bac export: its aligned windows
+        return dict(campaign.segments)
     out: dict[int, Any] = {}
     bags = campaign.path / "bags"
     if not bags.is_dir():
@@ -274,7 +286,8 @@ def comparison_signals(campaign: Campaign, notes: list[str] | None = None) -> li
             m = segs.get(t.trial_id)
             if m is None:
                 notes.append(
-                    f"the {label} run (trial {t.trial_id}) has no recorded segment in the bags: its signals are "
+                    f"the {label} run (trial {t.trial_id}) has no recorded segment in the "
+                    f"{'export' if campaign.export is not None else 'bags'}: its signals are "
                     "not in signals.png"
                 )
             if m is not None:
@@ -843,7 +856,7 @@ def write_html(
         ".status{font-size:1.1em;font-weight:bold}</style></head><body>",
         f"<h1>Calibration campaign {html.escape(campaign.campaign_id)}</h1>",
         f"<p>{html.escape(campaign.definition.description or campaign.definition.name)}; folder "
-        f"<code>{html.escape(str(campaign.path))}</code></p>",
+        f"<code>{html.escape(str(campaign.shown))}</code></p>",
     ]
     if base_summ is not None:
         bo, gr = summary_rows(summ), summary_rows(base_summ)
@@ -879,19 +892,43 @@ def make_report(
 ) -> dict[str, Any]:
     """Write the campaign's report; the truth (true J, J*, J_med) is a simulated problem by name, or an object
     with the same interface (``names``, ``true_j``, ``theta_star``, ``j_star``, ``j_med``, ``gap``), e.g. a
-    reduced definition's (:func:`bac_reduce.truth.definition_truth`)."""
-    campaign = load_campaign(campaign_dir)
-    out_dir = Path(out) if out else campaign.path / "report"
+    reduced definition's (:func:`bac_reduce.truth.definition_truth`). ``campaign_dir`` (and ``baseline_dir``) may
+    be a bac export (``bac export``'s MDF4): its report goes to ``<file>.report/`` beside it unless ``out`` says."""
+    with ExitStack() as stack:
+        campaign = _open_campaign(Path(campaign_dir), stack)
+        baseline = _open_campaign(Path(baseline_dir), stack) if baseline_dir else None
+        if out:
+            out_dir = Path(out)
+        elif campaign.export is not None:
+            out_dir = campaign.export.parent / f"{campaign.export.stem}.report"
+        else:
+            out_dir = campaign.path / "report"
+        return _make_report(campaign, out_dir, truth_name, baseline, truth)
+
+
+def _open_campaign(p: Path, stack: ExitStack) -> Campaign:
+    """A campaign folder, or a bac export unpacked for as long as ``stack`` is open."""
+    if p.is_file() and is_bac_export(p):
+        folder, _ = stack.enter_context(unpacked_export(p, bags_too=False))
+        campaign = load_campaign(folder)
+        campaign.export = p
+        campaign.segments = read_segments(p)
+        return campaign
+    return load_campaign(p)
+
+
+def _make_report(
+    campaign: Campaign, out_dir: Path, truth_name: str | None, baseline: Campaign | None, truth: Any | None
+) -> dict[str, Any]:
     out_dir.mkdir(parents=True, exist_ok=True)
     if truth is None and truth_name:
         from bac_sim.problems import get_problem
 
         truth = get_problem(truth_name)
         _check_truth(campaign, truth_name, truth)
-    baseline = load_campaign(baseline_dir) if baseline_dir else None
     if baseline is not None and set(baseline.names) != set(campaign.names):
         raise ReportError(
-            f"--baseline {baseline.path} tunes {', '.join(baseline.names)}; this campaign tunes "
+            f"--baseline {baseline.shown} tunes {', '.join(baseline.names)}; this campaign tunes "
             f"{', '.join(campaign.names)}: a baseline must search the same parameters"
         )
     figures: list[Path] = []
@@ -960,10 +997,10 @@ def main(argv: Sequence[str] | None = None) -> int:
     ap = argparse.ArgumentParser(
         prog="bac report", description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
     )
-    ap.add_argument("campaign", type=Path, help="campaign folder")
+    ap.add_argument("campaign", type=Path, help="campaign folder, or its bac export (CAMPAIGN.mf4)")
     ap.add_argument("--truth", help="simulated problem for the true J (bump_c1, road_c1, road_c2)")
-    ap.add_argument("--baseline", type=Path, help="a grid-search campaign folder to compare with")
-    ap.add_argument("--out", type=Path, help="output folder (default: CAMPAIGN/report)")
+    ap.add_argument("--baseline", type=Path, help="a grid-search campaign folder (or its export) to compare with")
+    ap.add_argument("--out", type=Path, help="output folder (default: CAMPAIGN/report, CAMPAIGN.report/ for an export)")
     args = ap.parse_args(list(sys.argv[1:] if argv is None else argv))
     try:
         result = make_report(args.campaign, args.out, args.truth, args.baseline)
