@@ -181,6 +181,23 @@ def test_a_missing_or_broken_params_file_is_refused_before_anything_is_made(
 
 
 @pytest.mark.parametrize("mode", [[], ["--single-process"]], ids=["processes", "single-process"])
+def test_a_launch_whose_agent_refuses_to_start_leaves_no_configuration(
+    ros_env: dict[str, str], tmp_path: Path, mode: list[str]
+) -> None:
+    """A first launch whose bo_agent refused (here a seed out of range: a traceback before 2026-11-29) left config/
+    behind; the next launch that did start the campaign saved config.resume1/, and bac rescore / report took the
+    refused launch's config/ for the campaign's."""
+    camp = tmp_path / "camp"
+    p = launch(ros_env, "sim", *mode, "--campaign-dir", str(camp), "-p", "bo_agent.seed:=-5")
+    out, _ = p.communicate(timeout=120)
+    text = out.decode(errors="replace")
+    assert p.returncode == 2 and "not started: Invalid parameter value (-5)" in text, text
+    assert "Parameter seed out of range" in text and "Traceback" not in text, text
+    assert "config removed: this launch did not start or resume the campaign" in text, text
+    assert not (camp / "config").exists() and not list(camp.glob("config.resume*"))
+
+
+@pytest.mark.parametrize("mode", [[], ["--single-process"]], ids=["processes", "single-process"])
 def test_a_dying_node_fails_the_graph(ros_env: dict[str, str], tmp_path: Path, mode: list[str]) -> None:
     nodes = [reporter("steady", tmp_path), reporter("crasher", tmp_path, crash_after_s=1.0)]
     p = launch(ros_env, str(make_profile(tmp_path, nodes)), *mode)

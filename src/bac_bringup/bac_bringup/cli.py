@@ -106,11 +106,17 @@ def launch_main(argv: Sequence[str]) -> int:
         finally:
             if published is not None:
                 published.close()
+    saved: Path | None = None
     if profile.campaign:
-        launcher.save_launch_config(profile, Path(profile.global_params["campaign_dir"]), argv, args.single_process)
+        camp = Path(profile.global_params["campaign_dir"])
+        begun = launcher.campaign_launches_begun(camp)
+        saved = launcher.save_launch_config(profile, camp, argv, args.single_process)
         if "cockpit" in [n.name for n in profile.nodes]:
-            announce_cockpit(Path(profile.global_params["campaign_dir"]))
-    return launcher.run_graph(profile, single_process=args.single_process, log_dir=args.log_dir, timeout_s=args.timeout)
+            announce_cockpit(camp)
+    rc = launcher.run_graph(profile, single_process=args.single_process, log_dir=args.log_dir, timeout_s=args.timeout)
+    if saved is not None and "bo_agent" in [n.name for n in profile.nodes]:
+        launcher.drop_unused_config(saved, camp, begun)
+    return rc
 
 
 def _publish_cockpit(profile: Any, overrides: dict[str, dict[str, Any]]) -> tuple[list[str], Any]:

@@ -101,11 +101,13 @@ def run_nodes(
     from bac_common.errors import BacError
     from bac_common.rosnode import (
         STOP_NOTICE_S,
+        USER_PARAMETER_ERRORS,
         BacNode,
         StopSignals,
         UserParameterError,
         drain_executor,
         start_exit_watchdog,
+        start_refusal,
     )
 
     stop = threading.Event()
@@ -165,9 +167,9 @@ def run_nodes(
     except UserParameterError as exc:  # a node's -p overrides: a message to act on, as a process of its own says it
         LOG.critical("not started: %s", exc)
         code = 2
-    except BacError as exc:
-        if executor is None and ok():  # bac's own error from a constructor says what to do, as run_node says it
-            LOG.critical("not started: %s", exc)
+    except (BacError, *USER_PARAMETER_ERRORS) as exc:
+        if executor is None and ok():  # a constructor's refusal says what to do, as run_node says it
+            LOG.critical("not started: %s", start_refusal(exc))
             code = 2
         elif ok():
             LOG.exception("a node crashed: shutting down the graph")

@@ -39,7 +39,11 @@ from rcl_interfaces.msg import (
     ParameterType,
     SetParametersResult,
 )
-from rclpy.exceptions import ParameterUninitializedException
+from rclpy.exceptions import (
+    InvalidParameterTypeException,
+    InvalidParameterValueException,
+    ParameterUninitializedException,
+)
 from rclpy.executors import ExternalShutdownException, MultiThreadedExecutor
 from rclpy.node import Node
 from rclpy.parameter import Parameter
@@ -513,6 +517,21 @@ class StopSignals:
             signal.alarm(math.ceil(seconds + 0.5))
 
 
+# a parameter value the node's descriptor refuses (rclpy raises these from declare_parameter): the user's -p or
+# parameter file, to be said as a reason, not shown as a traceback (2026-11-29: -p bo_agent.seed:=-5)
+USER_PARAMETER_ERRORS = (InvalidParameterValueException, InvalidParameterTypeException)
+
+
+def start_refusal(exc: BaseException | None) -> str:
+    """Why a node's constructor refused to start, said to the user ("" for a crash, which keeps its traceback):
+    bac's own errors, and a parameter value outside the node's declared range or type."""
+    if isinstance(exc, BacError):
+        return str(exc)
+    if isinstance(exc, USER_PARAMETER_ERRORS):
+        return f"{exc} (set by a -p or a parameter file: give a value the node's range or type allows)"
+    return ""
+
+
 def run_node(
     node_cls: Callable[..., N], args: Sequence[str] | None = None, cleanup_timeout_s: float = CLEANUP_TIMEOUT_S
 ) -> int:
@@ -581,8 +600,8 @@ def run_node(
         elif node is not None:
             node.get_logger().fatal(f"node crashed:\n{msg}")
             code = 1
-        elif isinstance(sys.exc_info()[1], BacError):  # bac's own errors say what to do: no traceback
-            rclpy.logging.get_logger(log_name).fatal(f"not started: {sys.exc_info()[1]}")
+        elif start_refusal(sys.exc_info()[1]):  # bac's own errors, a value out of range: say what to do
+            rclpy.logging.get_logger(log_name).fatal(f"not started: {start_refusal(sys.exc_info()[1])}")
             code = 2
         else:
             rclpy.logging.get_logger(log_name).fatal(f"node failed to start:\n{msg}")
