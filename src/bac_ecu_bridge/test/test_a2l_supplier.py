@@ -201,3 +201,80 @@ def test_phys_unit_and_a_floats_step_size(tmp_path: Path) -> None:
     (c, f, g) = d.parameters
     assert c.unit == "km/h" and c.resolution == pytest.approx(0.01)
     assert f.resolution == 0.05 and g.resolution == 1.0  # without a STEP_SIZE: the FORMAT's decimals
+
+
+def _whole(path: Path) -> object:
+    """The module as pya2ldb reads the whole file, without bac's slimming (what it was before 2026-11-29)."""
+    from bac_ecu_bridge.xcp import a2l as a2l_mod
+
+    pya2l, model = a2l_mod._load_pya2l()
+    session = pya2l.import_a2l(str(path), in_memory=True, progress_bar=False, loglevel="ERROR", encoding="utf-8")
+    try:
+        return a2l_mod._module(session, model, path)
+    finally:
+        session.close()
+
+
+def measurement(i: int) -> str:
+    return (
+        f'/begin MEASUREMENT M{i} "m /end CHARACTERISTIC in a string" SWORD CM_LIN 1 100 -327.68 327.67\n'
+        f"  ECU_ADDRESS 0x{0x50000000 + 2 * i:X}\n  /begin IF_DATA XCP /end IF_DATA\n/end MEASUREMENT"
+    )
+
+
+SUPPLIER_BODY = "\n".join(
+    [
+        '/* a comment: /begin MEASUREMENT X "" /end MEASUREMENT */',
+        char("C1", extra='FORMAT "%6.2"\n  PHYS_UNIT "Nm"'),
+        *(measurement(i) for i in range(30)),
+        '/begin FUNCTION F1 "f" /begin DEF_CHARACTERISTIC C1 C2 /end DEF_CHARACTERISTIC /end FUNCTION',
+        '/begin GROUP G1 "g" /begin REF_CHARACTERISTIC C1 /end REF_CHARACTERISTIC /end GROUP',
+        char("C2", address="0x40000002", layout="RL_UWORD", cm="CM_LIN", lo="-10", hi="100"),
+        char("C3", address="0x40000004", extra="READ_ONLY"),
+        "// a line comment /begin CHARACTERISTIC Z",
+        char("C4", address="0x40000006", layout="RL_F32", lo="0", hi="1", extra="STEP_SIZE 0.01"),
+    ]
+)
+
+
+def test_slimming_gives_what_the_whole_file_gives_and_keeps_its_line_numbers(tmp_path: Path) -> None:
+    """A supplier's A2L of 5 MB took 23 s and 0.7 GB in pya2ldb, most of it measurements bac never reads: they
+    are left out before it parses; every characteristic, problem and XCP setting is what the whole file gives."""
+    from bac_ecu_bridge.xcp.a2l import slim_a2l
+
+    path = write(tmp_path, SUPPLIER_BODY)
+    whole = _whole(path)
+    got = read_a2l(path)
+    assert got.characteristics == whole.characteristics and set(got.characteristics) == {"C1", "C2", "C4"}
+    assert got.problems == whole.problems and "READ_ONLY" in got.problems["C3"]
+    assert (got.xcp, got.segments, got.notes) == (whole.xcp, whole.segments, whole.notes)
+    assert got.all_characteristics == {"C1", "C2", "C3", "C4"}
+    out = tmp_path / "slim"
+    out.mkdir()
+    slim = slim_a2l(path, out).read_text().splitlines()
+    text = path.read_text().splitlines()
+    assert len(slim) == len(text) and "MEASUREMENT M" not in "\n".join(slim) and "FUNCTION F1" not in "\n".join(slim)
+    for i, line in enumerate(text):  # every line kept is where it was (pya2ldb's messages name the file's lines)
+        if line.lstrip().startswith(("/begin CHARACTERISTIC", "/begin MOD_PAR", "/begin COMPU_METHOD")):
+            assert slim[i] == line, i
+
+
+def test_only_the_named_characteristics_are_read_and_the_others_still_known(tmp_path: Path) -> None:
+    path = write(tmp_path, SUPPLIER_BODY + "\n" + char("C2", address="0x40000100"))  # C2 defined twice
+    got = read_a2l(path, only=["C1", "C2"])
+    assert set(got.characteristics) == {"C1"} and "defined 2 times" in got.problems["C2"]
+    assert "C3" not in got.problems and got.all_characteristics == {"C1", "C2", "C3", "C4"}
+    d = definition_from_a2l(path, ["C4", "C1"], midpoint=True)
+    assert [p.name for p in d.parameters] == ["C4", "C1"] and d.parameters[1].unit == "Nm"
+    with pytest.raises(A2lError, match=r"no VALUE characteristic \['C9'\] \(known: C1, C2, C3, C4\)"):
+        definition_from_a2l(path, ["C1", "C9"], midpoint=True)
+
+
+def test_an_included_file_is_slimmed_and_found_where_it_was(tmp_path: Path) -> None:
+    sub = tmp_path / "parts"
+    sub.mkdir()
+    (sub / "meas.a2l").write_text("\n".join(measurement(i) for i in range(5)) + "\n" + char("C7", address="0x40000010"))
+    path = write(tmp_path, char() + '\n/include "parts/meas.a2l"', name="main.a2l")
+    got = read_a2l(path)
+    assert set(got.characteristics) == {"C1", "C7"} and got.characteristics["C7"].address == 0x40000010
+    assert got.characteristics == _whole(path).characteristics
