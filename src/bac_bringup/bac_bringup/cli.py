@@ -109,7 +109,9 @@ def launch_main(argv: Sequence[str]) -> int:
     saved: Path | None = None
     if profile.campaign:
         camp = Path(profile.global_params["campaign_dir"])
-        begun = launcher.campaign_launches_begun(camp)
+        from bac_campaign.launches import campaign_launches_begun
+
+        begun = campaign_launches_begun(camp)
         saved = launcher.save_launch_config(profile, camp, argv, args.single_process)
         if "cockpit" in [n.name for n in profile.nodes]:
             announce_cockpit(camp)

@@ -388,26 +388,13 @@ def save_launch_config(profile: Profile, campaign_dir: Path, argv: Sequence[str]
     return out
 
 
-def campaign_launches_begun(campaign_dir: Path) -> int | None:
-    """How many times the campaign's agent started or resumed it (its journal's campaign_started and
-    campaign_resumed events); 0 without a journal, None when the journal cannot be read."""
-    from bac_agent.journal import JOURNAL_NAME, JournalError, read_journal
-
-    path = campaign_dir / JOURNAL_NAME
-    if not path.exists():
-        return 0
-    try:
-        events = read_journal(path).events
-    except (JournalError, OSError):
-        return None
-    return sum(1 for e in events if e.get("event") in ("campaign_started", "campaign_resumed"))
-
-
 def drop_unused_config(saved: Path, campaign_dir: Path, begun_before: int | None) -> bool:
     """Remove the configuration saved for a launch whose agent neither started nor resumed the campaign (it
     refused: a resume with another configuration, a parameter out of range; or the launch was stopped first):
     nothing was driven with it, and a ``config/`` left by a refused first launch would be taken by ``bac rescore``
     and ``bac report`` for the configuration of the launch that did start the campaign. True when removed."""
+    from bac_campaign.launches import campaign_launches_begun
+
     after = campaign_launches_begun(campaign_dir)
     if begun_before is None or after is None or after != begun_before or not saved.is_dir():
         return False

@@ -6,7 +6,8 @@ from __future__ import annotations
 from pathlib import Path
 
 from bac_agent.journal import Journal
-from bac_bringup.launcher import campaign_launches_begun, drop_unused_config
+from bac_bringup.launcher import drop_unused_config
+from bac_campaign.launches import campaign_launches_begun
 
 
 def _saved(camp: Path, name: str) -> Path:

@@ -22,7 +22,7 @@ import os
 import uuid
 from pathlib import Path
 
-from bac_agent.journal import Journal, read_journal
+from bac_agent.journal import JOURNAL_NAME, Journal, JournalError, read_journal
 
 LAUNCH_INDEX_NAME = "launches.jsonl"
 
@@ -63,4 +63,17 @@ def launch_of_bags(campaign_dir: str | Path) -> dict[str, tuple[int, str]]:
     return out
 
 
-__all__ = ["LAUNCH_INDEX_NAME", "LaunchIndex", "launch_of_bags"]
+def campaign_launches_begun(campaign_dir: Path) -> int | None:
+    """How many times the campaign's agent started or resumed it (its journal's campaign_started and
+    campaign_resumed events); 0 without a journal, None when the journal cannot be read."""
+    path = campaign_dir / JOURNAL_NAME
+    if not path.exists():
+        return 0
+    try:
+        events = read_journal(path).events
+    except (JournalError, OSError):
+        return None
+    return sum(1 for e in events if e.get("event") in ("campaign_started", "campaign_resumed"))
+
+
+__all__ = ["LAUNCH_INDEX_NAME", "LaunchIndex", "campaign_launches_begun", "launch_of_bags"]
