@@ -217,10 +217,25 @@ def test_the_campaign_exports_to_mdf4(campaign: Path, tmp_path: Path) -> None:
     theirs = make_report(campaign, out=tmp_path / "folder_report", truth_name="bump_c1")
     assert Path(mine["html"]).parent == tmp_path / "c.report" and mine["notes"] == [] == theirs["notes"]
     assert mine["summary"] == theirs["summary"]
-    assert (tmp_path / "c.report" / "signals.png").read_bytes() == (
-        tmp_path / "folder_report" / "signals.png"
-    ).read_bytes()
+    for fig in ("signals.png", "spectra.png"):  # the windows' samples and their sample rate, exactly
+        assert (tmp_path / "c.report" / fig).read_bytes() == (tmp_path / "folder_report" / fig).read_bytes(), fig
     assert str(alone) in Path(mine["html"]).read_text()
+    # every stream of every bag, to the nanosecond: the raw IMU with its receive times, the announcements
+    from bac_campaign.exportio import read_export
+    from bac_campaign.rescore import read_bag
+
+    unpacked = tmp_path / "unpacked"
+    unpacked.mkdir()
+    for b in read_export(alone, unpacked):
+        bag = read_bag(campaign / "bags" / b.name, None, None)
+        assert b.imu_raw is not None and bag.imu_raw is not None and b.trials == bag.trials, b.name
+        assert np.array_equal(b.imu_raw.recv_ns, bag.imu_raw.recv_ns) and b.imu_raw.has_recv
+        assert np.array_equal(b.imu_raw.gyro, bag.imu_raw.gyro) and np.array_equal(b.imu_raw.accel, bag.imu_raw.accel)
+        assert b.odom is not None and bag.odom is not None
+        assert all(
+            np.array_equal(getattr(b.odom, f), getattr(bag.odom, f))
+            for f in ("stamp_ns", "distance_m", "speed_mps", "position_y_m", "position_z_m")
+        )
 
 
 def test_the_report_is_made(campaign: Path) -> None:

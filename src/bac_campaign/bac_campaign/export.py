@@ -359,6 +359,20 @@ def export_mf4(campaign_dir: str | Path, out: str | Path | None = None, raw: boo
                 unit="",
                 comment="1: the run was scored; 0: rejected (see the attempt's group comment for the reason)",
             ),
+            Signal(
+                col(lambda s: float(bool(s[4].valid)) if s[4] is not None else 0.0).astype(np.uint8),
+                t,
+                name="campaign.segment_valid",
+                unit="",
+                comment="1: the run's window was cut (bac/run_segment valid); the report shows the last such attempt",
+            ),
+            Signal(
+                col(lambda s: _num(s[4].sample_rate_hz) if s[4] is not None else math.nan),
+                t,
+                name="campaign.sample_rate_hz",
+                unit="Hz",
+                comment="sample rate of the run's aligned window (trial_NNNN.aN.*)",
+            ),
         ]
         for name in campaign.names:
             sigs.append(
@@ -373,7 +387,8 @@ def export_mf4(campaign_dir: str | Path, out: str | Path | None = None, raw: boo
         mdf.append(sigs, comment="runs: J and the calibration of every run, at its window's start")
         groups += 1
 
-    attached = attach_campaign_files(mdf, camp)
+    skipped = [{"bag": n.split(":", 1)[0], "reason": n} for n in notes if ": skipped (" in n]
+    attached = attach_campaign_files(mdf, camp, {"raw": raw, "skipped": skipped})
     path = Path(out) if out is not None else camp / "export" / f"{camp.name}.mf4"
     path.parent.mkdir(parents=True, exist_ok=True)
     mdf.save(path, overwrite=True)
@@ -398,9 +413,12 @@ def main(argv: Sequence[str] | None = None) -> int:
         return 2
     for n in res.notes:
         say(f"note: {n}")
+    how = (
+        "bac rescore and bac report read it as the folder" if not res.notes else "bac rescore notes the bags left out"
+    ) + ("" if not args.no_raw else "; without the raw IMU, bac rescore --reingest cannot run on it")
     say(
         f"{res.path}: {res.groups} channel groups, {res.channels} channels, {res.runs} runs, {res.files} campaign "
-        f"files attached (bac rescore {res.path} scores it as the folder)"
+        f"files attached ({how})"
     )
     return 0
 

@@ -20,6 +20,9 @@ No rclpy; asammdf is imported only when a file is read or written.
 
 from __future__ import annotations
 
+import hashlib
+import json
+import math
 import re
 from collections.abc import Iterator
 from contextlib import contextmanager
@@ -36,10 +39,21 @@ from bac_measure.mdfio import asammdf, is_mdf, mdf_start_ns, open_mdf
 
 ATTACHMENT_MARK = "bac campaign file: "  # an attachment's comment: the mark, then its path in the campaign folder
 CAMPAIGN_FILES = ("journal.jsonl", "launches.jsonl", "recommendation.json", "reference.npz")  # and config/*
-_FILE_NAME = re.compile(r"(?:config/)?[A-Za-z0-9_][A-Za-z0-9_.-]*")  # what an attachment may unpack to
+MANIFEST = "export.json"  # the export's own: its layout, whether it has the raw IMU, the bags it left out
+MAX_ATTACHMENT_BYTES = 256 * 1024 * 1024  # a campaign's files are kB to MB: larger is not an export's
 _CHANNEL = re.compile(r"(trial_\d+(?:\.r\d+)?)\.(raw|vehicle|odom|trial)\.(\w+)")
 IMU_AXES = ("accel_x", "accel_y", "accel_z", "gyro_x", "gyro_y", "gyro_z")
 TRIAL_CHANNELS = ("state", "trial_id", "attempt", "recv_ns", "campaign_id", "reason")
+
+
+def is_campaign_file(name: str) -> bool:
+    """A path an export may unpack to: one of :data:`CAMPAIGN_FILES`, the manifest, or ``config/<file name>``."""
+    if name in CAMPAIGN_FILES or name == MANIFEST:
+        return True
+    if not name.startswith("config/"):
+        return False
+    base = name[len("config/") :]
+    return bool(base) and base not in (".", "..") and not any(c in base for c in "/\\\0") and len(base) <= 255
 
 
 class ExportReadError(BacError, ValueError):
@@ -58,19 +72,32 @@ class ExportedBag:
 
 
 def campaign_files(campaign_dir: Path) -> list[tuple[str, bytes]]:
-    """The campaign's small files an export carries: (path in the folder, content)."""
+    """The campaign's small files an export carries: (path in the folder, content); every file of ``config/``."""
     out = [(name, (campaign_dir / name).read_bytes()) for name in CAMPAIGN_FILES if (campaign_dir / name).is_file()]
     config = campaign_dir / "config"
     if config.is_dir():
         out += [(f"config/{p.name}", p.read_bytes()) for p in sorted(config.iterdir()) if p.is_file()]
-    return [(name, data) for name, data in out if _FILE_NAME.fullmatch(name)]
+    bad = [name for name, _ in out if not is_campaign_file(name)]
+    if bad:
+        raise ExportReadError(f"{campaign_dir}: {bad[0]!r} cannot be carried by an export (a name with \\ or NUL)")
+    return out
 
 
-def attach_campaign_files(mdf: Any, campaign_dir: Path) -> int:
-    """Embed the campaign's files in an MDF4 being written; the number attached."""
+def attach_campaign_files(mdf: Any, campaign_dir: Path, manifest: dict[str, Any] | None = None) -> int:
+    """Embed the campaign's files (and the export's manifest) in an MDF4 being written; the number of files.
+    Every parameter file ``config/launch.json`` lists must be among them."""
     files = campaign_files(campaign_dir)
+    names = {name for name, _ in files}
+    launch = campaign_dir / "config" / "launch.json"
+    if launch.is_file():
+        listed = [f"config/{n}" for n in json.loads(launch.read_text()).get("params_files", [])]
+        missing = [n for n in listed if n not in names]
+        if missing:
+            raise ExportReadError(f"{campaign_dir}: config/launch.json lists {missing[0]}, which is not in config/")
     for name, data in files:
         mdf.attach(data, file_name=name.replace("/", "__"), comment=ATTACHMENT_MARK + name)
+    body = json.dumps({"layout": 2, **(manifest or {})}, indent=1).encode()
+    mdf.attach(body, file_name=MANIFEST, comment=ATTACHMENT_MARK + MANIFEST)
     return len(files)
 
 
@@ -91,18 +118,46 @@ def _bag_channels(mdf: Any) -> dict[str, dict[str, dict[str, tuple[int, int]]]]:
 
 
 def is_bac_export(path: str | Path) -> bool:
-    """True for an MDF file ``bac export`` wrote (its channels ``trial_NNNN.raw.*`` ... or its attachments)."""
+    """True for an MDF4 file ``bac export`` wrote: it carries the campaign's files (attachments marked
+    :data:`ATTACHMENT_MARK`). A file with only an export's channels (an export from before 2026-11-29, or one a tool
+    filtered or cut, which drops attachments) is not one: it is read as any MDF file (see
+    :func:`export_channels_hint`)."""
     p = Path(path)
     if not p.is_file() or not is_mdf(p):
         return False
     try:
         mdf = _open(p)
-    except BacError:
+    except Exception:
         return False  # unreadable: the MDF reader says why
     try:
-        return any(_attachment_name(a) for a in mdf.attachments) or bool(_bag_channels(mdf))
+        if not str(getattr(mdf, "version", "")).startswith("4"):
+            return False  # MDF 3 has no attachments (asammdf refuses to list them)
+        return any(_attachment_name(a) for a in mdf.attachments)
+    except Exception:
+        return False
     finally:
         mdf.close()
+
+
+def export_channels_hint(path: str | Path) -> str:
+    """What to say of an MDF file whose channels are an export's but which carries no campaign files; "" else."""
+    p = Path(path)
+    try:
+        mdf = _open(p)
+    except Exception:
+        return ""
+    try:
+        if not _bag_channels(mdf):
+            return ""
+    except Exception:
+        return ""
+    finally:
+        mdf.close()
+    return (
+        "its channels are a bac export's (trial_NNNN.raw.*), but it carries no campaign files: an export written "
+        "before 2026-11-29, or one a tool filtered or cut (asammdf drops the attachments); rescore the campaign "
+        "folder or export it again, or give a channel map for one trial's channels"
+    )
 
 
 def _open(p: Path) -> Any:
@@ -121,22 +176,28 @@ def read_export(path: str | Path, folder: str | Path, bags_too: bool = True) -> 
     p, dest = Path(path), Path(folder)
     mdf = _open(p)
     try:
-        names = [(i, _attachment_name(a)) for i, a in enumerate(mdf.attachments)]
-        files = [(i, n) for i, n in names if n]
+        files = [(i, n) for i, n in ((i, _attachment_name(a)) for i, a in enumerate(mdf.attachments)) if n]
         bags = _bag_channels(mdf)
-        if not any(n == "journal.jsonl" for _, n in files):
-            raise ExportReadError(
-                f"{p} is a bac export without the campaign's journal (written before 2026-11-29, when exports began "
-                "to carry the campaign's files): rescore the campaign folder it came from, or export it again"
-            )
         for i, name in files:  # every name checked before anything is written
-            if not (name in CAMPAIGN_FILES or (name.startswith("config/") and _FILE_NAME.fullmatch(name))):
+            if not is_campaign_file(name):
                 raise ExportReadError(f"{p}: attachment {i} names {name!r}, not a campaign file: refused")
+        seen = [n for _, n in files]
+        twice = sorted({n for n in seen if seen.count(n) > 1})
+        if twice:
+            raise ExportReadError(f"{p}: {twice[0]} is attached {seen.count(twice[0])} times: which one is meant?")
+        if "journal.jsonl" not in seen:
+            raise ExportReadError(
+                f"{p} carries campaign files but no journal: not an export bac can rescore; rescore the campaign "
+                "folder it came from, or export it again"
+            )
         for i, name in files:
-            data, _ = mdf.extract_attachment(i)[:2]
+            data = _attachment_bytes(p, mdf.attachments[i], name)
             target = dest / name
             target.parent.mkdir(parents=True, exist_ok=True)
-            target.write_bytes(bytes(data))
+            target.write_bytes(data)
+        if not (dest / "journal.jsonl").read_bytes().strip():
+            raise ExportReadError(f"{p}:journal.jsonl is empty: the export is damaged; export the campaign again")
+        _check_launch_record(p, dest)
         start = mdf_start_ns(mdf)
         out: list[ExportedBag] = []
         for bag in sorted(bags, key=_bag_key) if bags_too else []:
@@ -148,6 +209,50 @@ def read_export(path: str | Path, folder: str | Path, bags_too: bool = True) -> 
         return out
     finally:
         mdf.close()
+
+
+def _attachment_bytes(p: Path, att: Any, name: str) -> bytes:
+    """An embedded attachment's content, checked (asammdf returns b"" for what it cannot read, warns at most on a
+    wrong MD5 and follows an external attachment's path on this machine)."""
+    flags = int(getattr(att, "flags", 0))
+    if not flags & 1:  # FLAG_AT_EMBEDDED
+        raise ExportReadError(f"{p}:{name} is not embedded (it names a file elsewhere): refused")
+    size = int(getattr(att, "original_size", 0) or 0)
+    if size > MAX_ATTACHMENT_BYTES:
+        raise ExportReadError(f"{p}:{name} would unpack to {size} bytes: not a campaign file; refused")
+    try:
+        data = bytes(att.extract())
+    except Exception as exc:
+        raise ExportReadError(f"{p}:{name} cannot be unpacked ({exc}): the export is damaged") from exc
+    if flags & 4 and bytes(att.md5_sum) != hashlib.md5(data).digest():  # FLAG_AT_MD5_VALID
+        raise ExportReadError(f"{p}:{name} does not match its MD5 sum: the export is damaged; export it again")
+    if len(data) > MAX_ATTACHMENT_BYTES:
+        raise ExportReadError(f"{p}:{name} unpacks to {len(data)} bytes: not a campaign file; refused")
+    return data
+
+
+def _check_launch_record(p: Path, dest: Path) -> None:
+    """The unpacked config/launch.json may only name parameter files unpacked beside it."""
+    launch = dest / "config" / "launch.json"
+    if not launch.is_file():
+        return
+    try:
+        listed = json.loads(launch.read_text()).get("params_files", [])
+    except (ValueError, AttributeError) as exc:
+        raise ExportReadError(f"{p}:config/launch.json is not a launch record ({exc})") from exc
+    for n in listed:
+        if not (isinstance(n, str) and is_campaign_file(f"config/{n}") and (launch.parent / n).is_file()):
+            raise ExportReadError(f"{p}:config/launch.json names {n!r}, which the export does not carry: refused")
+
+
+def read_manifest(folder: Path) -> dict[str, Any]:
+    """The export's manifest unpacked in ``folder`` (an older export has none: {})."""
+    f = folder / MANIFEST
+    try:
+        data = json.loads(f.read_text()) if f.is_file() else {}
+    except ValueError:
+        return {}
+    return data if isinstance(data, dict) else {}
 
 
 def _bag_key(name: str) -> tuple[int, int]:
@@ -240,28 +345,34 @@ class ExportedSegment:
 
 
 def read_segments(path: str | Path) -> dict[int, ExportedSegment]:
-    """The last valid aligned window of each trial in a bac export (by ``campaign.valid``), as the report takes
-    them from the bags."""
+    """Each trial's aligned window as the report takes it from the bags: its last attempt whose window was cut
+    (``campaign.segment_valid``; an older export: ``campaign.valid``), at its recorded sample rate."""
     p = Path(path)
     mdf = _open(p)
     try:
         names = {str(ch.name): (gi, ci) for gi, g in enumerate(mdf.groups) for ci, ch in enumerate(g.channels)}
         if "campaign.trial_id" not in names:
             return {}
-        trial = _samples(mdf, names["campaign.trial_id"])[0].astype(int)
-        attempt = _samples(mdf, names["campaign.attempt"])[0].astype(int)
-        valid = _samples(mdf, names["campaign.valid"])[0].astype(bool)
+
+        def col(name: str) -> np.ndarray:
+            return _samples(mdf, names[name])[0]
+
+        trial = col("campaign.trial_id").astype(int)
+        attempt = col("campaign.attempt").astype(int)
+        valid = col("campaign.segment_valid" if "campaign.segment_valid" in names else "campaign.valid").astype(bool)
+        rates = col("campaign.sample_rate_hz") if "campaign.sample_rate_hz" in names else np.full(trial.size, np.nan)
         out: dict[int, ExportedSegment] = {}
-        for tid, att, ok in zip(trial, attempt, valid, strict=True):
-            pre = f"trial_{int(tid):04d}.a{int(att)}"
-            if not ok or f"{pre}.accel_z_aligned" not in names:
+        for k in np.lexsort((attempt, trial)):  # the last attempt of a trial wins, as the last in its bags does
+            tid, att = int(trial[k]), int(attempt[k])
+            pre = f"trial_{tid:04d}.a{att}"
+            if not valid[k] or f"{pre}.accel_z_aligned" not in names:
                 continue
             az, t = _samples(mdf, names[f"{pre}.accel_z_aligned"])
             q, _ = _samples(mdf, names[f"{pre}.pitch_rate_aligned"])
             if t.size < 2 or not t[-1] > t[0]:
                 continue
-            rate = (t.size - 1) / float(t[-1] - t[0])
-            out[int(tid)] = ExportedSegment(int(tid), int(att), True, rate, az.astype(float), q.astype(float))
+            rate = float(rates[k]) if math.isfinite(rates[k]) else (t.size - 1) / float(t[-1] - t[0])
+            out[tid] = ExportedSegment(tid, att, True, rate, az.astype(float), q.astype(float))
         return out
     finally:
         mdf.close()
@@ -304,8 +415,11 @@ __all__ = [
     "ExportedSegment",
     "attach_campaign_files",
     "campaign_files",
+    "export_channels_hint",
     "is_bac_export",
+    "is_campaign_file",
     "read_export",
+    "read_manifest",
     "read_segments",
     "trial_signals",
     "unpacked_export",

@@ -910,7 +910,10 @@ def _open_campaign(p: Path, stack: ExitStack) -> Campaign:
     """A campaign folder, or a bac export unpacked for as long as ``stack`` is open."""
     if p.is_file() and is_bac_export(p):
         folder, _ = stack.enter_context(unpacked_export(p, bags_too=False))
-        campaign = load_campaign(folder)
+        try:
+            campaign = load_campaign(folder)
+        except BacError as exc:  # name the export, not the temporary folder it was unpacked into
+            raise ReportError(str(exc).replace(f"{folder}/", f"{p}:").replace(str(folder), str(p))) from exc
         campaign.export = p
         campaign.segments = read_segments(p)
         return campaign

@@ -61,7 +61,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from bac_agent.journal import JOURNAL_NAME, journaled_engine_options, read_journal
-from bac_campaign.exportio import ExportedBag, is_bac_export, unpacked_export
+from bac_campaign.exportio import ExportedBag, export_channels_hint, is_bac_export, read_manifest, unpacked_export
 from bac_campaign.launches import launch_of_bags
 from bac_common.errors import BacError
 from bac_imu.ingest import IngestConfig, ingest_all
@@ -80,7 +80,7 @@ from bac_measure.bagio import (
     run_starts,
 )
 from bac_measure.kpi import KpiConfig, Score, score
-from bac_measure.mdfio import ChannelMap, is_mdf, read_mdf
+from bac_measure.mdfio import ChannelMap, MdfError, is_mdf, read_mdf
 from bac_measure.measure_config import (
     NODE_IMU_INGEST,
     NODE_KPI_SCORER,
@@ -295,7 +295,13 @@ def read_recording(
     parts = []
     for bag in bags:
         if is_mdf(bag):  # an MDF recording: IMU and odometry channels, no bac topics
-            mdf = read_mdf(bag, channels)
+            try:
+                mdf = read_mdf(bag, channels)
+            except MdfError as exc:
+                hint = export_channels_hint(bag) if channels is None else ""
+                if not hint:
+                    raise
+                raise RescoreError(f"{bag}: {hint}") from exc
             parts.append(_BagData(bag, None, mdf.imu, mdf.odom, [], {}))
             if notes is not None:
                 notes.extend(f"{bag.name}: {n}" for n in mdf.notes)
@@ -489,10 +495,27 @@ def rescore(
             "--odom-topic do not apply"
         )
     with unpacked_export(export) as (folder, bags):
-        result = _rescore(ps, (folder, bags), files, overrides, reingest, window, None, None, None)
+        manifest = read_manifest(folder)
+        if reingest and not any(b.imu_raw is not None for b in bags):
+            why = (
+                "exported with --no-raw; export the campaign again without it, or rescore without --reingest"
+                if manifest.get("raw") is False
+                else "the campaign recorded none; rescore it without --reingest (the recorded imu/vehicle)"
+            )
+            raise RescoreError(f"{export} holds no raw IMU (imu/data_raw) for --reingest: {why}")
+        try:
+            result = _rescore(ps, (folder, bags), files, overrides, reingest, window, None, None, None)
+        except BacError as exc:  # name the export, not the temporary folder it was unpacked into
+            raise RescoreError(str(exc).replace(f"{folder}/", f"{export}:").replace(str(folder), str(export))) from exc
+        # the files inside the export, not the temporary folder they were unpacked into
         result.files = [
             Path(f"{export}:{f.relative_to(folder)}") if f.is_relative_to(folder) else f for f in result.files
         ]
+        for skip in manifest.get("skipped", []):
+            result.notes.append(
+                f"{export}: bag {skip.get('bag')} was left out at export ({skip.get('reason')}): its runs are not "
+                "here, and the J of the others may differ from the folder's if it held the reference run"
+            )
     return result
 
 
@@ -921,7 +944,7 @@ def main(argv: Sequence[str] | None = None, profile_params: Callable[[str], list
             first = Path(args.paths[0])
             is_campaign = len(args.paths) == 1 and (first / "bags").is_dir()
             if export is not None:
-                with unpacked_export(export) as (folder, _):
+                with unpacked_export(export, bags_too=False) as (folder, _):
                     if not default_params_files(folder):
                         files = profile_params("sim")
             elif not (is_campaign and default_params_files(first)):
@@ -937,7 +960,7 @@ def main(argv: Sequence[str] | None = None, profile_params: Callable[[str], list
             channels=ChannelMap.load(args.channel_map, args.channel),
         )
         if args.refit and export is not None:
-            with unpacked_export(export) as (folder, _):
+            with unpacked_export(export, bags_too=False) as (folder, _):
                 result.recommendation = refit(folder, result.runs)
         elif args.refit:
             result.recommendation = refit(Path(args.paths[0]), result.runs)

@@ -5,8 +5,10 @@ files that only claim to be an export are refused with the reason."""
 from __future__ import annotations
 
 import json
+import re
 import shutil
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pytest
@@ -17,9 +19,10 @@ from bac_campaign.bagplay import BagReadError, expand_bag_paths
 from bac_campaign.export import export_mf4
 from bac_campaign.exportio import ATTACHMENT_MARK, ExportReadError, is_bac_export, read_export
 from bac_campaign.rescore import RescoreError, main, rescore
+from bac_common.errors import BacError
 from bac_common.paramspace import CalibrationDefinition
 from bac_common.paths import resolve_definition
-from bac_measure.mdfio import write_mdf
+from bac_measure.mdfio import ChannelMap, write_mdf
 from bac_measure.measure_config import segment_config
 from bac_measure.segmentation import Reference
 
@@ -43,7 +46,7 @@ def exported(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, Path]:
     write_bag(alone, 1, [(1, 2)])
     Reference.from_segment(by_key(rescore([alone]))[(1, 2)].segment, segment_config([])).save(camp / "reference.npz")
     out = export_mf4(camp, d / "campaign.mf4")
-    assert out.files == 3  # journal, launches.jsonl, reference.npz
+    assert out.files == 3  # journal, launches.jsonl, reference.npz (and the export's manifest)
     return camp, out.path
 
 
@@ -76,7 +79,12 @@ def test_the_export_carries_every_stream_to_the_nanosecond(exported: tuple[Path,
     assert is_bac_export(mf4)
     bags = {b.name: b for b in read_export(mf4, tmp_path)}
     assert sorted(bags) == ["trial_0001", "trial_0001.r1", "trial_0002", "trial_0003"]
-    assert sorted(p.name for p in tmp_path.iterdir()) == ["journal.jsonl", "launches.jsonl", "reference.npz"]
+    assert sorted(p.name for p in tmp_path.iterdir()) == [
+        "export.json",
+        "journal.jsonl",
+        "launches.jsonl",
+        "reference.npz",
+    ]
     assert (tmp_path / "journal.jsonl").read_bytes() == (camp / "journal.jsonl").read_bytes()
     streams = 0
     for name, b in bags.items():
@@ -143,22 +151,21 @@ def test_an_attachment_outside_the_campaign_folder_is_refused(
     assert not (dest / name).resolve().exists() and list(dest.iterdir()) == []  # nothing unpacked at all
 
 
-def test_an_export_from_before_the_attachments_is_refused_with_what_to_do(
+def test_an_export_without_its_files_is_read_as_any_mdf_file_and_says_so(
     exported: tuple[Path, Path], tmp_path: Path
 ) -> None:
+    """An export from before 2026-11-29, or one asammdf filtered or cut (both drop the attachments): not taken for
+    an export (its channels alone do not make one); without a channel map, the reason and what to do."""
     _, mf4 = exported
     mdf = MDF(mf4)
     try:
-        old = MDF(version="4.10")
-        old.header.start_time = mdf.header.start_time
-        for name in ("trial_0002.vehicle.accel_z", "trial_0002.vehicle.pitch_rate"):
-            old.append([mdf.get(name)])
+        old = mdf.filter(["trial_0002.vehicle.accel_z", "trial_0002.vehicle.pitch_rate"])
         old.save(tmp_path / "old.mf4", overwrite=True)
         old.close()
     finally:
         mdf.close()
-    assert is_bac_export(tmp_path / "old.mf4")
-    with pytest.raises(ExportReadError, match="export it again"):
+    assert not is_bac_export(tmp_path / "old.mf4")
+    with pytest.raises(RescoreError, match=r"carries no campaign files.*filtered or cut.*export it again"):
         rescore([tmp_path / "old.mf4"])
 
 
@@ -172,7 +179,104 @@ def test_other_mdf_files_are_not_exports(tmp_path: Path) -> None:
     g = np.column_stack([0 * t, 0 * t, run.imu.accel_z + 9.80665])
     plain = write_mdf(tmp_path / "drive.mf4", ImuArrays("imu", "", t, t, g, np.zeros_like(g)))
     assert not is_bac_export(plain)
+    mdf3 = write_mdf(tmp_path / "drive.mdf", ImuArrays("imu", "", t, t, g, np.zeros_like(g)), version="3.30")
+    assert not is_bac_export(mdf3)  # asammdf refuses to list an MDF 3 file's attachments: that crashed rescore
+    assert expand_bag_paths([mdf3]) == [mdf3]
+    units = {
+        f"{k}_{a}": {"name": f"{k}_{a}", "unit": u} for k, u in (("accel", "m/s^2"), ("gyro", "rad/s")) for a in "xyz"
+    }
+    assert len(rescore([mdf3], window="whole", channels=ChannelMap.parse(units)).runs) == 1
     shutil.copy(plain, tmp_path / "cut.mf4")
     (tmp_path / "cut.mf4").write_bytes((tmp_path / "cut.mf4").read_bytes()[:200])  # truncated: the reader says why
     assert not is_bac_export(tmp_path / "cut.mf4")
     assert not is_bac_export(tmp_path)
+
+
+def _attach(dst: Path, items: list[tuple[str, bytes, dict[str, object]]], src: Path | None = None) -> Path:
+    mdf = MDF(src) if src is not None else MDF(version="4.10")
+    try:
+        if src is None:
+            from asammdf import Signal
+
+            mdf.append([Signal(np.arange(3.0), np.arange(3.0), name="x")])
+        for name, data, kw in items:
+            opts: dict[str, Any] = {"file_name": name.replace("/", "__"), **kw}
+            mdf.attach(data, comment=ATTACHMENT_MARK + name, **opts)
+        mdf.save(dst, overwrite=True)
+    finally:
+        mdf.close()
+    return dst
+
+
+def test_a_damaged_or_external_attachment_is_refused(tmp_path: Path) -> None:
+    """asammdf hands a damaged attachment back as it is (a warning at most) and an external one as b"" or as the
+    content of a file elsewhere on this machine: a config lost that way gave every J with the default mount."""
+    journal = b'{"seq":0,"event":"campaign_started","campaign_id":"c"}\n' * 20
+    good = _attach(tmp_path / "good.mf4", [("journal.jsonl", journal, {"compression": False})])
+    raw = good.read_bytes()
+    at = raw.index(journal)
+    (tmp_path / "bad.mf4").write_bytes(raw[: at + 5] + b"X" + raw[at + 6 :])  # one byte of the journal changed
+    dest = tmp_path / "out"
+    dest.mkdir()
+    assert read_export(good, dest) == [] and (dest / "journal.jsonl").read_bytes() == journal
+    with pytest.raises(ExportReadError, match="does not match its MD5 sum"):
+        read_export(tmp_path / "bad.mf4", tmp_path / "out")
+    secret = tmp_path / "secret.txt"
+    secret.write_text("not a campaign file")
+    ext = _attach(
+        tmp_path / "ext.mf4",
+        [("journal.jsonl", journal, {}), ("recommendation.json", b"", {"embedded": False, "file_name": str(secret)})],
+    )
+    with pytest.raises(ExportReadError, match=r"recommendation\.json is not embedded"):
+        read_export(ext, tmp_path / "out")
+    twice = _attach(tmp_path / "twice.mf4", [("journal.jsonl", journal, {}), ("journal.jsonl", b"{}", {})])
+    with pytest.raises(ExportReadError, match="attached 2 times"):
+        read_export(twice, tmp_path / "out")
+
+
+def test_config_files_of_any_name_travel_and_launch_json_names_only_them(
+    exported: tuple[Path, Path], tmp_path: Path
+) -> None:
+    camp, _ = exported
+    copy = tmp_path / "camp"
+    shutil.copytree(camp, copy)
+    (copy / "config").mkdir()
+    (copy / "config" / "01_sim car+v2 ü.yaml").write_text("run_segmenter:\n  ros__parameters:\n    min_coverage: 0.9\n")
+    (copy / "config" / "launch.json").write_text(json.dumps({"params_files": ["01_sim car+v2 ü.yaml"]}))
+    out = export_mf4(copy, tmp_path / "c.mf4")
+    assert out.files == 5
+    dest = tmp_path / "unpacked"
+    dest.mkdir()
+    read_export(out.path, dest)
+    assert (dest / "config" / "01_sim car+v2 ü.yaml").read_text().endswith("0.9\n")
+    assert rescore([out.path]).files == [Path(f"{out.path}:config/01_sim car+v2 ü.yaml")]
+    # a launch record naming a file outside the export (a path of this machine) is refused, nothing read from it
+    (copy / "config" / "launch.json").write_text(json.dumps({"params_files": ["../../etc/x.yaml"]}))
+    with pytest.raises(BacError, match=re.escape("lists config/../../etc/x.yaml, which is not in config/")):
+        export_mf4(copy, tmp_path / "d.mf4")
+    forged = _attach(
+        tmp_path / "forged.mf4",
+        [
+            ("journal.jsonl", (camp / "journal.jsonl").read_bytes(), {}),
+            ("config/launch.json", json.dumps({"params_files": ["/etc/passwd"]}).encode(), {}),
+        ],
+    )
+    with pytest.raises(ExportReadError, match=r"names '/etc/passwd', which the export does not carry"):
+        rescore([forged])
+
+
+def test_a_bag_left_out_at_export_is_noted_when_the_export_is_rescored(
+    exported: tuple[Path, Path], tmp_path: Path
+) -> None:
+    camp, _ = exported
+    copy = tmp_path / "camp"
+    shutil.copytree(camp, copy)
+    for f in (copy / "bags" / "trial_0002").iterdir():
+        f.write_bytes(b"not a bag")
+    out = export_mf4(copy, tmp_path / "c.mf4")
+    assert any("trial_0002: skipped" in n for n in out.notes)
+    result = rescore([out.path])
+    assert any("bag trial_0002 was left out at export" in n for n in result.notes), result.notes
+    assert {(r.run.trial_id, r.run.attempt) for r in result.runs} == {(1, 1), (1, 2)}
+    with pytest.raises(RescoreError, match=r"holds no raw IMU .* the campaign recorded none"):
+        rescore([out.path], reingest=True)
