@@ -112,11 +112,20 @@ def launch_main(argv: Sequence[str]) -> int:
         from bac_campaign.launches import campaign_launches_begun
 
         begun = campaign_launches_begun(camp)
+        bags_before = launcher.bags_opened(camp)
         saved = launcher.save_launch_config(profile, camp, argv, args.single_process)
         if "cockpit" in [n.name for n in profile.nodes]:
             announce_cockpit(camp)
     rc = launcher.run_graph(profile, single_process=args.single_process, log_dir=args.log_dir, timeout_s=args.timeout)
-    if saved is not None and "bo_agent" in [n.name for n in profile.nodes]:
+    agent = next((n for n in profile.nodes if n.name == "bo_agent"), None)
+    # only when the agent journals into this folder (a -p bo_agent.campaign_dir elsewhere: its start is not seen
+    # here) and the recorder opened no bag in it during the launch
+    if (
+        saved is not None
+        and agent is not None
+        and Path(str(profile.params_for(agent).get("campaign_dir", camp))).resolve() == camp.resolve()
+        and launcher.bags_opened(camp) == bags_before
+    ):
         launcher.drop_unused_config(saved, camp, begun)
     return rc
 

@@ -129,8 +129,10 @@ def run_nodes(
     executor: MultiThreadedExecutor | None = None
     code = 0
     own_at_start = 0.0  # the nodes' clean-up time when the stop deadline was set (after their constructors)
+    making = ""  # the node being made: a refusal names it (several nodes share a parameter's name)
     try:
         for spec in nodes:
+            making = spec.name
             module, class_name = spec.entry.split(":", 1)
             cls = getattr(importlib.import_module(module), class_name)
             created.append((spec, cls(cli_args=list(spec.args))))
@@ -169,7 +171,7 @@ def run_nodes(
         code = 2
     except (BacError, *USER_PARAMETER_ERRORS) as exc:
         if executor is None and ok():  # a constructor's refusal says what to do, as run_node says it
-            LOG.critical("not started: %s", start_refusal(exc))
+            LOG.critical("not started: %s%s", f"{making}: " if making else "", start_refusal(exc))
             code = 2
         elif ok():
             LOG.exception("a node crashed: shutting down the graph")

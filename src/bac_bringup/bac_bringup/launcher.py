@@ -388,6 +388,15 @@ def save_launch_config(profile: Profile, campaign_dir: Path, argv: Sequence[str]
     return out
 
 
+def bags_opened(campaign_dir: Path) -> int:
+    """Lines in the campaign's launch index (``launches.jsonl``, one per bag the recorder opened); 0 without it."""
+    try:
+        with open(campaign_dir / "launches.jsonl", "rb") as f:
+            return sum(1 for _ in f)
+    except OSError:
+        return 0
+
+
 def drop_unused_config(saved: Path, campaign_dir: Path, begun_before: int | None) -> bool:
     """Remove the configuration saved for a launch whose agent neither started nor resumed the campaign (it
     refused: a resume with another configuration, a parameter out of range; or the launch was stopped first):

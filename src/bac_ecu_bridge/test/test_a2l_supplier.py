@@ -278,3 +278,22 @@ def test_an_included_file_is_slimmed_and_found_where_it_was(tmp_path: Path) -> N
     got = read_a2l(path)
     assert set(got.characteristics) == {"C1", "C7"} and got.characteristics["C7"].address == 0x40000010
     assert got.characteristics == _whole(path).characteristics
+
+
+def test_nothing_inside_an_if_data_or_the_a2ml_is_left_out(tmp_path: Path) -> None:
+    """A supplier's A2ML may define blocks named like the ones bac leaves out (GROUP, FRAME): inside IF_DATA (and
+    in an included file there) they are the supplier's, and stay."""
+    from bac_ecu_bridge.xcp.a2l import slim_a2l
+
+    (tmp_path / "vendor.a2l").write_text("/begin FRAME 3 /end FRAME\n")
+    body = (
+        '/begin IF_DATA VENDOR\n  /begin GROUP 7 /end GROUP\n  /include "vendor.a2l"\n/end IF_DATA\n'
+        '/begin GROUP G1 "g" /end GROUP\n' + char()
+    )
+    path = write(tmp_path, body)
+    out = tmp_path / "slim"
+    out.mkdir()
+    slim = slim_a2l(path, out).read_text()
+    assert "/begin GROUP 7 /end GROUP" in slim and "GROUP G1" not in slim and "CHARACTERISTIC C1" in slim
+    included = [f for f in out.iterdir() if f.name.endswith("vendor.a2l")]
+    assert included and "/begin FRAME 3 /end FRAME" in included[0].read_text()

@@ -234,11 +234,18 @@ def _include_target(path: Path, name: str) -> Path:
     return found
 
 
-def slim_a2l(path: Path, out_dir: Path, keep: frozenset[str] | None = None, names: set[str] | None = None) -> Path:
+def slim_a2l(
+    path: Path,
+    out_dir: Path,
+    keep: frozenset[str] | None = None,
+    names: set[str] | None = None,
+    inside_if_data: bool = False,
+) -> Path:
     """A copy of the A2L in ``out_dir`` without the blocks bac never reads (:data:`SLIM_DROP`) and, when ``keep``
     is given, without the CHARACTERISTICs it does not name; each ``/include``d file slimmed the same way and
     included by its new path. A block left out becomes as many empty lines as it had, so that pya2ldb's line
-    numbers stay the file's. ``names`` gets the name of every CHARACTERISTIC met (kept or not). The files must
+    numbers stay the file's. ``names`` gets the name of every CHARACTERISTIC met (kept or not). Nothing inside an
+    IF_DATA or A2ML block is left out (a supplier's A2ML may define its own GROUP or FRAME blocks). The files must
     have passed :func:`check_a2l_files`."""
     encoding = a2l_encoding(path.read_bytes())
     text = path.read_bytes().decode(encoding)
@@ -248,12 +255,15 @@ def slim_a2l(path: Path, out_dir: Path, keep: frozenset[str] | None = None, name
     depth = 0
     drop_depth = -1  # the depth of the block being left out, -1: none
     drop_from = 0
+    vendor: list[int] = [0] if inside_if_data else []  # depths of the open IF_DATA / A2ML blocks
     for m in _A2L_TOKEN.finditer(body):
         kind, block = m.group(1), m.group(2)
         if kind is None:  # an /include
             inc = _A2L_INCLUDE_NAME.match(text, m.start())
             if inc is not None and drop_depth < 0:
-                target = slim_a2l(_include_target(path, inc.group(1) or inc.group(2)), out_dir, keep, names)
+                target = slim_a2l(
+                    _include_target(path, inc.group(1) or inc.group(2)), out_dir, keep, names, bool(vendor)
+                )
                 pieces.append(text[at : m.start()])
                 pieces.append(f'/include "{target}"')
                 at = inc.end()
@@ -262,7 +272,9 @@ def slim_a2l(path: Path, out_dir: Path, keep: frozenset[str] | None = None, name
             depth += 1
             if drop_depth >= 0:
                 continue
-            leave = block in SLIM_DROP
+            if block in ("IF_DATA", "A2ML"):
+                vendor.append(depth)
+            leave = block in SLIM_DROP and not vendor
             if block == "CHARACTERISTIC":
                 nm = _A2L_NAME.match(body, m.end())
                 name = nm.group(1) if nm else ""
@@ -277,6 +289,8 @@ def slim_a2l(path: Path, out_dir: Path, keep: frozenset[str] | None = None, name
                 pieces.append("\n" * text.count("\n", drop_from, m.end()))
                 at = m.end()
                 drop_depth = -1
+            elif drop_depth < 0 and vendor and vendor[-1] == depth:
+                vendor.pop()
             depth -= 1
     pieces.append(text[at:])
     out = out_dir / f"{len(list(out_dir.iterdir())):04d}_{path.name}"
