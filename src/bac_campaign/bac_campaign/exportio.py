@@ -200,7 +200,7 @@ def read_export(path: str | Path, folder: str | Path, bags_too: bool = True) -> 
         _check_launch_record(p, dest)
         start = mdf_start_ns(mdf)
         out: list[ExportedBag] = []
-        for bag in sorted(bags, key=_bag_key) if bags_too else []:
+        for bag in sorted(bags, key=bag_order) if bags_too else []:
             streams = bags[bag]
             try:
                 out.append(_read_bag(mdf, bag, streams, start))
@@ -255,9 +255,11 @@ def read_manifest(folder: Path) -> dict[str, Any]:
     return data if isinstance(data, dict) else {}
 
 
-def _bag_key(name: str) -> tuple[int, int]:
+def bag_order(name: str) -> tuple[int, int, str]:
+    """trial_0003 < trial_0003.r1 < trial_0003.r2 < trial_0004: the order a campaign's recorders created its bags
+    (by folder name; other names last, by name)."""
     m = re.fullmatch(r"trial_(\d+)(?:\.r(\d+))?", name)
-    return (int(m.group(1)), int(m.group(2) or 0)) if m else (1 << 62, 0)
+    return (int(m.group(1)), int(m.group(2) or 0), "") if m else (1 << 62, 0, name)
 
 
 def _stamps(start: int, t: np.ndarray) -> np.ndarray:
@@ -414,6 +416,7 @@ __all__ = [
     "ExportedBag",
     "ExportedSegment",
     "attach_campaign_files",
+    "bag_order",
     "campaign_files",
     "export_channels_hint",
     "is_bac_export",

@@ -50,7 +50,6 @@ import argparse
 import dataclasses
 import json
 import math
-import re
 import sys
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
@@ -61,7 +60,14 @@ import numpy as np
 from numpy.typing import NDArray
 
 from bac_agent.journal import JOURNAL_NAME, journaled_engine_options, read_journal
-from bac_campaign.exportio import ExportedBag, export_channels_hint, is_bac_export, read_manifest, unpacked_export
+from bac_campaign.exportio import (
+    ExportedBag,
+    bag_order,
+    export_channels_hint,
+    is_bac_export,
+    read_manifest,
+    unpacked_export,
+)
 from bac_campaign.launches import launch_of_bags
 from bac_common.errors import BacError
 from bac_imu.ingest import IngestConfig, ingest_all
@@ -344,9 +350,8 @@ def _steps_back_note(path: Path, imu: ImuArrays | None) -> str:
 
 
 def _bag_order(bag: Path) -> tuple[int, int, str]:
-    """trial_0003 < trial_0003.r1 < trial_0003.r2 < trial_0004: the order a campaign's recorders created them."""
-    m = re.fullmatch(r"trial_(\d+)(?:\.r(\d+))?", bag.name)
-    return (int(m.group(1)), int(m.group(2) or 0), "") if m else (1 << 62, 0, bag.name)
+    """The order a campaign's recorders created its bags (:func:`bac_campaign.exportio.bag_order`)."""
+    return bag_order(bag.name)
 
 
 def journal_verdicts(campaign_dir: Path | None) -> dict[RunKey, tuple[float, str]]:
