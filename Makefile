@@ -20,9 +20,14 @@ demo: setup
 	@$(PY) -m bac_bringup.cli demo $(DEMO_ARGS)
 
 ## make test: set up if needed, then lint the pure cores and run the whole test suite
-## inside a private network namespace (nothing can leave this machine)
+## inside a private network namespace (nothing can leave this machine), on TEST_WORKERS
+## pytest-xdist workers (default 2; 0: one process), each in a namespace of its own
+## (scripts/test-worker), whole files to a worker (a module's campaign runs once). pytest-rerunfailures
+## (colcon-core's, unused here) would have each worker dial the main process on 127.0.0.1, another namespace.
+TEST_WORKERS ?= 2
+XDIST_ARGS := $(if $(filter-out 0,$(TEST_WORKERS)),--tx $(TEST_WORKERS)*popen//python=$(CURDIR)/scripts/test-worker --dist loadfile --no-loadscope-reorder -p no:rerunfailures,-p no:xdist)
 test: setup lint
-	@$(PY) -m bac_bringup.netns -- $(PY) -m pytest $(PYTEST_ARGS)
+	@$(PY) -m bac_bringup.netns -- $(PY) -m pytest $(XDIST_ARGS) $(PYTEST_ARGS)
 
 lint: setup
 	@$(VENV)/bin/ruff check src tests bench

@@ -3,7 +3,13 @@
 * Each test gets its own ROS domain (``ROS_DOMAIN_ID``), so that nodes left by
   one test can never be heard by the next; ``make test`` also runs the whole
   suite inside a private network namespace, so tests of concurrent sessions
-  cannot hear each other either.
+  cannot hear each other either. ``make test`` runs two pytest-xdist workers,
+  each in a network namespace of its own (``scripts/test-worker``) and with
+  its own share of the domains (Fast DDS's shared-memory transport is not
+  namespaced: one domain on two workers could still meet in /dev/shm).
+  :func:`fresh_domain` gives a module-scoped fixture a domain of that share.
+* Whole files go to a worker (``--dist loadfile``: a module's campaign runs
+  once), the slow ones first, so that the longest do not end the run alone.
 * ``ros_context``: an rclpy context for in-process nodes, with a background
   executor, shut down after the test.
 * ``procs``: starts real processes (nodes, the simulated ECU, ...) and kills
@@ -30,8 +36,23 @@ import pytest
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT / "tests"))
 
-# ROS domain ids usable on Linux without port clashes: 1..101 (0 is everyone's default)
-_DOMAINS = itertools.cycle(random.Random(os.getpid() ^ int(time.time())).sample(range(1, 102), 101))
+
+def _worker_domains() -> list[int]:
+    """ROS domain ids usable on Linux without port clashes, 1..101 (0 is everyone's default); under pytest-xdist
+    worker k of n takes the ids d with d % n == k."""
+    n = int(os.environ.get("PYTEST_XDIST_WORKER_COUNT", "1") or 1)
+    k = int(os.environ.get("PYTEST_XDIST_WORKER", "gw0").removeprefix("gw") or 0) % max(n, 1)
+    ids = [d for d in range(1, 102) if d % max(n, 1) == k]
+    return random.Random(os.getpid() ^ int(time.time())).sample(ids, len(ids))
+
+
+_DOMAINS = itertools.cycle(_worker_domains())
+
+
+def fresh_domain() -> int:
+    """A ROS domain of this worker's share, not the one the previous test used."""
+    return next(_DOMAINS)
+
 
 os.environ["ROS_AUTOMATIC_DISCOVERY_RANGE"] = "LOCALHOST"
 os.environ.setdefault("RMW_IMPLEMENTATION", "rmw_fastrtps_cpp")
@@ -53,7 +74,7 @@ def wait_for(condition: Callable[[], Any], timeout: float = 20.0, interval: floa
 
 @pytest.fixture(autouse=True)
 def ros_domain(monkeypatch: pytest.MonkeyPatch) -> int:
-    domain = next(_DOMAINS)
+    domain = fresh_domain()
     monkeypatch.setenv("ROS_DOMAIN_ID", str(domain))
     return domain
 
@@ -191,6 +212,22 @@ def pytest_runtest_makereport(item: pytest.Item, call: pytest.CallInfo[None]) ->
     rep = yield
     setattr(item, f"rep_{rep.when}", rep)
     return rep
+
+
+def _file_rank(items: list[pytest.Item]) -> int:
+    marks = {m.name for item in items for m in item.iter_markers()}
+    return 0 if "slow" in marks else 1 if "integration" in marks else 2
+
+
+def pytest_collection_modifyitems(session: pytest.Session, config: pytest.Config, items: list[pytest.Item]) -> None:
+    """Files with slow tests first, then the other integration tests, then the unit tests (each file's tests in
+    their order): with two workers the long files start early and the many short ones fill the end. The order is
+    a function of the collection alone, the same on every worker (xdist checks that)."""
+    files: dict[str, list[pytest.Item]] = {}
+    for item in items:
+        files.setdefault(item.nodeid.split("::", 1)[0], []).append(item)
+    ranked = sorted(files.values(), key=_file_rank)  # stable: collection order within a rank
+    items[:] = [item for group in ranked for item in group]
 
 
 @pytest.fixture

@@ -17,6 +17,7 @@ from __future__ import annotations
 import json
 import os
 import shutil
+import socket
 import subprocess
 import sys
 import tempfile
@@ -141,3 +142,60 @@ def test_the_demo_keeps_its_graph_in_a_private_namespace(ros_env: dict[str, str]
     assert not r["graph_in_this_namespace"] and r["graph_namespaces"], r["graph_namespaces"]
     assert r["received"] == []
     assert r["delta"]["ext0"]["tx_packets"] == 0, r["delta"]
+
+
+WORKER_PROBE = """
+import json, os, socket, sys
+s = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+try:
+    s.bind(("127.0.0.1", int(sys.argv[1])))
+    bound = True
+except OSError:
+    bound = False
+ifaces = sorted(line.split(":")[0].strip() for line in open("/proc/self/net/dev").readlines()[2:])
+print(json.dumps({"pid": os.getpid(), "bound": bound, "ifaces": ifaces, "marker": os.environ.get("BAC_PRIVATE_NETNS")}))
+"""
+
+
+def test_a_test_worker_has_a_namespace_of_its_own(ros_env: dict[str, str]) -> None:
+    """scripts/test-worker (make test's pytest-xdist workers) is the venv's Python in a fresh private namespace,
+    made even inside one, in the same process (xdist talks to it over its standard streams and stops it by pid):
+    a UDP port held here is free there, and it has loopback only."""
+    if shutil.which("unshare") is None:
+        pytest.skip("needs unshare")
+    held = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    held.bind(("127.0.0.1", 0))
+    port = held.getsockname()[1]
+    try:
+        proc = subprocess.Popen(
+            [str(ROOT / "scripts" / "test-worker"), "-c", WORKER_PROBE, str(port)],
+            env={**ros_env, "BAC_PRIVATE_NETNS": "1"},
+            stdout=subprocess.PIPE,
+            stderr=subprocess.PIPE,
+            text=True,
+        )
+        out, err = proc.communicate(timeout=60)
+    finally:
+        held.close()
+    assert proc.returncode == 0, err
+    got = json.loads(out.strip().splitlines()[-1])
+    assert got["bound"], "the worker shares this namespace's loopback"
+    assert got["ifaces"] == ["lo"]
+    assert got["pid"] == proc.pid, "the worker is not the process xdist started"
+    assert got["marker"] == "1"
+
+
+def test_two_workers_take_disjoint_shares_of_the_ros_domains(monkeypatch: pytest.MonkeyPatch) -> None:
+    """Fast DDS's shared-memory transport is not namespaced: two workers must never use one domain."""
+    import conftest
+
+    shares = []
+    for worker in ("gw0", "gw1"):
+        monkeypatch.setenv("PYTEST_XDIST_WORKER_COUNT", "2")
+        monkeypatch.setenv("PYTEST_XDIST_WORKER", worker)
+        shares.append(set(conftest._worker_domains()))
+    assert not shares[0] & shares[1]
+    assert shares[0] | shares[1] == set(range(1, 102))
+    monkeypatch.delenv("PYTEST_XDIST_WORKER_COUNT")
+    monkeypatch.delenv("PYTEST_XDIST_WORKER")
+    assert set(conftest._worker_domains()) == set(range(1, 102))

@@ -112,6 +112,9 @@ class HangsInAFinalizer:
 class Up(BacNode):
     def __init__(self, **kwargs):
         super().__init__("up", **kwargs)
+        self.create_timer(0.05, self.up)  # up once spinning: a SIGINT in the constructor is an interrupted start
+
+    def up(self):
         Path(sys.argv[1]).write_text("up")
 
     def destroy_node(self):

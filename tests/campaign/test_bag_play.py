@@ -24,7 +24,7 @@ from rosbags.interfaces import QosDurability, QosReliability
 from bac_measure.bagio import offered_qos, read_messages
 from bac_measure.recording import RECORDED_TOPICS, playback_qos, read_metadata
 
-from conftest import wait_for
+from conftest import fresh_domain, wait_for
 
 pytestmark = pytest.mark.integration
 PLAYED = ("imu/data_raw", "vehicle/odom", "bac/trial")
@@ -33,7 +33,7 @@ PLAYED = ("imu/data_raw", "vehicle/odom", "bac/trial")
 @pytest.fixture(scope="module")
 def campaign(tmp_path_factory: pytest.TempPathFactory) -> Path:
     camp = tmp_path_factory.mktemp("bagplay") / "c"
-    env = {**os.environ, "ROS_DOMAIN_ID": "79", "ROS_AUTOMATIC_DISCOVERY_RANGE": "LOCALHOST"}
+    env = {**os.environ, "ROS_DOMAIN_ID": str(fresh_domain()), "ROS_AUTOMATIC_DISCOVERY_RANGE": "LOCALHOST"}
     cmd = [
         sys.executable, "-m", "bac_bringup.cli", "launch", "sim", "--campaign-dir", str(camp),
         "--log-dir", str(camp / "logs"), "--timeout", "240",

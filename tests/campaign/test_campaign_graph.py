@@ -23,7 +23,7 @@ from bac_agent.journal import read_journal
 from bac_campaign.rescore import rescore
 from bac_measure.recording import bac_typestore
 
-from conftest import ROOT
+from conftest import ROOT, fresh_domain
 
 pytestmark = [pytest.mark.integration, pytest.mark.slow]
 REAL_BAG = ROOT / "src" / "bac_measure" / "test" / "data" / "robot_localization_test2.bag"
@@ -35,7 +35,7 @@ def campaign(tmp_path_factory: pytest.TempPathFactory) -> Path:
     import os
 
     camp = tmp_path_factory.mktemp("campaign") / "c"
-    env = {**os.environ, "ROS_DOMAIN_ID": "77", "ROS_AUTOMATIC_DISCOVERY_RANGE": "LOCALHOST"}
+    env = {**os.environ, "ROS_DOMAIN_ID": str(fresh_domain()), "ROS_AUTOMATIC_DISCOVERY_RANGE": "LOCALHOST"}
     cmd = [
         sys.executable, "-m", "bac_bringup.cli", "launch", "sim", "--campaign-dir", str(camp),
         "--log-dir", str(camp / "logs"), "--timeout", "400",

@@ -12,7 +12,6 @@ from __future__ import annotations
 import json
 import math
 import os
-import random
 import re
 import subprocess
 import sys
@@ -26,6 +25,8 @@ import pytest
 from helpers.browser import ARTIFACTS, chromium, page_errors, save, wait_js, wait_until
 
 from bac_agent.journal import read_journal
+
+from conftest import fresh_domain
 
 pytestmark = [pytest.mark.integration, pytest.mark.slow, pytest.mark.timeout(1200)]
 BUDGET = 15  # the demo's
@@ -66,7 +67,7 @@ def live(tmp_path_factory: pytest.TempPathFactory) -> Iterator[dict[str, Any]]:
     """Run the demo with the browser on its cockpit; what the page showed, and when."""
     out = tmp_path_factory.mktemp("cockpit")
     camp = out / "demo"
-    env = {**os.environ, "ROS_DOMAIN_ID": str(random.randint(1, 101)), "ROS_AUTOMATIC_DISCOVERY_RANGE": "LOCALHOST"}
+    env = {**os.environ, "ROS_DOMAIN_ID": str(fresh_domain()), "ROS_AUTOMATIC_DISCOVERY_RANGE": "LOCALHOST"}
     log = (out / "demo.out").open("wb")
     proc = subprocess.Popen(
         [sys.executable, "-m", "bac_bringup.cli", "demo", "--campaign-dir", str(camp)],

@@ -30,7 +30,7 @@ from typing import Any
 
 import pytest
 
-from conftest import ROOT, wait_for
+from conftest import ROOT, fresh_domain, wait_for
 
 # the workspace fixture (colcon build + colcon test) takes 1 to 4 minutes depending on the machine's load
 pytestmark = [pytest.mark.integration, pytest.mark.slow, pytest.mark.timeout(1200)]
@@ -39,7 +39,6 @@ VENV = Path(sys.prefix)
 PACKAGES = [p.name for p in sorted((ROOT / "src").iterdir()) if (p / "package.xml").is_file()]
 PY_PACKAGES = [p for p in PACKAGES if (ROOT / "src" / p / "setup.py").is_file()]
 BUDGET = 3  # trials of the campaign run from the install space
-CAMPAIGN_DOMAIN = 79  # ROS domain of the module-scoped campaign (the tests' own domains come from conftest)
 
 # every node of bac: package, executable, the arguments it needs to come up (filled in per test below)
 NODES: dict[str, str] = {
@@ -313,7 +312,7 @@ def campaign(workspace: Workspace, tmp_path_factory: pytest.TempPathFactory) -> 
     """``bac launch sim`` from the install space, in a folder outside the repository, to the campaign's end."""
     here = tmp_path_factory.mktemp("outside")
     assert ROOT not in here.parents
-    env = {**workspace.env, "ROS_DOMAIN_ID": str(CAMPAIGN_DOMAIN)}
+    env = {**workspace.env, "ROS_DOMAIN_ID": str(fresh_domain())}
     cmd = [
         "bac", "launch", "sim", "--log-dir", "logs", "--timeout", "400",
         "-p", f"bo_agent.budget:={BUDGET}", "-p", "bo_agent.confirmation_run:=false",

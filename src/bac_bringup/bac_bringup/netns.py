@@ -12,6 +12,11 @@ clean-up is needed after a crash.
 Usage::
 
     python -m bac_bringup.netns -- COMMAND [ARG ...]
+    python -m bac_bringup.netns --new -- COMMAND [ARG ...]
+
+``--new`` makes a namespace of its own even inside one, and *becomes* the command (exec: same process id, same
+standard streams): ``make test`` starts each of its pytest workers this way (``scripts/test-worker``), so that two
+tests running at once never share a loopback, a CAN multicast port or a DDS discovery port.
 """
 
 from __future__ import annotations
@@ -79,14 +84,25 @@ def run(argv: Sequence[str]) -> int:
     return subprocess.call(wrap_command(argv), env=private_env())
 
 
+def exec_new(argv: Sequence[str]) -> None:
+    """Replace this process by ``argv`` inside a new private network namespace (also when already in one)."""
+    cmd = wrap_command(argv)
+    os.execve(cmd[0], cmd, private_env())
+
+
 def main(args: Sequence[str] | None = None) -> int:
     argv = list(sys.argv[1:] if args is None else args)
+    new = bool(argv) and argv[0] == "--new"
+    if new:
+        argv = argv[1:]
     if argv and argv[0] == "--":
         argv = argv[1:]
     if not argv:
-        sys.stderr.write("usage: python -m bac_bringup.netns -- COMMAND [ARG ...]\n")
+        sys.stderr.write("usage: python -m bac_bringup.netns [--new] -- COMMAND [ARG ...]\n")
         return 2
     try:
+        if new:
+            exec_new(argv)
         return run(argv)
     except NetnsError as exc:
         sys.stderr.write(f"bac netns: {exc}\n")
