@@ -24,9 +24,13 @@ demo: setup
 ## pytest-xdist workers (default 2; 0: one process), each in a namespace of its own
 ## (scripts/test-worker), whole files to a worker (a module's campaign runs once). pytest-rerunfailures
 ## (colcon-core's, unused here) would have each worker dial the main process on 127.0.0.1, another namespace.
+## A crashed worker ends the run (--max-worker-restart=0): xdist would hand its file to a new worker again and
+## again, and a new worker (gw2) would share a live one's ROS domains. Use TEST_WORKERS, not -n (plain workers
+## would share one namespace).
 TEST_WORKERS ?= 2
-XDIST_ARGS := $(if $(filter-out 0,$(TEST_WORKERS)),--tx $(TEST_WORKERS)*popen//python=$(CURDIR)/scripts/test-worker --dist loadfile --no-loadscope-reorder -p no:rerunfailures,-p no:xdist)
+XDIST_ARGS := $(if $(filter-out 0,$(TEST_WORKERS)),--tx $(TEST_WORKERS)*popen//python=$(CURDIR)/scripts/test-worker --dist loadfile --no-loadscope-reorder --max-worker-restart=0 -p no:rerunfailures,-p no:xdist)
 test: setup lint
+	@[[ "$(TEST_WORKERS)" =~ ^(0|[1-9][0-9]*)$$ ]] || { echo "TEST_WORKERS must be a number of workers (0: one process), not '$(TEST_WORKERS)'" >&2; exit 2; }
 	@$(PY) -m bac_bringup.netns -- $(PY) -m pytest $(XDIST_ARGS) $(PYTEST_ARGS)
 
 lint: setup

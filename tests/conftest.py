@@ -3,11 +3,15 @@
 * Each test gets its own ROS domain (``ROS_DOMAIN_ID``), so that nodes left by
   one test can never be heard by the next; ``make test`` also runs the whole
   suite inside a private network namespace, so tests of concurrent sessions
-  cannot hear each other either. ``make test`` runs two pytest-xdist workers,
-  each in a network namespace of its own (``scripts/test-worker``) and with
-  its own share of the domains (Fast DDS's shared-memory transport is not
-  namespaced: one domain on two workers could still meet in /dev/shm).
-  :func:`fresh_domain` gives a module-scoped fixture a domain of that share.
+  cannot hear each other on the network. ``make test`` runs two pytest-xdist
+  workers, each in a network namespace of its own (``scripts/test-worker``)
+  and with its own share of the domains: Fast DDS's shared-memory transport
+  is not namespaced, so one domain on two workers could still meet in
+  /dev/shm (``--max-worker-restart=0``: a restarted worker, gw2, would take
+  gw0's share). Two *sessions* at once (make test and a scripts/pytest.sh
+  beside it) draw from the same 101 domains and can meet there: run one at a
+  time. :func:`fresh_domain` gives a module-scoped fixture a domain of the
+  worker's share.
 * Whole files go to a worker (``--dist loadfile``: a module's campaign runs
   once), the slow ones first, so that the longest do not end the run alone.
 * ``ros_context``: an rclpy context for in-process nodes, with a background
@@ -214,15 +218,20 @@ def pytest_runtest_makereport(item: pytest.Item, call: pytest.CallInfo[None]) ->
     return rep
 
 
-def _file_rank(items: list[pytest.Item]) -> int:
+def _file_rank(items: list[pytest.Item]) -> tuple[int, float]:
+    """Slow integration files first, then the other integration files, then slow unit tests, then the rest; within
+    a rank the file with the longest declared timeout first (the test's own bound on how long it may take)."""
     marks = {m.name for item in items for m in item.iter_markers()}
-    return 0 if "slow" in marks else 1 if "integration" in marks else 2
+    integration, slow = "integration" in marks, "slow" in marks
+    rank = 0 if integration and slow else 1 if integration else 2 if slow else 3
+    timeouts = [float(m.args[0]) for item in items for m in item.iter_markers("timeout") if m.args]
+    return rank, -max(timeouts, default=0.0)
 
 
 def pytest_collection_modifyitems(session: pytest.Session, config: pytest.Config, items: list[pytest.Item]) -> None:
-    """Files with slow tests first, then the other integration tests, then the unit tests (each file's tests in
-    their order): with two workers the long files start early and the many short ones fill the end. The order is
-    a function of the collection alone, the same on every worker (xdist checks that)."""
+    """Files in the order of :func:`_file_rank` (each file's tests in their order): with two workers the long files
+    start early and the many short ones fill the end. The order is a function of the collection alone, the same
+    on every worker (xdist checks that)."""
     files: dict[str, list[pytest.Item]] = {}
     for item in items:
         files.setdefault(item.nodeid.split("::", 1)[0], []).append(item)

@@ -174,7 +174,12 @@ def test_a_test_worker_has_a_namespace_of_its_own(ros_env: dict[str, str]) -> No
             stderr=subprocess.PIPE,
             text=True,
         )
-        out, err = proc.communicate(timeout=60)
+        try:
+            out, err = proc.communicate(timeout=60)
+        finally:
+            if proc.poll() is None:
+                proc.kill()
+                proc.wait()
     finally:
         held.close()
     assert proc.returncode == 0, err
@@ -185,17 +190,20 @@ def test_a_test_worker_has_a_namespace_of_its_own(ros_env: dict[str, str]) -> No
     assert got["marker"] == "1"
 
 
-def test_two_workers_take_disjoint_shares_of_the_ros_domains(monkeypatch: pytest.MonkeyPatch) -> None:
-    """Fast DDS's shared-memory transport is not namespaced: two workers must never use one domain."""
+def test_workers_take_disjoint_shares_of_the_ros_domains(monkeypatch: pytest.MonkeyPatch, ros_domain: int) -> None:
+    """Fast DDS's shared-memory transport is not namespaced: two workers must never use one domain. This test's
+    own domain, and the next, come from its worker's share."""
     import conftest
 
-    shares = []
-    for worker in ("gw0", "gw1"):
-        monkeypatch.setenv("PYTEST_XDIST_WORKER_COUNT", "2")
-        monkeypatch.setenv("PYTEST_XDIST_WORKER", worker)
-        shares.append(set(conftest._worker_domains()))
-    assert not shares[0] & shares[1]
-    assert shares[0] | shares[1] == set(range(1, 102))
+    assert ros_domain in conftest._worker_domains() and conftest.fresh_domain() in conftest._worker_domains()
+    for count in (1, 2, 3, 4):
+        shares = []
+        for k in range(count):
+            monkeypatch.setenv("PYTEST_XDIST_WORKER_COUNT", str(count))
+            monkeypatch.setenv("PYTEST_XDIST_WORKER", f"gw{k}")
+            shares.append(set(conftest._worker_domains()))
+        assert sum(len(s) for s in shares) == 101 and set().union(*shares) == set(range(1, 102)), count
+        assert all(len(s) >= 25 for s in shares)
     monkeypatch.delenv("PYTEST_XDIST_WORKER_COUNT")
     monkeypatch.delenv("PYTEST_XDIST_WORKER")
     assert set(conftest._worker_domains()) == set(range(1, 102))

@@ -112,9 +112,11 @@ class HangsInAFinalizer:
 class Up(BacNode):
     def __init__(self, **kwargs):
         super().__init__("up", **kwargs)
-        self.create_timer(0.05, self.up)  # up once spinning: a SIGINT in the constructor is an interrupted start
+        self._up = self.create_timer(0.05, self.up)  # up once spinning: a SIGINT in the constructor is an
+        # interrupted start
 
     def up(self):
+        self._up.cancel()
         Path(sys.argv[1]).write_text("up")
 
     def destroy_node(self):

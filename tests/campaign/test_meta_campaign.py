@@ -59,6 +59,7 @@ def test_a_meta_parameter_campaign_runs_through_the_graph(ros_env: dict[str, str
     assert "J* " in proc.stdout and "noise-free simulator" in proc.stdout
 
 
+@pytest.mark.slow
 @pytest.mark.timeout(900)  # road runs of Controller II: 3-5 min on a quiet machine, beyond 300 s under a CPU burner
 def test_the_controller_ii_meta_parameter_file_runs_through_the_graph(ros_env: dict[str, str], tmp_path: Path) -> None:
     """The paper's experimental phase: Controller II on the test road through the shipped meta-parameter file

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+import time
 from pathlib import Path
 from typing import Any
 
@@ -160,3 +161,53 @@ def test_a_trial_announced_with_its_samples_in_one_batch_gets_them(ros_context: 
     b2 = read_bag(camp / "bags" / "trial_0002")
     assert [m.linear_acceleration.z for m in b1["imu/data_raw"]] == [1.0] * 30
     assert [m.linear_acceleration.z for m in b2["imu/data_raw"]] == [2.0] * 20
+
+
+def test_at_a_stop_the_recorder_takes_what_is_still_on_its_way(ros_context: Any, tmp_path: Path) -> None:
+    """A CI run lost the last 0.7 s of a scored run and its RunScore from the run's bag: the agent was killed right
+    after the score, and the recorder, lagging on a loaded machine, was stopped before its readers had them. At a
+    stop it now keeps taking until its readers stay empty for a while (here: after its context was shut down, as
+    SIGINT does, samples published for 0.4 s more, and a RunScore no executor callback ever ran for)."""
+    import threading
+
+    import rclpy
+    from rclpy.parameter import Parameter
+    from sensor_msgs.msg import Imu
+
+    from bac_campaign.recorder_node import CampaignRecorderNode
+
+    camp = tmp_path / "campaign"
+    own = rclpy.Context()
+    rclpy.init(context=own, domain_id=ros_context.context.get_domain_id())
+    rec = CampaignRecorderNode(  # never spun: only the explicit drain below and the stop read its topics
+        context=own,
+        parameter_overrides=[Parameter("campaign_dir", value=str(camp)), Parameter("close_grace_s", value=30.0)],
+    )
+    node = ros_context.node("feeder")
+    p_trial = node.create_publisher(Trial, "bac/trial", QOS_LATCHED)
+    p_raw = node.create_publisher(Imu, "imu/data_raw", QOS_STREAM)
+    p_score = node.create_publisher(RunScore, "bac/run_score", QOS_EVENTS)
+    for p in (p_trial, p_raw, p_score):
+        wait_for(lambda p=p: p.get_subscription_count() > 0, 60, what=f"recorder on {p.topic_name}")
+    p_trial.publish(trial(1, Trial.STATE_READY_TO_DRIVE, 10.0))
+    wait_for(lambda: rec._drain() and (camp / "bags" / "trial_0001").exists(), 20, what="bag of trial 1 opened")
+    p_score.publish(RunScore(campaign_id="c1", trial_id=1, attempt=1, j=0.5, valid=True))
+    n = 40
+
+    def feed() -> None:
+        for i in range(n):
+            p_raw.publish(imu(10.0 + 0.01 * i, 3.0))
+            time.sleep(0.01)  # a stream still arriving while the recorder stops, not a wait for a condition
+
+    feeder = threading.Thread(target=feed)
+    cap = rec.stop_drain_s
+    rclpy.try_shutdown(context=own)  # what SIGINT does before the node is destroyed
+    t0 = time.monotonic()
+    feeder.start()
+    rec.destroy_node()
+    took = time.monotonic() - t0
+    feeder.join()
+    b1 = read_bag(camp / "bags" / "trial_0001")
+    assert [m.linear_acceleration.z for m in b1["imu/data_raw"]] == [3.0] * n
+    assert [m.j for m in b1["bac/run_score"]] == [0.5]
+    assert took < cap + 1.0, f"the stop took {took:.2f} s (at most {cap} s of draining)"

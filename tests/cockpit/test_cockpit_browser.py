@@ -247,8 +247,9 @@ def test_the_page_follows_the_graph_within_half_a_second(
         f"(bac demo, 10x real time, load average up to {load:.1f} on {os.cpu_count()} cores)"
     )
     draws = ", ".join(f"{name} {sorted(ms)[len(ms) // 2]:.0f}" for name, ms in sorted(live["timings"].items()) if ms)
-    with capsys.disabled():  # the figure is printed in every run, passed or not
-        print(f"\n{figure}\n  the page's drawing, median ms: {draws}")
+    with capsys.disabled():  # the figure is printed in every run, passed or not (stderr: an xdist worker's stdout
+        # goes nowhere)
+        print(f"\n{figure}\n  the page's drawing, median ms: {draws}", file=sys.stderr)
     (ARTIFACTS / "cockpit_update_lag.txt").write_text(figure + "\n" + draws + "\n")
     detail = "\n".join(
         f"{w} trial {t}: shown {a:.3f} (node had it {b:.3f}, sent {c:.3f}, page's script had it {d:.3f})"
@@ -258,7 +259,7 @@ def test_the_page_follows_the_graph_within_half_a_second(
     if load > OVERLOADED:
         with capsys.disabled():
             print(f"  the machine was loaded by others (load average {load:.1f} > {OVERLOADED:.0f}): the "
-                  f"{MAX_LAG_S} s bound is not asserted this time")  # fmt: skip
+                  f"{MAX_LAG_S} s bound is not asserted this time", file=sys.stderr)  # fmt: skip
         assert median < 1.0 and worst[2] < 10.0, detail
         return
     assert worst[2] < MAX_LAG_S, detail
@@ -277,7 +278,7 @@ def test_screenshots_were_taken(live: dict[str, Any], capsys: pytest.CaptureFixt
     shots = [p for p in (live["screenshot_live"], live["screenshot_end"]) if p is not None]
     assert live["screenshot_end"].stat().st_size > 50_000
     with capsys.disabled():
-        print(f"\ncockpit screenshots: {' '.join(str(p) for p in shots)}")
+        print(f"\ncockpit screenshots: {' '.join(str(p) for p in shots)}", file=sys.stderr)
 
 
 def table_rows(driver: Any) -> list[list[str]]:

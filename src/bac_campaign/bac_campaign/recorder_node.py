@@ -28,6 +28,7 @@ from __future__ import annotations
 import functools
 import sys
 import threading
+import time
 from pathlib import Path
 from typing import Any
 
@@ -55,6 +56,7 @@ STREAM_DEEP = QoSProfile(
 )
 STREAM_INPUT_DEEP = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=50000, reliability=ReliabilityPolicy.RELIABLE)
 DRAINED_TOPICS = ("imu/data_raw", "imu/vehicle", "vehicle/odom")
+STOP_QUIET_S = 0.3  # at a stop: the readers empty this long (wall) = nothing more on its way
 # bac/trial is taken by the same timer, right after the streams: a stream sample taken in a batch was published
 # after its trial's announcement, so the announcement is in its reader by then and the trial's bag opens before
 # the sample is routed (an executor callback for bac/trial could run later than the timer that drains the
@@ -118,13 +120,16 @@ class CampaignRecorderNode(BacNode):
         self._launches: LaunchIndex | None = None  # opened with the first bag
         group = MutuallyExclusiveCallbackGroup()
         self._subs = [
-            self.create_subscription(
-                _msg_class(RECORDED_TOPICS[t]),
+            (
                 t,
-                functools.partial(self._on_message, t),
-                QOS_BY_TOPIC[t],
-                raw=True,
-                callback_group=group,
+                self.create_subscription(
+                    _msg_class(RECORDED_TOPICS[t]),
+                    t,
+                    functools.partial(self._on_message, t),
+                    QOS_BY_TOPIC[t],
+                    raw=True,
+                    callback_group=group,
+                ),
             )
             for t in topics
             if t not in DRAINED_TOPICS and t != TOPIC_TRIAL
@@ -149,20 +154,59 @@ class CampaignRecorderNode(BacNode):
         self.drain_period_s = self.declare_float(
             "drain_period_s", 0.02, "how often the high-rate streams are taken from their readers, s", 0.001, 1.0
         )
+        self.stop_drain_s = self.declare_float(
+            "stop_drain_s",
+            2.0,
+            "at a stop, keep taking what is still on its way (a recorder lagging on a loaded machine) until nothing "
+            f"came for {STOP_QUIET_S} s, at most this long (wall), s",
+            0.0,
+            30.0,
+        )
         self._wall = Clock(clock_type=ClockType.STEADY_TIME)
         self._close_timers: list[Any] = []
         self._drain_timer = self.create_timer(self.drain_period_s, self._drain, callback_group=group, clock=self._wall)
         self.get_logger().info(f"recording {len(topics)} topics into {Path(self.campaign_dir) / 'bags'}")
 
     # --- routing -----------------------------------------------------------------------
-    def _drain(self) -> None:
+    def _drain(self) -> int:
+        """Route what waits in the drained readers; the number of messages taken."""
         batches = [(topic, drain.take()) for topic, drain in self._drains]
+        taken = sum(len(b) for _, b in batches)
         if self._trial_drain is not None:  # after the streams (the note at DRAINED_TOPICS)
             for data in self._trial_drain.take():
                 self._on_message(TOPIC_TRIAL, data)
+                taken += 1
         for topic, batch in batches:
             for data in batch:
                 self._on_message(topic, data)
+        return taken
+
+    def _take_callback_topics(self) -> int:
+        """At a stop the executor no longer runs the callbacks: take what waits in those readers too."""
+        taken = 0
+        for topic, sub in self._subs:
+            with sub.handle:
+                while (got := sub.handle.take_message(sub.msg_type, True)) is not None:
+                    self._on_message(topic, got[0])
+                    taken += 1
+        return taken
+
+    def _drain_until_quiet(self) -> None:
+        """Take everything until the readers stay empty for STOP_QUIET_S, at most ``stop_drain_s``: the end of a run
+        the agent just scored can still be on its way here when the graph stops (the DDS threads of a process
+        starved by a loaded machine deliver it late; seen in CI, a run's last 0.7 s missing from its bag)."""
+        start = time.monotonic()
+        quiet_since = start
+        while True:
+            if self._drain() + self._take_callback_topics():
+                quiet_since = time.monotonic()
+            now = time.monotonic()
+            if now - quiet_since >= STOP_QUIET_S or now - start >= self.stop_drain_s:
+                return
+            time.sleep(0.02)
+
+    def cleanup_time_s(self) -> float:
+        return self.stop_drain_s + 1.0  # the drain at a stop, then the bags' closing
 
     def _on_message(self, topic: str, data: bytes) -> None:
         now_ns = self.get_clock().now().nanoseconds
@@ -250,7 +294,7 @@ class CampaignRecorderNode(BacNode):
     def destroy_node(self) -> None:
         with self._lock:
             try:
-                self._drain()  # what arrived since the last drain
+                self._drain_until_quiet()  # what arrived since the last drain, and what is still on its way
             except Exception as exc:
                 self.get_logger().warning(f"last drain failed: {exc}")
             for trial_id in list(self._open_bags):
