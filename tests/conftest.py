@@ -13,7 +13,8 @@
   time. :func:`fresh_domain` gives a module-scoped fixture a domain of the
   worker's share.
 * Whole files go to a worker (``--dist loadfile``: a module's campaign runs
-  once), the slow ones first, so that the longest do not end the run alone.
+  once), the slow ones first, so that the longest do not end the run alone;
+  a file marked ``alone`` runs while no other does (``_machine_share``).
 * ``ros_context``: an rclpy context for in-process nodes, with a background
   executor, shut down after the test.
 * ``procs``: starts real processes (nodes, the simulated ECU, ...) and kills
@@ -29,6 +30,7 @@ import random
 import signal
 import subprocess
 import sys
+import tempfile
 import threading
 import time
 from collections.abc import Callable, Iterator, Sequence
@@ -220,10 +222,12 @@ def pytest_runtest_makereport(item: pytest.Item, call: pytest.CallInfo[None]) ->
 
 def _file_rank(items: list[pytest.Item]) -> tuple[int, float]:
     """Slow integration files first, then the other integration files, then slow unit tests, then the rest; within
-    a rank the file with the longest declared timeout first (the test's own bound on how long it may take)."""
+    a rank the file with the longest declared timeout first (the test's own bound on how long it may take). Files
+    marked ``alone`` last: while one runs the other worker waits (:func:`_machine_share`), at the end it has
+    little left to wait with."""
     marks = {m.name for item in items for m in item.iter_markers()}
     integration, slow = "integration" in marks, "slow" in marks
-    rank = 0 if integration and slow else 1 if integration else 2 if slow else 3
+    rank = 4 if "alone" in marks else 0 if integration and slow else 1 if integration else 2 if slow else 3
     timeouts = [float(m.args[0]) for item in items for m in item.iter_markers("timeout") if m.args]
     return rank, -max(timeouts, default=0.0)
 
@@ -237,6 +241,26 @@ def pytest_collection_modifyitems(session: pytest.Session, config: pytest.Config
         files.setdefault(item.nodeid.split("::", 1)[0], []).append(item)
     ranked = sorted(files.values(), key=_file_rank)  # stable: collection order within a rank
     items[:] = [item for group in ranked for item in group]
+
+
+@pytest.fixture(scope="module", autouse=True)
+def _machine_share(request: pytest.FixtureRequest) -> Iterator[None]:
+    """Under make test's workers every test file holds a shared lock on the run's lock file while it runs, and a
+    file marked ``alone`` (a timing bound that needs the machine to itself: the cockpit's update lag) holds it
+    exclusively: it starts once the other worker's file has ended, and the other worker's next file waits for it."""
+    run = os.environ.get("PYTEST_XDIST_TESTRUNUID")
+    if not run:
+        yield
+        return
+    import fcntl
+
+    alone = request.node.get_closest_marker("alone") is not None
+    with open(Path(tempfile.gettempdir()) / f"bac-make-test-{run}.lock", "a") as f:
+        fcntl.flock(f, fcntl.LOCK_EX if alone else fcntl.LOCK_SH)
+        try:
+            yield
+        finally:
+            fcntl.flock(f, fcntl.LOCK_UN)
 
 
 @pytest.fixture

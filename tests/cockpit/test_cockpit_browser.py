@@ -28,7 +28,8 @@ from bac_agent.journal import read_journal
 
 from conftest import fresh_domain
 
-pytestmark = [pytest.mark.integration, pytest.mark.slow, pytest.mark.timeout(1200)]
+# alone: the update lag is bounded on a machine that runs the test alone (make test's other worker waits)
+pytestmark = [pytest.mark.integration, pytest.mark.slow, pytest.mark.alone, pytest.mark.timeout(1200)]
 BUDGET = 15  # the demo's
 MAX_LAG_S = 0.5
 # the bound holds on this machine running the test alone (the graph, the cockpit and the browser keep about two
