@@ -14,7 +14,7 @@
   worker's share.
 * Whole files go to a worker (``--dist loadfile``: a module's campaign runs
   once), the slow ones first, so that the longest do not end the run alone;
-  a file marked ``alone`` runs while no other does (``_machine_share``).
+  a file marked ``alone`` runs while no other does (``_MachineShare``).
 * ``ros_context``: an rclpy context for in-process nodes, with a background
   executor, shut down after the test.
 * ``procs``: starts real processes (nodes, the simulated ECU, ...) and kills
@@ -223,7 +223,7 @@ def pytest_runtest_makereport(item: pytest.Item, call: pytest.CallInfo[None]) ->
 def _file_rank(items: list[pytest.Item]) -> tuple[int, float]:
     """Slow integration files first, then the other integration files, then slow unit tests, then the rest; within
     a rank the file with the longest declared timeout first (the test's own bound on how long it may take). Files
-    marked ``alone`` last: while one runs the other worker waits (:func:`_machine_share`), at the end it has
+    marked ``alone`` last: while one runs the other worker waits (:class:`_MachineShare`), at the end it has
     little left to wait with."""
     marks = {m.name for item in items for m in item.iter_markers()}
     integration, slow = "integration" in marks, "slow" in marks
@@ -241,26 +241,64 @@ def pytest_collection_modifyitems(session: pytest.Session, config: pytest.Config
         files.setdefault(item.nodeid.split("::", 1)[0], []).append(item)
     ranked = sorted(files.values(), key=_file_rank)  # stable: collection order within a rank
     items[:] = [item for group in ranked for item in group]
+    share = config.pluginmanager.get_plugin("bac-machine-share")
+    if isinstance(share, _MachineShare):
+        share.alone_files = {f for f, group in files.items() if any(i.get_closest_marker("alone") for i in group)}
 
 
-@pytest.fixture(scope="module", autouse=True)
-def _machine_share(request: pytest.FixtureRequest) -> Iterator[None]:
-    """Under make test's workers every test file holds a shared lock on the run's lock file while it runs, and a
-    file marked ``alone`` (a timing bound that needs the machine to itself: the cockpit's update lag) holds it
-    exclusively: it starts once the other worker's file has ended, and the other worker's next file waits for it."""
-    run = os.environ.get("PYTEST_XDIST_TESTRUNUID")
-    if not run:
-        yield
-        return
-    import fcntl
+class _MachineShare:
+    """Under make test's workers every test file, under src/ too, holds a shared lock on the run's lock file while
+    its tests run, and a file marked ``alone`` (a timing bound that needs the machine to itself: the cockpit's
+    update lag) holds it exclusively: it starts once the other worker's file has ended, and the other worker's next
+    file waits for it. A global plugin (registered by pytest_configure: a conftest's own runtest hooks only see the
+    tests below it), outermost around each test's protocol, so that pytest-timeout does not count the wait."""
 
-    alone = request.node.get_closest_marker("alone") is not None
-    with open(Path(tempfile.gettempdir()) / f"bac-make-test-{run}.lock", "a") as f:
-        fcntl.flock(f, fcntl.LOCK_EX if alone else fcntl.LOCK_SH)
+    def __init__(self, config: pytest.Config, run: str) -> None:
+        self.config, self.run = config, run
+        self.path: Path | None = None
+        self.alone_files: set[str] = set()
+        self._file: Any = None
+        self._held: str | None = None
+
+    def _acquire(self, test_file: str) -> None:
+        import fcntl
+
+        if self.path is None:  # in the run's folder (the workers' basetemps are beneath it): pytest removes old ones
+            factory = getattr(self.config, "_tmp_path_factory", None)
+            folder = factory.getbasetemp().parent if factory is not None else Path(tempfile.gettempdir())
+            self.path = folder / f"bac-machine-share-{self.run}.lock"
+        mode = fcntl.LOCK_EX if test_file in self.alone_files else fcntl.LOCK_SH
+        self._file = self.path.open("a")
+        try:
+            fcntl.flock(self._file, mode | fcntl.LOCK_NB)
+        except BlockingIOError:
+            what = "the machine to itself" if mode == fcntl.LOCK_EX else "a file marked alone to end"
+            sys.stderr.write(f"\n{test_file} waits for {what}\n")
+            fcntl.flock(self._file, mode)
+        self._held = test_file
+
+    def _release(self) -> None:
+        if self._file is not None:
+            self._file.close()  # closing drops the lock
+        self._file, self._held = None, None
+
+    @pytest.hookimpl(hookwrapper=True, tryfirst=True)
+    def pytest_runtest_protocol(self, item: pytest.Item, nextitem: pytest.Item | None) -> Iterator[None]:
+        test_file = item.nodeid.split("::", 1)[0]
+        if self._held != test_file:
+            self._release()
+            self._acquire(test_file)
         try:
             yield
         finally:
-            fcntl.flock(f, fcntl.LOCK_UN)
+            if nextitem is None or nextitem.nodeid.split("::", 1)[0] != test_file:
+                self._release()
+
+
+def pytest_configure(config: pytest.Config) -> None:
+    run = os.environ.get("PYTEST_XDIST_TESTRUNUID")
+    if run and not config.pluginmanager.has_plugin("bac-machine-share"):
+        config.pluginmanager.register(_MachineShare(config, run), "bac-machine-share")
 
 
 @pytest.fixture

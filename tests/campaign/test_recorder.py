@@ -163,51 +163,106 @@ def test_a_trial_announced_with_its_samples_in_one_batch_gets_them(ros_context: 
     assert [m.linear_acceleration.z for m in b2["imu/data_raw"]] == [2.0] * 20
 
 
-def test_at_a_stop_the_recorder_takes_what_is_still_on_its_way(ros_context: Any, tmp_path: Path) -> None:
-    """A CI run lost the last 0.7 s of a scored run and its RunScore from the run's bag: the agent was killed right
-    after the score, and the recorder, lagging on a loaded machine, was stopped before its readers had them. At a
-    stop it now keeps taking until its readers stay empty for a while (here: after its context was shut down, as
-    SIGINT does, samples published for 0.4 s more, and a RunScore no executor callback ever ran for)."""
-    import threading
-
+def stopping_recorder(ros_context: Any, camp: Path, stop_drain_s: float) -> tuple[Any, Any, dict[str, Any]]:
+    """A recorder on a context of its own (shut down before its destruction, as SIGINT does), never spun, trial 1's
+    bag open; and a feeder's publishers."""
     import rclpy
     from rclpy.parameter import Parameter
     from sensor_msgs.msg import Imu
 
     from bac_campaign.recorder_node import CampaignRecorderNode
 
-    camp = tmp_path / "campaign"
     own = rclpy.Context()
     rclpy.init(context=own, domain_id=ros_context.context.get_domain_id())
-    rec = CampaignRecorderNode(  # never spun: only the explicit drain below and the stop read its topics
+    rec = CampaignRecorderNode(
         context=own,
-        parameter_overrides=[Parameter("campaign_dir", value=str(camp)), Parameter("close_grace_s", value=30.0)],
+        parameter_overrides=[
+            Parameter("campaign_dir", value=str(camp)),
+            Parameter("close_grace_s", value=30.0),
+            Parameter("stop_drain_s", value=stop_drain_s),
+        ],
     )
     node = ros_context.node("feeder")
-    p_trial = node.create_publisher(Trial, "bac/trial", QOS_LATCHED)
-    p_raw = node.create_publisher(Imu, "imu/data_raw", QOS_STREAM)
-    p_score = node.create_publisher(RunScore, "bac/run_score", QOS_EVENTS)
-    for p in (p_trial, p_raw, p_score):
-        wait_for(lambda p=p: p.get_subscription_count() > 0, 60, what=f"recorder on {p.topic_name}")
-    p_trial.publish(trial(1, Trial.STATE_READY_TO_DRIVE, 10.0))
+    pubs = {
+        "trial": node.create_publisher(Trial, "bac/trial", QOS_LATCHED),
+        "raw": node.create_publisher(Imu, "imu/data_raw", QOS_STREAM),
+        "score": node.create_publisher(RunScore, "bac/run_score", QOS_EVENTS),
+    }
+    for pub in pubs.values():
+        wait_for(lambda pub=pub: pub.get_subscription_count() > 0, 60, what=f"recorder on {pub.topic_name}")
+    pubs["trial"].publish(trial(1, Trial.STATE_READY_TO_DRIVE, 10.0))
     wait_for(lambda: rec._drain() and (camp / "bags" / "trial_0001").exists(), 20, what="bag of trial 1 opened")
-    p_score.publish(RunScore(campaign_id="c1", trial_id=1, attempt=1, j=0.5, valid=True))
+    return rec, own, pubs
+
+
+def test_at_a_stop_the_recorder_takes_what_is_still_on_its_way(
+    ros_context: Any, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """A CI run lost the last 0.7 s of a scored run and its RunScore from the run's bag: the agent was killed right
+    after the score, and the recorder, lagging on a loaded machine, was stopped before its readers had them. At a
+    stop it now keeps taking until its readers stay empty for a while: here, after its context was shut down (as
+    SIGINT does), samples published for 0.4 s more, a RunScore no executor callback ever ran for, and what a
+    lagging recorder gets late after a score: the next trial's announcement and its samples, the campaign's end."""
+    import threading
+
+    import rclpy
+
+    from bac_campaign import recorder_node
+
+    monkeypatch.setattr(recorder_node, "STOP_QUIET_S", 1.0)  # a feeder thread starved on a loaded machine
+    camp = tmp_path / "campaign"
+    rec, own, pubs = stopping_recorder(ros_context, camp, stop_drain_s=10.0)
+    pubs["score"].publish(RunScore(campaign_id="c1", trial_id=1, attempt=1, j=0.5, valid=True))
     n = 40
 
     def feed() -> None:
         for i in range(n):
-            p_raw.publish(imu(10.0 + 0.01 * i, 3.0))
+            pubs["raw"].publish(imu(10.0 + 0.01 * i, 3.0))
             time.sleep(0.01)  # a stream still arriving while the recorder stops, not a wait for a condition
+        pubs["trial"].publish(trial(2, Trial.STATE_READY_TO_DRIVE, 20.0))
+        for i in range(10):
+            pubs["raw"].publish(imu(20.0 + 0.01 * i, 4.0))
+        pubs["trial"].publish(trial(2, Trial.STATE_DONE, 21.0))
 
     feeder = threading.Thread(target=feed)
-    cap = rec.stop_drain_s
     rclpy.try_shutdown(context=own)  # what SIGINT does before the node is destroyed
-    t0 = time.monotonic()
     feeder.start()
     rec.destroy_node()
-    took = time.monotonic() - t0
     feeder.join()
     b1 = read_bag(camp / "bags" / "trial_0001")
     assert [m.linear_acceleration.z for m in b1["imu/data_raw"]] == [3.0] * n
     assert [m.j for m in b1["bac/run_score"]] == [0.5]
-    assert took < cap + 1.0, f"the stop took {took:.2f} s (at most {cap} s of draining)"
+    b2 = read_bag(camp / "bags" / "trial_0002")
+    assert [m.linear_acceleration.z for m in b2["imu/data_raw"]] == [4.0] * 10
+    assert [t.state for t in b2["bac/trial"]] == [Trial.STATE_READY_TO_DRIVE, Trial.STATE_DONE]
+    assert rec.dropped == 0
+
+
+def test_a_stream_that_never_goes_quiet_holds_the_stop_at_most_stop_drain_s(ros_context: Any, tmp_path: Path) -> None:
+    """On the car the IMU driver is outside the graph and goes on publishing: the stop's drain ends at its cap."""
+    import threading
+
+    import rclpy
+
+    rec, own, pubs = stopping_recorder(ros_context, tmp_path / "campaign", stop_drain_s=0.5)
+    done = threading.Event()
+
+    def feed() -> None:
+        i = 0
+        while not done.is_set():
+            pubs["raw"].publish(imu(10.0 + 0.01 * i, 3.0))
+            i += 1
+            time.sleep(0.01)  # pacing a stream, not a wait for a condition
+
+    feeder = threading.Thread(target=feed)
+    feeder.start()
+    try:
+        rclpy.try_shutdown(context=own)
+        t0 = time.monotonic()
+        rec.destroy_node()
+        took = time.monotonic() - t0
+    finally:
+        done.set()
+        feeder.join()
+    assert 0.5 <= took < 3.0, f"the stop took {took:.2f} s with stop_drain_s 0.5"
+    assert (tmp_path / "campaign" / "bags" / "trial_0001" / "metadata.yaml").exists()

@@ -164,6 +164,7 @@ class CampaignRecorderNode(BacNode):
         )
         self._wall = Clock(clock_type=ClockType.STEADY_TIME)
         self._close_timers: list[Any] = []
+        self._stopping = False
         self._drain_timer = self.create_timer(self.drain_period_s, self._drain, callback_group=group, clock=self._wall)
         self.get_logger().info(f"recording {len(topics)} topics into {Path(self.campaign_dir) / 'bags'}")
 
@@ -277,6 +278,9 @@ class CampaignRecorderNode(BacNode):
         self.get_logger().info(f"trial {trial_id}: recording into {path}")
 
     def _close_later(self, trial_id: int) -> None:
+        if self._stopping:  # every bag is closed at the end of the stop (and no timer can be made once SIGINT shut
+            return  # the context down: the error would lose the batch being routed)
+
         def close() -> None:
             with self._lock:
                 self._close(trial_id)
@@ -292,6 +296,7 @@ class CampaignRecorderNode(BacNode):
             self.get_logger().info(f"closed {entry[0].path} ({entry[0].count} messages)")
 
     def destroy_node(self) -> None:
+        self._stopping = True
         with self._lock:
             try:
                 self._drain_until_quiet()  # what arrived since the last drain, and what is still on its way
