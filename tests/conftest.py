@@ -267,19 +267,21 @@ class _MachineShare:
             factory = getattr(self.config, "_tmp_path_factory", None)
             folder = factory.getbasetemp().parent if factory is not None else Path(tempfile.gettempdir())
             self.path = folder / f"bac-machine-share-{self.run}.lock"
+        # a POSIX record lock (lockf), not flock: a process forked by a test (a multiprocessing pool left running)
+        # would inherit a flock and hold it after this process let it go; a record lock stays with this process
         mode = fcntl.LOCK_EX if test_file in self.alone_files else fcntl.LOCK_SH
-        self._file = self.path.open("a")
+        self._file = self.path.open("a+")
         try:
-            fcntl.flock(self._file, mode | fcntl.LOCK_NB)
-        except BlockingIOError:
+            fcntl.lockf(self._file, mode | fcntl.LOCK_NB)
+        except OSError:
             what = "the machine to itself" if mode == fcntl.LOCK_EX else "a file marked alone to end"
             sys.stderr.write(f"\n{test_file} waits for {what}\n")
-            fcntl.flock(self._file, mode)
+            fcntl.lockf(self._file, mode)
         self._held = test_file
 
     def _release(self) -> None:
         if self._file is not None:
-            self._file.close()  # closing drops the lock
+            self._file.close()  # closing drops this process's record locks on the file
         self._file, self._held = None, None
 
     @pytest.hookimpl(hookwrapper=True, tryfirst=True)
