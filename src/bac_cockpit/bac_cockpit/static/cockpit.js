@@ -4,6 +4,8 @@
 
   const S = {};                      // the state, as the server sends it (snapshot, then patches)
   const T = {};                      // how long each drawing took here, ms (the last 50 of each)
+  const L = [];                      // what the page did, in order: [kind, what, start ms, end ms] (the last 500)
+  const note = (kind, what, t0, t1) => { L.push([kind, what, t0, t1]); if (L.length > 500) L.shift(); };
   const $ = (id) => document.getElementById(id);
   const token = new URLSearchParams(location.search).get("token");
   const withToken = (p) => (token ? p + (p.includes("?") ? "&" : "?") + "token=" + encodeURIComponent(token) : p);
@@ -43,6 +45,8 @@
     es.addEventListener("patch", (e) => {
       window.bacCockpit.received = Date.now();  // when this page had it (the tests compare with the server's time)
       const d = JSON.parse(e.data);
+      const now = performance.now();
+      note("patch", Object.keys(d).join(","), now, now);
       Object.assign(S, d);
       update(Object.keys(d));
     });
@@ -81,9 +85,23 @@
     if (slowTimer === null && slowPending.size) slowTimer = setTimeout(flushSlow, 150);
   }
 
-  // one heavy drawing per task: a message arriving meanwhile waits for one drawing at most, never for all
+  // one heavy drawing per task: a message arriving meanwhile waits for the drawing in progress, not for another.
+  // Its own timer is younger than this one's (the drawing in progress queued this task as it ended, before the
+  // browser ran the message's handler), so here it is drawn first, and the heavy drawing waits for the next task
+  // (the browser paints the change in between). Once only: a heavy drawing that gave way is drawn next, even if
+  // changes keep coming (they can never hold the plots back for good)
+  let slowGaveWay = false;
   function flushSlow() {
-    slowTimer = null;  // (a fast flush already queued runs before this: its timer is older)
+    slowTimer = null;
+    if (timer !== null && !slowGaveWay) {
+      clearTimeout(timer);
+      flush();
+      slowGaveWay = true;
+      if (slowTimer !== null) clearTimeout(slowTimer);  // flush() put it 150 ms off: it is due
+      slowTimer = slowPending.size ? setTimeout(flushSlow, 0) : null;
+      return;
+    }
+    slowGaveWay = false;
     const k = slowPending;
     const order = ["model", "marker", "signals", "spectra", "diagnostics", "campaign"];
     const next = order.find((x) => k.has(x));
@@ -421,10 +439,14 @@
 
   function timed(name, fn) {
     const t0 = performance.now();
-    try { return fn(); } finally { (T[name] = T[name] || []).push(+(performance.now() - t0).toFixed(1)); if (T[name].length > 50) T[name].shift(); }
+    try { return fn(); } finally {
+      const t1 = performance.now();
+      (T[name] = T[name] || []).push(+(t1 - t0).toFixed(1)); if (T[name].length > 50) T[name].shift();
+      note("draw", name, t0, t1);
+    }
   }
 
-  window.bacCockpit = { state: S, timings: T };
+  window.bacCockpit = { state: S, timings: T, log: L };
   renderBanner();
   connect();
 })();

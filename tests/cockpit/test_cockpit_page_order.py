@@ -1,0 +1,135 @@
+"""The cockpit page in a real browser: a new J is never held back by more than the heavy drawing in progress.
+
+The page draws the banner, the cards, the J plot and the table as soon as a change arrives, and the heavy plots
+(the GP contour, the signals, the spectra) one per task after it. A change that arrives while a heavy drawing runs
+must be drawn before the next heavy drawing starts (in CI the J of a run once waited for two heavy drawings on a
+loaded machine, 0.3 s: ``cockpit_update_lag_s`` 0.508 > 0.5).
+
+The cockpit's own server (:class:`bac_cockpit.server.CockpitServer`) sends scripted parts of a campaign's state:
+in each round the heavy parts, then a new scored trial a moment later, to a Chromium whose CPU is throttled
+(DevTools' ``Emulation.setCPUThrottlingRate``) so that each heavy drawing lasts long enough for J to arrive during
+it. The page's own ordered log (``bacCockpit.log``: each patch as its handler runs, each drawing's start and end)
+says what came first. Order, not wall time, is asserted: the machine's load cannot make it pass or fail.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from collections.abc import Iterator
+from pathlib import Path
+from typing import Any
+
+import pytest
+from helpers.browser import chromium, page_errors, wait_js
+
+from bac_cockpit.server import CockpitServer
+from bac_cockpit.state import CockpitState
+
+pytestmark = [pytest.mark.integration, pytest.mark.timeout(300)]
+HEAVY = ("renderGP", "renderSignals", "renderSpectra")
+CPU_SLOWDOWN = 8  # each heavy drawing 0.5-2 s here: a J sent while they are drawn lands in one
+DELAYS_S = (0.4, 0.8, 1.5, 2.5)  # after the heavy parts, when the J is sent (one per round)
+NAMES = ("damping_front", "damping_rear")
+
+
+class ScriptedState(CockpitState):
+    """A cockpit state whose parts the test sets (the server sends them as it sends a campaign's)."""
+
+    def __init__(self) -> None:
+        super().__init__("live")
+        self.parts: dict[str, Any] = {}
+
+    def put(self, **parts: Any) -> list[str]:
+        self.parts.update(parts)
+        return self._bump(list(parts))
+
+    def part(self, key: str) -> Any:
+        return self.parts[key] if key in self.parts else super().part(key)
+
+
+def row(trial_id: int) -> dict[str, Any]:
+    x = (0.1 + 0.05 * trial_id) % 1.0
+    return {"trial_id": trial_id, "kind": "bo", "params": {NAMES[0]: x, NAMES[1]: 1.0 - x},
+            "j": 1.0 + 0.2 * math.sin(trial_id), "predicted_j": 1.05, "predicted_std": 0.05, "attempts": 1,
+            "status": "scored", "reason": "", "rejected": []}  # fmt: skip
+
+
+def run_view(trial_id: int, label: str, freq: bool) -> dict[str, Any]:
+    """A run's signals (2,000 points, the cockpit's most) or spectra, as the state sends them."""
+    n = 1025 if freq else 2000
+    axis = [i * (0.1 if freq else 0.005) for i in range(n)]
+    wave = [math.sin(0.05 * i + trial_id) * math.exp(-0.001 * i) for i in range(n)]
+    view = {"label": f"{label}: trial {trial_id}", "trial_id": trial_id, "attempt": 1, "valid": True, "reason": "",
+            "j": 1.0, "mode": "event", "source": "welch", "accel_z": [abs(w) + 1e-4 for w in wave],
+            "pitch_rate": [0.1 * abs(w) + 1e-5 for w in wave]}  # fmt: skip
+    view["f" if freq else "t"] = axis
+    return view
+
+
+def model(n_runs: int) -> dict[str, Any]:
+    grid = [i / 40 for i in range(41)]
+    mean = [[(x - 0.3) ** 2 + (y - 0.6) ** 2 + 0.01 * n_runs for x in grid] for y in grid]
+    return {"kind": "contour", "dims": [{"name": n, "lower": 0.0, "upper": 1.0} for n in NAMES], "x": grid,
+            "y": grid, "mean": mean, "status": f"GP posterior mean after {n_runs} runs", "n_runs": n_runs,
+            "fixed": {}, "trials": [{"trial_id": i, "params": row(i)["params"]} for i in range(1, n_runs + 1)],
+            "failed": [], "recommendation": {"params": {NAMES[0]: 0.3, NAMES[1]: 0.6}, "final": False}}  # fmt: skip
+
+
+def heavy(trial_id: int) -> dict[str, Any]:
+    return {
+        "signals": {"last": run_view(trial_id, "last run", False), "best": run_view(1, "best run", False)},
+        "spectra": {"last": run_view(trial_id, "last run", True), "best": run_view(1, "best run", True)},
+        "model": model(trial_id),
+    }
+
+
+@pytest.fixture
+def page(tmp_path: Path) -> Iterator[tuple[Any, CockpitServer]]:
+    state = ScriptedState()
+    state.put(trials=[row(1)])
+    server = CockpitServer(state, host="127.0.0.1", port=0)
+    server.start()
+    driver = chromium(1400, 1560, tmp_path / "chromedriver.log")
+    try:
+        driver.get(server.url)
+        wait_js(driver, "return document.getElementById('conn').textContent === 'connected'", 60, "the page connected")
+        yield driver, server
+        assert not page_errors(driver)
+    finally:
+        driver.quit()
+        server.stop()
+
+
+def test_a_new_j_waits_for_the_heavy_drawing_in_progress_at_most(page: tuple[Any, CockpitServer]) -> None:
+    driver, server = page
+    driver.execute_cdp_cmd("Emulation.setCPUThrottlingRate", {"rate": CPU_SLOWDOWN})
+    rows = [row(1)]
+    for trial, delay in enumerate(DELAYS_S, start=2):  # the heavy parts, then a J that lands during their drawing
+        mark = driver.execute_script("return window.bacCockpit.log.length")
+        server.apply(lambda st, t=trial: st.put(**heavy(t)))
+        time.sleep(delay)
+        rows = [*rows, row(trial)]
+        server.apply(lambda st, r=rows: st.put(trials=r))
+        wait_js(driver, f"""const L = window.bacCockpit.log.slice({mark});
+            return +document.getElementById('jplot').dataset.points === {len(rows)}
+                && L.some((e) => e[1] === 'renderSpectra');""", 120, f"trial {trial} drawn")  # fmt: skip
+    driver.execute_cdp_cmd("Emulation.setCPUThrottlingRate", {"rate": 1})
+    log = driver.execute_script("return window.bacCockpit.log")
+    seq = " ".join(f"{e[1]}@{e[2]:.0f}" + (f"+{e[3] - e[2]:.0f}" if e[0] == "draw" else "") for e in log)
+
+    waited, late = 0, []
+    for i, (kind, what, t_in, _) in enumerate(log):
+        if kind != "patch" or "trials" not in what.split(","):
+            continue
+        after = log[i + 1 :]
+        drawn = next((e for e in after if e[0] == "draw" and e[1] == "renderJ"), None)
+        assert drawn is not None, f"the J of the patch at {t_in:.0f} ms was never drawn\n{seq}"
+        started = [e[1] for e in after if e[0] == "draw" and e[1] in HEAVY and t_in <= e[2] < drawn[2]]
+        if started:
+            late.append((round(t_in), started, round(drawn[2] - t_in)))
+        # the case under test: the J waited for a heavy drawing, and more heavy drawings were queued behind it
+        if i > 0 and log[i - 1][0] == "draw" and log[i - 1][1] in HEAVY and any(e[1] in HEAVY for e in after):
+            waited += 1
+    assert waited >= 1, f"no J arrived while a heavy drawing ran: the throttling did not make the case\n{seq}"
+    assert not late, f"a J waited for heavy drawings that started after it came (ms, which, J drawn after): {late}"
