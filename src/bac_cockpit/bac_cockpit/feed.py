@@ -44,7 +44,8 @@ WORKER_NICE = 5  # below the graph's nodes, yet not starved on a busy machine
 
 def _worker_init() -> None:  # pragma: no cover - runs in the worker process
     """The model worker: lower priority than the graph, deaf to the launcher's SIGINT, gone with its parent."""
-    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    signal.signal(signal.SIGINT, signal.SIG_IGN)  # a SIGINT held back while it started is dropped now
+    signal.pthread_sigmask(signal.SIG_UNBLOCK, {signal.SIGINT})
     with contextlib.suppress(OSError):
         os.nice(WORKER_NICE)
     try:
@@ -53,6 +54,19 @@ def _worker_init() -> None:  # pragma: no cover - runs in the worker process
         ctypes.CDLL("libc.so.6", use_errno=True).prctl(PR_SET_PDEATHSIG, signal.SIGTERM)
     except (OSError, AttributeError):
         pass
+
+
+@contextlib.contextmanager
+def sigint_held() -> Any:
+    """SIGINT blocked in this thread meanwhile: a process started here starts with it blocked (a signal mask is
+    inherited through fork and exec), so the launcher's stop, a SIGINT to the node's whole process group, cannot
+    interrupt the model worker while it still imports its modules (its KeyboardInterrupt traceback in the node's
+    log, the pool broken); :func:`_worker_init` ignores SIGINT, then unblocks it. Other threads still take it."""
+    old = signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGINT})
+    try:
+        yield
+    finally:
+        signal.pthread_sigmask(signal.SIG_SETMASK, old)
 
 
 def model_key(state: CockpitState) -> tuple[Any, ...]:
@@ -263,7 +277,9 @@ class CampaignFeed:
         try:
             if self.model_in_process:
                 loop = asyncio.get_running_loop()
-                model = await loop.run_in_executor(self._model_pool(), compute_model, str(self.dir), self.model_grid)
+                with sigint_held():  # the worker starts here, at the first fit
+                    pending = loop.run_in_executor(self._model_pool(), compute_model, str(self.dir), self.model_grid)
+                model = await pending
             else:
                 model = await asyncio.to_thread(compute_model, str(self.dir), self.model_grid)
             self.model_fits += 1

@@ -2,6 +2,10 @@
 
 from __future__ import annotations
 
+import concurrent.futures
+import multiprocessing
+import os
+import signal
 import time
 from collections.abc import Callable
 from pathlib import Path
@@ -10,7 +14,7 @@ from typing import Any
 import pytest
 from campaign_maker import make_campaign
 
-from bac_cockpit.feed import CampaignFeed
+from bac_cockpit.feed import CampaignFeed, _worker_init, sigint_held
 from bac_cockpit.server import CockpitServer
 from bac_cockpit.state import CockpitState
 
@@ -46,3 +50,29 @@ def test_a_growing_folder_is_followed_and_the_model_refitted_in_a_worker(tmp_pat
     finally:
         feed.close()
         srv.stop()
+
+
+def test_the_model_worker_cannot_be_interrupted_while_it_starts() -> None:
+    """The launcher stops a node with SIGINT to its whole process group, the model worker included: one that
+    lands while the worker still starts (before it ignores SIGINT) must not kill it (seen in CI logs: a
+    KeyboardInterrupt traceback in the cockpit's log at every stop that came just after the first J)."""
+    pool = concurrent.futures.ProcessPoolExecutor(
+        max_workers=1, mp_context=multiprocessing.get_context("spawn"), initializer=_worker_init
+    )
+    try:
+        with sigint_held():  # as CampaignFeed starts it
+            fut = pool.submit(os.getpid)
+        (worker,) = pool._processes.values()  # type: ignore[attr-defined]
+        deadline = time.monotonic() + 60
+        sent = 0
+        while not fut.done() and time.monotonic() < deadline:  # SIGINT after SIGINT from its first instant on
+            os.kill(worker.pid, signal.SIGINT)
+            sent += 1
+            concurrent.futures.wait([fut], timeout=0.005)
+        assert fut.result(timeout=1) == worker.pid
+        assert sent >= 2
+        assert pool.submit(os.getpid).result(timeout=30) == worker.pid  # and it still works, deaf to SIGINT
+    finally:
+        pool.shutdown(wait=True, cancel_futures=True)
+    # the caller's own mask is back as it was: this thread still takes SIGINT
+    assert signal.SIGINT not in signal.pthread_sigmask(signal.SIG_BLOCK, set())
