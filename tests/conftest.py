@@ -182,6 +182,11 @@ class Procs:
                 return path.read_text(errors="replace")
         raise KeyError(name)
 
+    def tail(self, name: str, lines: int = 40) -> str:
+        """A process's last log lines (what a stop ended with), for an assertion's message: CI shows a message's
+        beginning, and a whole log there hides its end."""
+        return "\n".join(self.log(name).splitlines()[-lines:])
+
     def logs(self) -> str:
         return "\n".join(f"----- {n} -----\n{path.read_text(errors='replace')}" for n, _, path in self.items)
 

@@ -93,7 +93,8 @@ def test_car_profile_reaches_the_ecu_and_the_driver(
     assert abs(float(np.nanmean(az))) < 0.05
 
     launcher.send_signal(signal.SIGINT)
-    assert launcher.wait(timeout=60) == 0, procs.log("car")
+    rc = launcher.wait(timeout=60)
+    assert rc == 0, f"the launcher ended with {rc}; the end of its log:\n{procs.tail('car')}"
     # the bridge restored the safe baseline on the ECU as it stopped
     read = subprocess.run(
         [sys.executable, "-m", "bac_ecu_bridge", "read", "--interface", "udp_multicast", "--channel", CHANNEL,
@@ -230,7 +231,8 @@ def test_car_profile_retry_waits_for_a_new_drive(
     car.stand(1.0)  # back at the start, stopped
     car.drive(firm)  # a very different J
     car.stand(1.0)
-    assert launcher.wait(timeout=60) == 0, procs.log("car")
+    rc = launcher.wait(timeout=60)
+    assert rc == 0, f"the launcher ended with {rc}; the end of its log:\n{procs.tail('car')}"
 
     events = [json.loads(x) for x in (camp / "journal.jsonl").read_text().splitlines()]
     rejected = [e for e in events if e["event"] == "run_rejected"]

@@ -5,10 +5,17 @@ Everything is read from the page's own DOM: a MutationObserver put in the page r
 clock, each change of the banner's state, of the J plot's point count and of the GP plot's run count. The
 journal's wall times (written by the agent just before it publishes) give when the graph got there: the
 difference is how far the page is behind the graph, printed as ``cockpit_update_lag_s``.
+
+Two conditions of that figure (2026-11-29): the demo's nodes but the cockpit run at nice 10 once the page is
+connected (the graph at 10x real time keeps both cores of this machine busy by itself, as the car's graph at 1x
+never does, and the page's path, the cockpit node, the demo's relay and the browser, goes first, as on the car's
+laptop); and an update that waited while the test took one of its screenshots (0.5-1.5 s in which the renderer
+makes the picture) is printed but not held to the bound.
 """
 
 from __future__ import annotations
 
+import contextlib
 import json
 import math
 import os
@@ -59,6 +66,49 @@ return true;
 """
 
 
+GRAPH_NICE = 10  # the demo's nodes but the cockpit, while the page is measured
+
+
+def descendants(pid: int) -> list[int]:
+    """Every process below ``pid`` (from /proc: the demo's launcher, its nodes, their workers)."""
+    children: dict[int, list[int]] = {}
+    for d in Path("/proc").iterdir():
+        if d.name.isdigit():
+            try:
+                ppid = int((d / "stat").read_text().rsplit(")", 1)[1].split()[1])
+            except (OSError, IndexError, ValueError):
+                continue
+            children.setdefault(ppid, []).append(int(d.name))
+    out, todo = [], [pid]
+    while todo:
+        for c in children.get(todo.pop(), []):
+            out.append(c)
+            todo.append(c)
+    return out
+
+
+def graph_behind_the_page(demo_pid: int, cockpit_pid: int) -> int:
+    """The demo's graph nodes but the cockpit at nice GRAPH_NICE, every thread: the page's path (the cockpit node, the
+    demo process's relay to it, the browser) ahead of the load, as on the car's laptop, where the graph runs at 1x
+    and leaves the cores free. At 10x on 2 cores the graph alone keeps both cores busy (load average 4-8 with nothing
+    else running, 2026-11-29), and the scheduler, not the page, then decides how late an update is. Returns how many
+    threads it reniced."""
+    page_path = {demo_pid, cockpit_pid, *descendants(cockpit_pid)}
+    n = 0
+    for pid in descendants(demo_pid):
+        if pid in page_path:
+            continue
+        try:
+            tids = [int(t.name) for t in Path(f"/proc/{pid}/task").iterdir()]
+        except OSError:
+            continue
+        for tid in tids:
+            with contextlib.suppress(OSError):
+                os.setpriority(os.PRIO_PROCESS, tid, GRAPH_NICE)
+                n += 1
+    return n
+
+
 def wall_ms(event: dict[str, Any]) -> float:
     return datetime.fromisoformat(str(event["wall_time"])).timestamp() * 1000.0
 
@@ -93,6 +143,8 @@ def live(tmp_path_factory: pytest.TempPathFactory) -> Iterator[dict[str, Any]]:
         rec["url"] = url
         driver.get(url)
         wait_js(driver, "return document.getElementById('conn').textContent === 'connected'", 60, "the live stream")
+        cockpit_pid = int(json.loads((camp / "cockpit.json").read_text())["pid"])
+        rec["reniced"] = graph_behind_the_page(proc.pid, cockpit_pid)
         # the page's first drawing done (plotly's first use is slow): from here on every update is measured
         wait_js(driver, "return (window.bacCockpit.timings.renderJ || []).length > 0", 60, "the first drawing")
         driver.execute_script(OBSERVER)
@@ -103,6 +155,7 @@ def live(tmp_path_factory: pytest.TempPathFactory) -> Iterator[dict[str, Any]]:
         # the README's picture: a driver's moment mid-campaign (READY TO DRIVE), with the J history and the most
         # runs in the GP view seen so far
         shot, shot_runs = None, 0
+        shots: list[tuple[float, float]] = []  # when each screenshot was taken (wall, ms)
         loads = [os.getloadavg()[0]]
         while proc.poll() is None:
             loads.append(os.getloadavg()[0])
@@ -111,7 +164,9 @@ def live(tmp_path_factory: pytest.TempPathFactory) -> Iterator[dict[str, Any]]:
                 "+document.getElementById('gpplot').dataset.runs];"
             )
             if st[0] == "READY_TO_DRIVE" and 6 <= st[1] <= 13 and st[2] > shot_runs:
+                shot_at = time.time() * 1e3
                 taken = save(driver, f"cockpit_ready_{st[1]}.png", out)
+                shots.append((shot_at, time.time() * 1e3))
                 after = driver.execute_script(
                     "const b = document.getElementById('banner'); return [b.dataset.state, +b.dataset.trial];"
                 )
@@ -119,6 +174,7 @@ def live(tmp_path_factory: pytest.TempPathFactory) -> Iterator[dict[str, Any]]:
                     shot, shot_runs = taken, st[2]
             time.sleep(0.1)
         rec["screenshot_live"] = shot
+        rec["shots"] = shots
         rec["load"] = max(loads)
         rec["rc"] = proc.wait()
         rec["obs"] = driver.execute_script("return window.__obs;")
@@ -133,6 +189,10 @@ def live(tmp_path_factory: pytest.TempPathFactory) -> Iterator[dict[str, Any]]:
             " spectra: (document.getElementById('specplot').data || []).map(t => t.name)};"
         )
         rec["timings"] = driver.execute_script("return window.bacCockpit.timings;")
+        # what the page did, in order (its clock: performance.now() from timeOrigin, ms)
+        rec["page_log"], rec["time_origin"] = driver.execute_script(
+            "return [window.bacCockpit.log, performance.timeOrigin];"
+        )
         rec["screenshot_end"] = save(driver, "cockpit_end.png", out)
         # the stream's reconnection attempts after the graph ended are expected; nothing else may fail
         rec["errors"] = [e for e in page_errors(driver) if "/events" not in e]
@@ -215,7 +275,7 @@ def test_the_page_follows_the_graph_within_half_a_second(
     # (what, trial, page shows, cockpit node received, server sent, page's script received), s after the agent
     # journaled it: READY TO DRIVE is published right after; a J is published after the agent chose the next trial
     # (its ask), and the page has it from the journal itself (polled every 0.1 s) or from bac/trial, whichever first
-    lags = []
+    lags, walls = [], []  # walls: each one's journal time, ms
     scored = 0
     for e in events:
         if e["event"] == "trial_scored":
@@ -232,31 +292,58 @@ def test_the_page_follows_the_graph_within_half_a_second(
             assert seen, f"READY TO DRIVE of trial {e['trial_id']} run {e['attempt']} never shown"
             b = min(seen, key=lambda x: x[0])
             lags.append(("ready", e["trial_id"], *((x - w) / 1e3 for x in (b[0], b[5], b[6], b[7]))))
+            walls.append(w)
         elif e["event"] == "trial_scored":
             pts = [p for p in obs["points"] if p[1] >= scored]
             assert pts, f"the J point of trial {e['trial_id']} never appeared"
             p = min(pts, key=lambda x: x[0])
             lags.append(("j", e["trial_id"], *((x - w) / 1e3 for x in (p[0], p[2], p[3], p[4]))))
-    values = sorted(x[2] for x in lags)
-    assert len(values) >= BUDGET
-    worst = max(lags, key=lambda x: x[2])
+            walls.append(w)
+    assert len(lags) >= BUDGET
+    assert live["reniced"] > 10  # the graph's nodes (their threads) were behind the page
+    # an update that waited while the test took a screenshot (0.5-1.5 s in which the browser's renderer is busy
+    # with the picture, not the page) is the test's doing: printed, not held to the bound
+    shots = live["shots"]
+    held_by_shot = [
+        any(b >= w + 1e3 * x[4] and a <= w + 1e3 * x[2] for a, b in shots) for x, w in zip(lags, walls, strict=True)
+    ]
+    bounded = [x for x, h in zip(lags, held_by_shot, strict=True) if not h]
+    values = sorted(x[2] for x in bounded)
+    worst = max(bounded, key=lambda x: x[2])
     median = values[len(values) // 2]
     load = live["load"]
+    by_shot = [x[2] for x, h in zip(lags, held_by_shot, strict=True) if h]
     figure = (
         f"cockpit_update_lag_s max {worst[2]:.3f} (trial {worst[1]} {worst[0]}: the cockpit node had it after "
         f"{worst[3]:.3f} s, sent it after {worst[4]:.3f} s) median {median:.3f} over {len(values)} updates "
-        f"(bac demo, 10x real time, load average up to {load:.1f} on {os.cpu_count()} cores)"
+        f"(bac demo, 10x real time, its nodes but the cockpit at nice {GRAPH_NICE}, load average up to {load:.1f} on "
+        f"{os.cpu_count()} cores)"
+        + (f"; {len(by_shot)} more held up by the test's screenshots, up to {max(by_shot):.3f}" if by_shot else "")
     )
     draws = ", ".join(f"{name} {sorted(ms)[len(ms) // 2]:.0f}" for name, ms in sorted(live["timings"].items()) if ms)
     with capsys.disabled():  # the figure is printed in every run, passed or not (stderr: an xdist worker's stdout
         # goes nowhere)
         print(f"\n{figure}\n  the page's drawing, median ms: {draws}", file=sys.stderr)
-    (ARTIFACTS / "cockpit_update_lag.txt").write_text(figure + "\n" + draws + "\n")
+    # what the page's script did while the worst update waited between the server and the screen (its log keeps
+    # the last 5,000 entries: the whole demo)
+    origin, page_log = live["time_origin"], live["page_log"]
+    w_worst = walls[lags.index(worst)]
+    busy = [f"{e[1]} {e[3] - e[2]:.0f} ms" for e in page_log if e[0] == "draw" and e[3] - e[2] >= 5
+            and origin + e[3] >= w_worst + 1e3 * worst[4] and origin + e[2] <= w_worst + 1e3 * worst[2]]  # fmt: skip
+    held = f"  while the worst waited, the page drew: {', '.join(busy) or 'nothing over 5 ms (in its log)'}"
+    with capsys.disabled():
+        print(held, file=sys.stderr)
+    (ARTIFACTS / "cockpit_update_lag.txt").write_text(figure + "\n" + draws + "\n" + held + "\n")
+    (ARTIFACTS / "cockpit_page_log.json").write_text(
+        json.dumps({"time_origin": origin, "page_log": page_log, "shots": live["shots"],
+                    "updates": [[*x, w] for x, w in zip(lags, walls, strict=True)]})
+    )  # fmt: skip
     detail = "\n".join(
         f"{w} trial {t}: shown {a:.3f} (node had it {b:.3f}, sent {c:.3f}, page's script had it {d:.3f})"
-        for w, t, a, b, c, d in lags
+        + (" held up by a screenshot" if h else "")
+        for (w, t, a, b, c, d), h in zip(lags, held_by_shot, strict=True)
     )
-    assert min(values) > -0.01, detail  # the same clock: the page cannot be ahead of the journal
+    assert min(x[2] for x in lags) > -0.01, detail  # the same clock: the page cannot be ahead of the journal
     if load > OVERLOADED:
         with capsys.disabled():
             print(f"  the machine was loaded by others (load average {load:.1f} > {OVERLOADED:.0f}): the "

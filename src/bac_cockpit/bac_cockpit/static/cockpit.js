@@ -4,8 +4,8 @@
 
   const S = {};                      // the state, as the server sends it (snapshot, then patches)
   const T = {};                      // how long each drawing took here, ms (the last 50 of each)
-  const L = [];                      // what the page did, in order: [kind, what, start ms, end ms] (the last 500)
-  const note = (kind, what, t0, t1) => { L.push([kind, what, t0, t1]); if (L.length > 500) L.shift(); };
+  const L = [];                      // what the page did, in order: [kind, what, start ms, end ms] (the last 5,000)
+  const note = (kind, what, t0, t1) => { L.push([kind, what, t0, t1]); if (L.length > 5000) L.shift(); };
   const $ = (id) => document.getElementById(id);
   const token = new URLSearchParams(location.search).get("token");
   const withToken = (p) => (token ? p + (p.includes("?") ? "&" : "?") + "token=" + encodeURIComponent(token) : p);
