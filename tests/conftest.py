@@ -182,10 +182,13 @@ class Procs:
                 return path.read_text(errors="replace")
         raise KeyError(name)
 
-    def tail(self, name: str, lines: int = 40) -> str:
-        """A process's last log lines (what a stop ended with), for an assertion's message: CI shows a message's
-        beginning, and a whole log there hides its end."""
-        return "\n".join(self.log(name).splitlines()[-lines:])
+    def ending(self, name: str, rc: int | None, lines: int = 40) -> str:
+        """How a launcher's process ended, for an assertion's message (CI shows a message's beginning, and a whole
+        log there hides its end): its exit code, the launcher's own warnings (a node's exit code, a SIGTERM), then
+        the log's last lines."""
+        log = self.log(name).splitlines()
+        said = [ln for ln in log if ln.startswith("[bac.launch]") and ("code" in ln or "sent SIG" in ln)]
+        return "\n".join([f"{name} ended with {rc}", *said[-10:], f"--- the last {lines} lines:", *log[-lines:]])
 
     def logs(self) -> str:
         return "\n".join(f"----- {n} -----\n{path.read_text(errors='replace')}" for n, _, path in self.items)

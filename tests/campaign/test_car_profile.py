@@ -94,7 +94,7 @@ def test_car_profile_reaches_the_ecu_and_the_driver(
 
     launcher.send_signal(signal.SIGINT)
     rc = launcher.wait(timeout=60)
-    assert rc == 0, f"the launcher ended with {rc}; the end of its log:\n{procs.tail('car')}"
+    assert rc == 0, procs.ending("car", rc)
     # the bridge restored the safe baseline on the ECU as it stopped
     read = subprocess.run(
         [sys.executable, "-m", "bac_ecu_bridge", "read", "--interface", "udp_multicast", "--channel", CHANNEL,
@@ -232,7 +232,7 @@ def test_car_profile_retry_waits_for_a_new_drive(
     car.drive(firm)  # a very different J
     car.stand(1.0)
     rc = launcher.wait(timeout=60)
-    assert rc == 0, f"the launcher ended with {rc}; the end of its log:\n{procs.tail('car')}"
+    assert rc == 0, procs.ending("car", rc)
 
     events = [json.loads(x) for x in (camp / "journal.jsonl").read_text().splitlines()]
     rejected = [e for e in events if e["event"] == "run_rejected"]

@@ -6,11 +6,12 @@ clock, each change of the banner's state, of the J plot's point count and of the
 journal's wall times (written by the agent just before it publishes) give when the graph got there: the
 difference is how far the page is behind the graph, printed as ``cockpit_update_lag_s``.
 
-Two conditions of that figure (2026-11-29): the demo's nodes but the cockpit run at nice 10 once the page is
-connected (the graph at 10x real time keeps both cores of this machine busy by itself, as the car's graph at 1x
-never does, and the page's path, the cockpit node, the demo's relay and the browser, goes first, as on the car's
-laptop); and an update that waited while the test took one of its screenshots (0.5-1.5 s in which the renderer
-makes the picture) is printed but not held to the bound.
+Two conditions of that figure (2026-11-29): once the page is connected, the demo's nodes that make its load (the
+simulated vehicle, imu_ingest, the segmenter, the scorer, the recorder) run at nice 10: the graph at 10x real time
+keeps both cores of this machine busy by itself, as the car's graph at 1x never does, and an update's path (the
+agent, the cockpit node, the demo's relay, the browser) goes first; a condition of the test, nothing is reniced
+on the car. And the test takes one screenshot mid-campaign: an update that waited during it (the renderer makes
+the picture for 0.5-1.5 s) is bounded without that time.
 """
 
 from __future__ import annotations
@@ -32,6 +33,7 @@ import pytest
 from helpers.browser import ARTIFACTS, chromium, page_errors, save, wait_js, wait_until
 
 from bac_agent.journal import read_journal
+from bac_cockpit.feed import WORKER_NICE
 
 from conftest import fresh_domain
 
@@ -39,10 +41,10 @@ from conftest import fresh_domain
 pytestmark = [pytest.mark.integration, pytest.mark.slow, pytest.mark.alone, pytest.mark.timeout(1200)]
 BUDGET = 15  # the demo's
 MAX_LAG_S = 0.5
-# the bound holds on this machine running the test alone (the graph, the cockpit and the browser keep about two
-# cores busy); when others load it far beyond that, the scheduler decides the figure: it is printed, and only a
-# gross regression fails (a median above 1 s, an update later than 10 s)
-OVERLOADED = 3.0 * (os.cpu_count() or 1)
+# the bound holds on this machine running the test alone (the graph keeps both cores busy by itself: load average
+# 4-8, the page's path ahead of it at nice 0); when others load it beyond that, the scheduler decides the figure:
+# it is printed, and only a gross regression fails (a median above 1 s, an update later than 10 s)
+OVERLOADED = 5.0 * (os.cpu_count() or 1)
 
 OBSERVER = """
 const obs = window.__obs = {t0: Date.now(), banner: [], points: [], gp: [], rec: []};
@@ -66,7 +68,7 @@ return true;
 """
 
 
-GRAPH_NICE = 10  # the demo's nodes but the cockpit, while the page is measured
+GRAPH_NICE = 10  # the demo's nodes that make its load, while the page is measured
 
 
 def descendants(pid: int) -> list[int]:
@@ -87,24 +89,31 @@ def descendants(pid: int) -> list[int]:
     return out
 
 
-def graph_behind_the_page(demo_pid: int, cockpit_pid: int) -> int:
-    """The demo's graph nodes but the cockpit at nice GRAPH_NICE, every thread: the page's path (the cockpit node, the
-    demo process's relay to it, the browser) ahead of the load, as on the car's laptop, where the graph runs at 1x
-    and leaves the cores free. At 10x on 2 cores the graph alone keeps both cores busy (load average 4-8 with nothing
-    else running, 2026-11-29), and the scheduler, not the page, then decides how late an update is. Returns how many
-    threads it reniced."""
-    page_path = {demo_pid, cockpit_pid, *descendants(cockpit_pid)}
+def graph_behind_the_page(demo_pid: int, cockpit_pid: int, done: set[int]) -> int:
+    """The demo's nodes that make its load (the simulated vehicle with the bridge, imu_ingest, the segmenter, the
+    scorer, the recorder) at nice GRAPH_NICE, every thread, and the cockpit's GP worker WORKER_NICE below them, as
+    it is below the graph by design; the path of an update stays at 0: the agent (it journals, then publishes), the
+    cockpit node, the demo process's relay, the browser. At 10x real time on 2 cores the graph alone keeps both
+    cores busy (load average 4-8 with nothing else running, 2026-11-29), and the scheduler, not the page, then
+    decides how late an update is; the car's graph runs at 1x. Processes in ``done`` are left as they are (called
+    again as the campaign runs: the worker starts at the first J). Returns how many threads it reniced."""
+    worker = set(descendants(cockpit_pid))
     n = 0
     for pid in descendants(demo_pid):
-        if pid in page_path:
+        if pid in done or pid == cockpit_pid:
             continue
         try:
+            argv = Path(f"/proc/{pid}/cmdline").read_bytes().split(b"\0")
             tids = [int(t.name) for t in Path(f"/proc/{pid}/task").iterdir()]
         except OSError:
             continue
+        done.add(pid)
+        if b"bac_agent.agent_node" in argv:
+            continue
+        nice = GRAPH_NICE + WORKER_NICE if pid in worker else GRAPH_NICE
         for tid in tids:
             with contextlib.suppress(OSError):
-                os.setpriority(os.PRIO_PROCESS, tid, GRAPH_NICE)
+                os.setpriority(os.PRIO_PROCESS, tid, nice)
                 n += 1
     return n
 
@@ -144,7 +153,8 @@ def live(tmp_path_factory: pytest.TempPathFactory) -> Iterator[dict[str, Any]]:
         driver.get(url)
         wait_js(driver, "return document.getElementById('conn').textContent === 'connected'", 60, "the live stream")
         cockpit_pid = int(json.loads((camp / "cockpit.json").read_text())["pid"])
-        rec["reniced"] = graph_behind_the_page(proc.pid, cockpit_pid)
+        seen: set[int] = set()
+        rec["reniced"] = graph_behind_the_page(proc.pid, cockpit_pid, seen)
         # the page's first drawing done (plotly's first use is slow): from here on every update is measured
         wait_js(driver, "return (window.bacCockpit.timings.renderJ || []).length > 0", 60, "the first drawing")
         driver.execute_script(OBSERVER)
@@ -152,18 +162,19 @@ def live(tmp_path_factory: pytest.TempPathFactory) -> Iterator[dict[str, Any]]:
         w = subprocess.run([sys.executable, "-m", "bac_bringup.cli", "watch", url, "--once"], env=env,
                            capture_output=True, text=True, timeout=60, check=False)  # fmt: skip
         rec["watch"] = (w.returncode, w.stdout + w.stderr)
-        # the README's picture: a driver's moment mid-campaign (READY TO DRIVE), with the J history and the most
-        # runs in the GP view seen so far
-        shot, shot_runs = None, 0
+        # the README's picture: a driver's moment mid-campaign (READY TO DRIVE of trial 10-13), with the J history
+        # and the GP view of 9 runs or more; one picture (each holds the browser's renderer 0.5-1.5 s)
+        shot = None
         shots: list[tuple[float, float]] = []  # when each screenshot was taken (wall, ms)
         loads = [os.getloadavg()[0]]
         while proc.poll() is None:
             loads.append(os.getloadavg()[0])
+            rec["reniced"] += graph_behind_the_page(proc.pid, cockpit_pid, seen)
             st = driver.execute_script(
                 "const b = document.getElementById('banner'); return [b.dataset.state, +b.dataset.trial, "
                 "+document.getElementById('gpplot').dataset.runs];"
             )
-            if st[0] == "READY_TO_DRIVE" and 6 <= st[1] <= 13 and st[2] > shot_runs:
+            if shot is None and st[0] == "READY_TO_DRIVE" and 10 <= st[1] <= 13:
                 shot_at = time.time() * 1e3
                 taken = save(driver, f"cockpit_ready_{st[1]}.png", out)
                 shots.append((shot_at, time.time() * 1e3))
@@ -171,7 +182,7 @@ def live(tmp_path_factory: pytest.TempPathFactory) -> Iterator[dict[str, Any]]:
                     "const b = document.getElementById('banner'); return [b.dataset.state, +b.dataset.trial];"
                 )
                 if after == st[:2]:  # still READY TO DRIVE when the picture was taken
-                    shot, shot_runs = taken, st[2]
+                    shot = taken
             time.sleep(0.1)
         rec["screenshot_live"] = shot
         rec["shots"] = shots
@@ -301,12 +312,17 @@ def test_the_page_follows_the_graph_within_half_a_second(
             walls.append(w)
     assert len(lags) >= BUDGET
     assert live["reniced"] > 10  # the graph's nodes (their threads) were behind the page
-    # an update that waited while the test took a screenshot (0.5-1.5 s in which the browser's renderer is busy
-    # with the picture, not the page) is the test's doing: printed, not held to the bound
+    # an update that waited while the test took its screenshot (0.5-1.5 s in which the browser's renderer is busy
+    # with the picture, not the page) is bounded without that time: the screenshot is the test's doing
     shots = live["shots"]
-    held_by_shot = [
-        any(b >= w + 1e3 * x[4] and a <= w + 1e3 * x[2] for a, b in shots) for x, w in zip(lags, walls, strict=True)
-    ]
+
+    def shot_ms(x: tuple[Any, ...], w: float) -> float:
+        lo, hi = w + 1e3 * x[4], w + 1e3 * x[2]  # sent .. shown
+        return sum(max(0.0, min(b, hi) - max(a, lo)) for a, b in shots)
+
+    held_ms = [shot_ms(x, w) for x, w in zip(lags, walls, strict=True)]
+    held_by_shot = [h > 0 for h in held_ms]
+    assert sum(held_by_shot) <= 3 * len(shots), (held_by_shot, shots)
     bounded = [x for x, h in zip(lags, held_by_shot, strict=True) if not h]
     values = sorted(x[2] for x in bounded)
     worst = max(bounded, key=lambda x: x[2])
@@ -316,7 +332,7 @@ def test_the_page_follows_the_graph_within_half_a_second(
     figure = (
         f"cockpit_update_lag_s max {worst[2]:.3f} (trial {worst[1]} {worst[0]}: the cockpit node had it after "
         f"{worst[3]:.3f} s, sent it after {worst[4]:.3f} s) median {median:.3f} over {len(values)} updates "
-        f"(bac demo, 10x real time, its nodes but the cockpit at nice {GRAPH_NICE}, load average up to {load:.1f} on "
+        f"(bac demo, 10x real time, its load-making nodes at nice {GRAPH_NICE}, load average up to {load:.1f} on "
         f"{os.cpu_count()} cores)"
         + (f"; {len(by_shot)} more held up by the test's screenshots, up to {max(by_shot):.3f}" if by_shot else "")
     )
@@ -331,6 +347,8 @@ def test_the_page_follows_the_graph_within_half_a_second(
     busy = [f"{e[1]} {e[3] - e[2]:.0f} ms" for e in page_log if e[0] == "draw" and e[3] - e[2] >= 5
             and origin + e[3] >= w_worst + 1e3 * worst[4] and origin + e[2] <= w_worst + 1e3 * worst[2]]  # fmt: skip
     held = f"  while the worst waited, the page drew: {', '.join(busy) or 'nothing over 5 ms (in its log)'}"
+    if len(page_log) >= 5000:
+        held += " (the page's log is full: its first entries are gone)"
     with capsys.disabled():
         print(held, file=sys.stderr)
     (ARTIFACTS / "cockpit_update_lag.txt").write_text(figure + "\n" + draws + "\n" + held + "\n")
@@ -351,6 +369,8 @@ def test_the_page_follows_the_graph_within_half_a_second(
         assert median < 1.0 and worst[2] < 10.0, detail
         return
     assert worst[2] < MAX_LAG_S, detail
+    for x, h, ms in zip(lags, held_by_shot, held_ms, strict=True):  # the screenshot's time left out
+        assert not h or x[2] - ms / 1e3 < MAX_LAG_S, detail
 
 
 def test_the_terminal_view_shows_the_same_state(live: dict[str, Any]) -> None:

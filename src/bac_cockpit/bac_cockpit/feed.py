@@ -19,9 +19,10 @@ import multiprocessing
 import os
 import signal
 import time
-from collections.abc import Sequence
+from collections.abc import Callable, Iterator, Sequence
+from multiprocessing import resource_tracker
 from pathlib import Path
-from typing import Any
+from typing import Any, TypeVar
 
 from bac_cockpit.folder import FolderFacts, journal_path, read_bags, read_folder, speed_config
 from bac_cockpit.model import GRID, compute_model
@@ -37,6 +38,7 @@ from bac_cockpit.state import (
 )
 
 LOG = logging.getLogger("bac.cockpit")
+T = TypeVar("T")
 PR_SET_PDEATHSIG = 1
 DIAGNOSTICS_EVERY_S = 0.5  # the health cards at most twice a second (/diagnostics runs on sim time: 10 Hz at 10x)
 WORKER_NICE = 5  # below the graph's nodes, yet not starved on a busy machine
@@ -56,17 +58,37 @@ def _worker_init() -> None:  # pragma: no cover - runs in the worker process
         pass
 
 
+def model_pool() -> concurrent.futures.ProcessPoolExecutor:
+    """The GP view's worker pool: one process, spawned (never forked from a process with DDS threads) at its first
+    task (:func:`start_in_worker`), lower priority than the graph (:func:`_worker_init`)."""
+    return concurrent.futures.ProcessPoolExecutor(
+        max_workers=1, mp_context=multiprocessing.get_context("spawn"), initializer=_worker_init
+    )
+
+
 @contextlib.contextmanager
-def sigint_held() -> Any:
+def sigint_held() -> Iterator[None]:
     """SIGINT blocked in this thread meanwhile: a process started here starts with it blocked (a signal mask is
     inherited through fork and exec), so the launcher's stop, a SIGINT to the node's whole process group, cannot
     interrupt the model worker while it still imports its modules (its KeyboardInterrupt traceback in the node's
-    log, the pool broken); :func:`_worker_init` ignores SIGINT, then unblocks it. Other threads still take it."""
+    log, the pool broken); :func:`_worker_init` ignores SIGINT, then unblocks it. Other threads still take it.
+
+    multiprocessing's resource tracker is started first: starting it unblocks SIGINT in the calling thread (it
+    restores the mask it found), which would undo the block for the worker started after it."""
+    resource_tracker.ensure_running()
     old = signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGINT})
     try:
         yield
     finally:
         signal.pthread_sigmask(signal.SIG_SETMASK, old)
+
+
+def start_in_worker(
+    pool: concurrent.futures.ProcessPoolExecutor, fn: Callable[..., T], *args: Any
+) -> concurrent.futures.Future[T]:
+    """``pool.submit(fn, *args)``, a worker it starts for it starting with SIGINT blocked (:func:`sigint_held`)."""
+    with sigint_held():
+        return pool.submit(fn, *args)
 
 
 def model_key(state: CockpitState) -> tuple[Any, ...]:
@@ -276,10 +298,9 @@ class CampaignFeed:
         t0 = time.monotonic()
         try:
             if self.model_in_process:
-                loop = asyncio.get_running_loop()
-                with sigint_held():  # the worker starts here, at the first fit
-                    pending = loop.run_in_executor(self._model_pool(), compute_model, str(self.dir), self.model_grid)
-                model = await pending
+                # the worker starts here, at the first fit
+                pool = self._model_pool()
+                model = await asyncio.wrap_future(start_in_worker(pool, compute_model, str(self.dir), self.model_grid))
             else:
                 model = await asyncio.to_thread(compute_model, str(self.dir), self.model_grid)
             self.model_fits += 1
@@ -299,9 +320,7 @@ class CampaignFeed:
 
     def _model_pool(self) -> concurrent.futures.ProcessPoolExecutor:
         if self._pool is None:
-            self._pool = concurrent.futures.ProcessPoolExecutor(
-                max_workers=1, mp_context=multiprocessing.get_context("spawn"), initializer=_worker_init
-            )
+            self._pool = model_pool()
         return self._pool
 
     def close(self) -> None:

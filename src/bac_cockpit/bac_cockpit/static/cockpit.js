@@ -85,20 +85,23 @@
     if (slowTimer === null && slowPending.size) slowTimer = setTimeout(flushSlow, 150);
   }
 
-  // one heavy drawing per task: a message arriving meanwhile waits for the drawing in progress, not for another.
-  // Its own timer is younger than this one's (the drawing in progress queued this task as it ended, before the
-  // browser ran the message's handler), so here it is drawn first, and the heavy drawing waits for the next task
-  // (the browser paints the change in between). Once only: a heavy drawing that gave way is drawn next, even if
-  // changes keep coming (they can never hold the plots back for good)
+  // one heavy drawing per task. A change (banner, cards, J, table) that came in during a heavy drawing is drawn
+  // before the next one: the drawing queued this task as it ended, before the browser ran the message's handler,
+  // whose own task would otherwise come after this heavy drawing; the heavy drawing follows in the next task (the
+  // browser may paint the change in between). Once per heavy drawing: a change that comes in meanwhile waits for
+  // it, and changes that keep coming can never hold the plots back for good
   let slowGaveWay = false;
   function flushSlow() {
     slowTimer = null;
-    if (timer !== null && !slowGaveWay) {
+    if (timer !== null && pending.size && !slowGaveWay) {
       clearTimeout(timer);
-      flush();
-      slowGaveWay = true;
-      if (slowTimer !== null) clearTimeout(slowTimer);  // flush() put it 150 ms off: it is due
-      slowTimer = slowPending.size ? setTimeout(flushSlow, 0) : null;
+      try {
+        flush();
+      } finally {  // a drawing that threw must not stop the heavy plots
+        slowGaveWay = true;
+        if (slowTimer !== null) clearTimeout(slowTimer);  // flush() put it 150 ms off: it is due
+        slowTimer = slowPending.size ? setTimeout(flushSlow, 0) : null;
+      }
       return;
     }
     slowGaveWay = false;
@@ -447,6 +450,26 @@
   }
 
   window.bacCockpit = { state: S, timings: T, log: L };
+  // plotly's first contour and first log axis cost several times a later drawing (its code warms up): paid here,
+  // off screen, while the page waits for its first data, not when the first GP view arrives mid-campaign
+  function warmUp() {
+    const div = document.createElement("div");
+    div.style.cssText = "position:absolute;left:-10000px;top:0;width:320px;height:240px";
+    document.body.appendChild(div);
+    const layout = (extra) => Object.assign({ showlegend: false, margin: { l: 20, r: 0, t: 0, b: 20 } }, extra);
+    const done = () => { try { Plotly.purge(div); } finally { div.remove(); } };
+    // one after the other, each finished (plotly finishes a drawing asynchronously: a purge under it throws)
+    Promise.resolve()
+      .then(() => Plotly.newPlot(div, [
+        { type: "contour", x: [0, 1], y: [0, 1], z: [[0, 1], [1, 0]], ncontours: 4, showscale: false },
+        { type: "scatter", mode: "markers+text", x: [0.5], y: [0.5], text: ["1"] },
+      ], layout({}), { staticPlot: true }))
+      .then(() => Plotly.react(div, [{ type: "scatter", mode: "lines", x: [1, 2], y: [1e-3, 1] }],
+        layout({ yaxis: { type: "log" } }), { staticPlot: true }))
+      .then(() => setTimeout(done, 1000), () => setTimeout(done, 1000));
+  }
+
+  warmUp();
   renderBanner();
   connect();
 })();
