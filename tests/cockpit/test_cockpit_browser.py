@@ -39,12 +39,12 @@ from bac_cockpit.feed import WORKER_NICE
 
 from conftest import fresh_domain
 
-# alone: the update lag is bounded on a machine that runs the test alone (make test's other worker waits)
+# alone: the printed lag figure only means something with the machine to itself (make test's other worker waits)
 pytestmark = [pytest.mark.integration, pytest.mark.slow, pytest.mark.alone, pytest.mark.timeout(1200)]
 BUDGET = 15  # the demo's
 MAX_LAG_S = 0.5
 # the bound is a speed figure: the developers' guide measures speed in benchmarks, not in timed tests, and on this
-# 2-core machine, shared with others' work, the same code gave max 0.34 s in one run and 2.7 s in another an hour
+# 2-core machine, with nothing else running, the same code gave max 2.7 s in one run and 0.34 s in another minutes
 # later (2026-11-29). `make test` asserts the page follows at all (every update shown, the median under 1 s, none
 # later than 10 s) and prints the figure; bench/cockpit_lag.py (by hand) runs this test with BAC_COCKPIT_LAG_BOUND=1,
 # which asserts the bound on every update
@@ -94,33 +94,38 @@ def descendants(pid: int) -> list[int]:
     return out
 
 
-def graph_behind_the_page(demo_pid: int, cockpit_pid: int, done: set[int]) -> int:
-    """The demo's nodes that make its load (the simulated vehicle with the bridge, imu_ingest, the segmenter, the
-    scorer, the recorder) at nice GRAPH_NICE, every thread, and the cockpit's GP worker WORKER_NICE below them, as
-    it is below the graph by design; the path of an update stays at 0: the agent (it journals, then publishes), the
-    cockpit node, the demo process's relay, the browser. At 10x real time on 2 cores the graph alone keeps both
-    cores busy (load average 4-8 with nothing else running, 2026-11-29), and the scheduler, not the page, then
-    decides how late an update is; the car's graph runs at 1x. Processes in ``done`` are left as they are (called
-    again as the campaign runs: the worker starts at the first J). Returns how many threads it reniced."""
+def graph_behind_the_page(demo_pid: int, cockpit_pid: int, done: set[int]) -> tuple[int, bool]:
+    """Every process below the demo but the agent and the cockpit node (in effect the nodes that make its load: the
+    simulated vehicle with the bridge, imu_ingest, the segmenter, the scorer, the recorder; also the launcher's
+    helpers) at nice GRAPH_NICE, every thread, and the cockpit's GP worker WORKER_NICE below them, as it is below
+    the graph by design; the path of an update stays at 0: the agent (it journals, then publishes), the cockpit
+    node, the demo process with its relay, the browser. At 10x real time on 2 cores the graph alone keeps both cores
+    busy (load average 4-8 with nothing else running, 2026-11-29), and the scheduler, not the page, then decides how
+    late an update is. Processes in ``done`` are left as they are (called again as the campaign runs: the worker
+    starts at the first J, and is reniced once it has set its own nice, else os.nice would add to ours). Returns
+    how many threads it reniced and whether it saw the agent."""
     worker = set(descendants(cockpit_pid))
-    n = 0
+    n, agent = 0, False
     for pid in descendants(demo_pid):
         if pid in done or pid == cockpit_pid:
             continue
         try:
             argv = Path(f"/proc/{pid}/cmdline").read_bytes().split(b"\0")
             tids = [int(t.name) for t in Path(f"/proc/{pid}/task").iterdir()]
+            if pid in worker and os.getpriority(os.PRIO_PROCESS, pid) != WORKER_NICE:
+                continue  # still starting: its _worker_init has not niced it yet
         except OSError:
             continue
         done.add(pid)
         if b"bac_agent.agent_node" in argv:
+            agent = True
             continue
         nice = GRAPH_NICE + WORKER_NICE if pid in worker else GRAPH_NICE
         for tid in tids:
             with contextlib.suppress(OSError):
                 os.setpriority(os.PRIO_PROCESS, tid, nice)
                 n += 1
-    return n
+    return n, agent
 
 
 def wall_ms(event: dict[str, Any]) -> float:
@@ -159,7 +164,7 @@ def live(tmp_path_factory: pytest.TempPathFactory) -> Iterator[dict[str, Any]]:
         wait_js(driver, "return document.getElementById('conn').textContent === 'connected'", 60, "the live stream")
         cockpit_pid = int(json.loads((camp / "cockpit.json").read_text())["pid"])
         seen: set[int] = set()
-        rec["reniced"] = graph_behind_the_page(proc.pid, cockpit_pid, seen)
+        rec["reniced"], rec["agent_seen"] = graph_behind_the_page(proc.pid, cockpit_pid, seen)
         # the page's first drawing done (plotly's first use is slow): from here on every update is measured
         wait_js(driver, "return (window.bacCockpit.timings.renderJ || []).length > 0", 60, "the first drawing")
         driver.execute_script(OBSERVER)
@@ -168,7 +173,8 @@ def live(tmp_path_factory: pytest.TempPathFactory) -> Iterator[dict[str, Any]]:
                            capture_output=True, text=True, timeout=60, check=False)  # fmt: skip
         rec["watch"] = (w.returncode, w.stdout + w.stderr)
         # the README's picture: a driver's moment mid-campaign (READY TO DRIVE of trial 10-13), with the J history
-        # and the GP view of 9 runs or more; one picture (each holds the browser's renderer 0.5-1.5 s)
+        # and the GP view; one picture (each holds the browser's renderer 0.5-1.5 s), another only if the banner
+        # changed while it was taken
         shot = None
         shots: list[tuple[float, float]] = []  # when each screenshot was taken (wall, ms)
         loads = [os.getloadavg()[0]]
@@ -177,7 +183,9 @@ def live(tmp_path_factory: pytest.TempPathFactory) -> Iterator[dict[str, Any]]:
             loads.append(os.getloadavg()[0])
             polls += 1
             if polls % 10 == 0:  # about every second (a walk of /proc is not free): the GP worker, once it starts
-                rec["reniced"] += graph_behind_the_page(proc.pid, cockpit_pid, seen)
+                more, agent = graph_behind_the_page(proc.pid, cockpit_pid, seen)
+                rec["reniced"] += more
+                rec["agent_seen"] |= agent
             st = driver.execute_script(
                 "const b = document.getElementById('banner'); return [b.dataset.state, +b.dataset.trial, "
                 "+document.getElementById('gpplot').dataset.runs];"
@@ -284,9 +292,7 @@ def test_the_final_recommendation_is_shown(live: dict[str, Any]) -> None:
         assert f"{name}={float(value):.3g}" in text, (text, rec)
 
 
-def test_the_page_follows_the_graph_within_half_a_second(
-    live: dict[str, Any], capsys: pytest.CaptureFixture[str]
-) -> None:
+def test_the_page_follows_the_graph(live: dict[str, Any], capsys: pytest.CaptureFixture[str]) -> None:
     """READY TO DRIVE and each new J point on the page against the journal's time of the same event."""
     events = read_journal(live["folder"] / "journal.jsonl").events
     obs = live["obs"]
@@ -320,6 +326,7 @@ def test_the_page_follows_the_graph_within_half_a_second(
             walls.append(w)
     assert len(lags) >= BUDGET
     assert live["reniced"] > 10  # the graph's nodes (their threads) were behind the page
+    assert live["agent_seen"], "the agent's process was not found among the demo's: it was not kept at nice 0"
     # an update that waited while the test took its screenshot (0.5-1.5 s in which the browser's renderer is busy
     # with the picture, not the page) is bounded without that time: the screenshot is the test's doing
     shots = live["shots"]
@@ -330,19 +337,21 @@ def test_the_page_follows_the_graph_within_half_a_second(
 
     held_ms = [shot_ms(x, w) for x, w in zip(lags, walls, strict=True)]
     held_by_shot = [h > 0 for h in held_ms]
-    assert sum(held_by_shot) <= 3 * len(shots), (held_by_shot, shots)
-    bounded = [x for x, h in zip(lags, held_by_shot, strict=True) if not h]
-    values = sorted(x[2] for x in bounded)
-    worst = max(bounded, key=lambda x: x[2])
+    assert sum(held_by_shot) <= 3 * len(shots), (
+        f"{sum(held_by_shot)} updates held up by {len(shots)} screenshot(s): more than a screenshot can hold"
+    )
+    # each update's lag, a screenshot's time left out: the figure and the bound are both on these
+    adjusted = [(x[2] - ms / 1e3, x) for x, ms in zip(lags, held_ms, strict=True)]
+    values = sorted(a for a, _ in adjusted)
+    worst_adj, worst = max(adjusted, key=lambda ax: ax[0])
     median = values[len(values) // 2]
     load = live["load"]
-    by_shot = [x[2] for x, h in zip(lags, held_by_shot, strict=True) if h]
+    over = [f"{x[0]} {x[1]}: {a:.3f}" for a, x in adjusted if a >= MAX_LAG_S]
     figure = (
-        f"cockpit_update_lag_s max {worst[2]:.3f} (trial {worst[1]} {worst[0]}: the cockpit node had it after "
+        f"cockpit_update_lag_s max {worst_adj:.3f} (trial {worst[1]} {worst[0]}: the cockpit node had it after "
         f"{worst[3]:.3f} s, sent it after {worst[4]:.3f} s) median {median:.3f} over {len(values)} updates "
         f"(bac demo, 10x real time, its load-making nodes at nice {GRAPH_NICE}, load average up to {load:.1f} on "
-        f"{os.cpu_count()} cores)"
-        + (f"; {len(by_shot)} more held up by the test's screenshots, up to {max(by_shot):.3f}" if by_shot else "")
+        f"{os.cpu_count()} cores; {sum(held_by_shot)} held up by the test's screenshot, its time left out)"
     )
     draws = ", ".join(f"{name} {sorted(ms)[len(ms) // 2]:.0f}" for name, ms in sorted(live["timings"].items()) if ms)
     with capsys.disabled():  # the figure is printed in every run, passed or not (stderr: an xdist worker's stdout
@@ -357,9 +366,11 @@ def test_the_page_follows_the_graph_within_half_a_second(
     held = f"  while the worst waited, the page drew: {', '.join(busy) or 'nothing over 5 ms (in its log)'}"
     if len(page_log) >= 5000:
         held += " (the page's log is full: its first entries are gone)"
+    # the line bench/cockpit_lag.py reads for its verdict
+    verdict = f"updates_over_{MAX_LAG_S}_s {len(over)} of {len(lags)}" + (f": {', '.join(over)}" if over else "")
     with capsys.disabled():
-        print(held, file=sys.stderr)
-    (ARTIFACTS / "cockpit_update_lag.txt").write_text(figure + "\n" + draws + "\n" + held + "\n")
+        print(f"{held}\n  {verdict}", file=sys.stderr)
+    (ARTIFACTS / "cockpit_update_lag.txt").write_text(figure + "\n" + draws + "\n" + held + "\n" + verdict + "\n")
     (ARTIFACTS / "cockpit_page_log.json").write_text(
         json.dumps({"time_origin": origin, "page_log": page_log, "shots": live["shots"],
                     "updates": [[*x, w] for x, w in zip(lags, walls, strict=True)]})
@@ -371,11 +382,6 @@ def test_the_page_follows_the_graph_within_half_a_second(
     )
     assert min(x[2] for x in lags) > -0.01, detail  # the same clock: the page cannot be ahead of the journal
     assert median < GROSS_MEDIAN_S and max(x[2] for x in lags) < GROSS_MAX_S, detail
-    adjusted = [x[2] - ms / 1e3 for x, ms in zip(lags, held_ms, strict=True)]  # the screenshot's time left out
-    over = [f"{x[0]} {x[1]}: {a:.3f}" for x, a in zip(lags, adjusted, strict=True) if a >= MAX_LAG_S]
-    with capsys.disabled():
-        print(f"  {len(over)} of {len(lags)} updates at {MAX_LAG_S} s or more (the screenshot's time left out)"
-              + (f": {', '.join(over)}" if over else ""), file=sys.stderr)  # fmt: skip
     if STRICT:
         assert not over, f"over {MAX_LAG_S} s: {over}\n{detail}"
 

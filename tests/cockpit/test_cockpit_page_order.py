@@ -29,7 +29,7 @@ from bac_cockpit.state import CockpitState
 pytestmark = [pytest.mark.integration, pytest.mark.timeout(300)]
 HEAVY = ("renderGP", "renderSignals", "renderSpectra")
 HEAVY_MS = 2000  # each heavy plot's drawing made this much longer
-JITTER_S = 0.8  # the J is sent this long after the heavy parts: the first heavy drawing starts 0.15 s after them
+JITTER_S = 1.15  # the J is sent this long after the heavy parts: in the middle of the first heavy drawing (0.15-2.15 s)
 ROUNDS = 3
 SLOW_PLOTS = f"""
 const react = Plotly.react;
@@ -134,7 +134,8 @@ def test_a_new_j_waits_for_the_heavy_drawing_in_progress_at_most(page: tuple[Any
 
     for n, (lo, hi) in enumerate(zip(marks, [*marks[1:], len(log)], strict=True), start=1):
         part = log[lo:hi]
-        at = next(i for i, e in enumerate(part) if e[0] == "patch" and "trials" in e[1].split(","))
+        at = next((i for i, e in enumerate(part) if e[0] == "patch" and "trials" in e[1].split(",")), None)
+        assert at is not None, f"round {n}: the page never had its J's message\n{seq}"
         drawn = next((e for e in part[at:] if e[0] == "draw" and e[1] == "renderJ"), None)
         assert drawn is not None, f"round {n}: its J was never drawn\n{seq}"
         # the case under test: the J's message waited for a heavy drawing, and more were queued behind it

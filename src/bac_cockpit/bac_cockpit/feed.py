@@ -71,11 +71,7 @@ def sigint_held() -> Iterator[None]:
     """SIGINT blocked in this thread meanwhile: a process started here starts with it blocked (a signal mask is
     inherited through fork and exec), so the launcher's stop, a SIGINT to the node's whole process group, cannot
     interrupt the model worker while it still imports its modules (its KeyboardInterrupt traceback in the node's
-    log, the pool broken); :func:`_worker_init` ignores SIGINT, then unblocks it. Other threads still take it.
-
-    multiprocessing's resource tracker is started first: starting it unblocks SIGINT in the calling thread (it
-    restores the mask it found), which would undo the block for the worker started after it."""
-    resource_tracker.ensure_running()
+    log, the pool broken); :func:`_worker_init` ignores SIGINT, then unblocks it. Other threads still take it."""
     old = signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGINT})
     try:
         yield
@@ -86,7 +82,12 @@ def sigint_held() -> Iterator[None]:
 def start_in_worker(
     pool: concurrent.futures.ProcessPoolExecutor, fn: Callable[..., T], *args: Any
 ) -> concurrent.futures.Future[T]:
-    """``pool.submit(fn, *args)``, a worker it starts for it starting with SIGINT blocked (:func:`sigint_held`)."""
+    """``pool.submit(fn, *args)``, a worker it starts for it starting with SIGINT blocked (:func:`sigint_held`).
+
+    multiprocessing's resource tracker is made sure of first, outside the block: starting it unblocks SIGINT and
+    SIGTERM in the calling thread, which would undo the block for the worker started after it (the pool's
+    constructor starts it already; this keeps it so if that changes)."""
+    resource_tracker.ensure_running()
     with sigint_held():
         return pool.submit(fn, *args)
 

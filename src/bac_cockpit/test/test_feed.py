@@ -85,8 +85,8 @@ print(json.dumps(out))
 def test_the_model_worker_cannot_be_interrupted_while_it_starts() -> None:
     """The launcher stops a node with SIGINT to its whole process group, the model worker included: one that
     lands while the worker still starts (before it ignores SIGINT) must not kill it (seen in the car profile's
-    test logs: a KeyboardInterrupt traceback in the cockpit's log). Run in a fresh process, as in the node:
-    multiprocessing's resource tracker, started with the pool, unblocks SIGINT in the thread that starts it."""
+    test logs: a KeyboardInterrupt traceback in the cockpit's log). Run in a fresh process, as in the node (the
+    pool and multiprocessing's helpers made there). Fails without the block (checked)."""
     proc = subprocess.run(
         [sys.executable, "-c", WORKER_START], capture_output=True, text=True, timeout=180, check=False
     )

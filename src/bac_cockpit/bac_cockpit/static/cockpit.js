@@ -85,8 +85,8 @@
     if (slowTimer === null && slowPending.size) slowTimer = setTimeout(flushSlow, 150);
   }
 
-  // one heavy drawing per task. A change (banner, cards, J, table) that came in during a heavy drawing is drawn
-  // before the next one: the drawing queued this task as it ended, before the browser ran the message's handler,
+  // one heavy drawing per task. A change that came in during a heavy drawing (its J and table: the banner and the
+  // cards are drawn in the message's handler) is drawn before the next one: the drawing queued this task as it ended, before the browser ran the message's handler,
   // whose own task would otherwise come after this heavy drawing; the heavy drawing follows in the next task (the
   // browser may paint the change in between). Once per heavy drawing: a change that comes in meanwhile waits for
   // it, and changes that keep coming can never hold the plots back for good
@@ -110,17 +110,20 @@
     const next = order.find((x) => k.has(x));
     if (next === undefined) { slowPending = new Set(); return; }
     k.delete(next);
-    if (next === "model" || next === "marker") {
-      k.delete("marker");
-      if (next === "model") renderJ();  // the model's recommendation band while there is no final one
-      if (next === "model" || !timed("moveMarker", moveMarker)) renderGP();
-      const t = S.trial || {};
-      drawnMarker = t.state_name === "DONE" ? "" : JSON.stringify(t.params || {});
-    } else if (next === "signals") renderSignals();
-    else if (next === "spectra") renderSpectra();
-    else if (next === "diagnostics") renderDiag();
-    else if (next === "campaign") renderCampaign();
-    if (k.size) slowTimer = setTimeout(flushSlow, 0);
+    try {
+      if (next === "model" || next === "marker") {
+        k.delete("marker");
+        if (next === "model") renderJ();  // the model's recommendation band while there is no final one
+        if (next === "model" || !timed("moveMarker", moveMarker)) renderGP();
+        const t = S.trial || {};
+        drawnMarker = t.state_name === "DONE" ? "" : JSON.stringify(t.params || {});
+      } else if (next === "signals") renderSignals();
+      else if (next === "spectra") renderSpectra();
+      else if (next === "diagnostics") renderDiag();
+      else if (next === "campaign") renderCampaign();
+    } finally {  // a drawing that threw must not stop the others
+      if (k.size && slowTimer === null) slowTimer = setTimeout(flushSlow, 0);
+    }
   }
 
   // --- the banner ----------------------------------------------------------------------------------------
@@ -450,8 +453,9 @@
   }
 
   window.bacCockpit = { state: S, timings: T, log: L };
-  // plotly's first contour and first log axis cost several times a later drawing (its code warms up): paid here,
-  // off screen, while the page waits for its first data, not when the first GP view arrives mid-campaign
+  // plotly's first contour and first log axis cost more than later ones (its code warms up; on an idle machine the
+  // first GP drawing took 74 ms without this, 50 ms with it, one run each, 2026-11-29): paid here, off screen,
+  // while the page waits for its first data, not when the first GP view arrives mid-campaign
   function warmUp() {
     const div = document.createElement("div");
     div.style.cssText = "position:absolute;left:-10000px;top:0;width:320px;height:240px";
@@ -463,9 +467,9 @@
       .then(() => Plotly.newPlot(div, [
         { type: "contour", x: [0, 1], y: [0, 1], z: [[0, 1], [1, 0]], ncontours: 4, showscale: false },
         { type: "scatter", mode: "markers+text", x: [0.5], y: [0.5], text: ["1"] },
-      ], layout({}), { staticPlot: true }))
+      ], layout({}), PLOT_CONFIG))
       .then(() => Plotly.react(div, [{ type: "scatter", mode: "lines", x: [1, 2], y: [1e-3, 1] }],
-        layout({ yaxis: { type: "log" } }), { staticPlot: true }))
+        layout({ yaxis: { type: "log" } }), PLOT_CONFIG))
       .then(() => setTimeout(done, 1000), () => setTimeout(done, 1000));
   }
 
