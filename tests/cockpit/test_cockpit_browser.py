@@ -358,7 +358,7 @@ def test_the_page_follows_the_graph(live: dict[str, Any], capsys: pytest.Capture
         # goes nowhere)
         print(f"\n{figure}\n  the page's drawing, median ms: {draws}", file=sys.stderr)
     # what the page's script did while the worst update waited between the server and the screen (its log keeps
-    # the last 5,000 entries: the whole demo)
+    # at least the last 5,000 entries: the whole demo)
     origin, page_log = live["time_origin"], live["page_log"]
     w_worst = walls[lags.index(worst)]
     busy = [f"{e[1]} {e[3] - e[2]:.0f} ms" for e in page_log if e[0] == "draw" and e[3] - e[2] >= 5

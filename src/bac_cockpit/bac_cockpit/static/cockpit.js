@@ -4,8 +4,8 @@
 
   const S = {};                      // the state, as the server sends it (snapshot, then patches)
   const T = {};                      // how long each drawing took here, ms (the last 50 of each)
-  const L = [];                      // what the page did, in order: [kind, what, start ms, end ms] (the last 5,000)
-  const note = (kind, what, t0, t1) => { L.push([kind, what, t0, t1]); if (L.length > 5000) L.shift(); };
+  const L = [];                      // what the page did, in order: [kind, what, start ms, end ms] (the last 5,000-6,000)
+  const note = (kind, what, t0, t1) => { L.push([kind, what, t0, t1]); if (L.length > 6000) L.splice(0, 1000); };
   const $ = (id) => document.getElementById(id);
   const token = new URLSearchParams(location.search).get("token");
   const withToken = (p) => (token ? p + (p.includes("?") ? "&" : "?") + "token=" + encodeURIComponent(token) : p);
@@ -86,10 +86,11 @@
   }
 
   // one heavy drawing per task. A change that came in during a heavy drawing (its J and table: the banner and the
-  // cards are drawn in the message's handler) is drawn before the next one: the drawing queued this task as it ended, before the browser ran the message's handler,
-  // whose own task would otherwise come after this heavy drawing; the heavy drawing follows in the next task (the
-  // browser may paint the change in between). Once per heavy drawing: a change that comes in meanwhile waits for
-  // it, and changes that keep coming can never hold the plots back for good
+  // cards are drawn in the message's handler) is drawn before the next one: the drawing queued this task as it
+  // ended, before the browser ran the message's handler, whose own task would otherwise come after this heavy
+  // drawing; the heavy drawing follows in the next task (the browser may paint the change in between). Once per
+  // heavy drawing: a change that comes in meanwhile waits for it, and changes that keep coming can never hold the
+  // plots back for good
   let slowGaveWay = false;
   function flushSlow() {
     slowTimer = null;
